@@ -1,0 +1,183 @@
+"""Reference geometry: particles, volumes, named sets and the domain boundary.
+
+Everything here is NumPy and runs once, outside jit (total Lagrangian: the reference
+configuration never changes).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from . import polygons
+
+
+@dataclass(frozen=True, eq=False)
+class Body:
+    """A body in its reference configuration.
+
+    X        (N, d)  particle positions
+    volumes  (N,)    particle volumes (areas in 2D); they sum to the domain measure
+    spacing          nominal particle spacing h (the kernel support is a multiple of it)
+    lower, upper (d,) bounding box of the domain
+    vertices (V, 2)  counter-clockwise domain polygon (2D only; a box gives 4 corners)
+    """
+
+    X: np.ndarray
+    volumes: np.ndarray
+    spacing: float
+    lower: np.ndarray
+    upper: np.ndarray
+    vertices: np.ndarray | None = None
+    is_box: bool = True
+    _tree: cKDTree = field(default=None, repr=False)
+
+    @property
+    def dim(self) -> int:
+        return self.X.shape[1]
+
+    @property
+    def n(self) -> int:
+        return self.X.shape[0]
+
+    @property
+    def measure(self) -> float:
+        """Domain area (2D) or volume (3D)."""
+        if self.vertices is not None and not self.is_box:
+            return polygons.area(self.vertices)
+        return float(np.prod(self.upper - self.lower))
+
+    # ------------------------------------------------------------------ builders
+    @staticmethod
+    def grid(shape, spacing: float, origin=None) -> "Body":
+        """Regular lattice of particles, ``shape`` = (nx, ny) or (nx, ny, nz)."""
+        shape = tuple(int(s) for s in shape)
+        if len(shape) not in (2, 3):
+            raise ValueError(f"grid shape must have 2 or 3 entries, got {shape}")
+        if min(shape) < 2:
+            raise ValueError(f"grid shape needs at least 2 particles per direction, got {shape}")
+        if not (np.isfinite(spacing) and spacing > 0):
+            raise ValueError(f"spacing must be positive and finite, got {spacing}")
+        d = len(shape)
+        origin = np.zeros(d) if origin is None else np.asarray(origin, float)
+        if origin.shape != (d,):
+            raise ValueError(f"origin must have shape ({d},), got {origin.shape}")
+        axes = [origin[i] + spacing * np.arange(shape[i]) for i in range(d)]
+        X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, d)
+        # Trapezoid weights per axis: boundary particles own half a cell.
+        w1 = []
+        for s in shape:
+            w = np.full(s, spacing)
+            w[[0, -1]] = spacing / 2
+            w1.append(w)
+        vol = np.prod(np.stack(np.meshgrid(*w1, indexing="ij"), -1).reshape(-1, d), axis=1)
+        lower, upper = origin, origin + spacing * (np.array(shape) - 1)
+        verts = None
+        if d == 2:
+            verts = np.array([[lower[0], lower[1]], [upper[0], lower[1]],
+                              [upper[0], upper[1]], [lower[0], upper[1]]])
+        return Body(X, vol, float(spacing), lower, upper, verts, True, cKDTree(X))
+
+    @staticmethod
+    def polygon(vertices, spacing: float, origin=None) -> "Body":
+        """2D body bounded by a simple polygon.
+
+        Particles: lattice points (anchored at ``origin``, default the first vertex) that lie
+        inside the polygon and at least spacing/3 from its boundary, plus particles placed on
+        every edge at (at most) ``spacing``. Volumes are the particles' Voronoi cells clipped to
+        the polygon, so they sum to its area.
+        """
+        V = polygons.as_ccw(np.asarray(vertices, float))
+        if not (np.isfinite(spacing) and spacing > 0):
+            raise ValueError(f"spacing must be positive and finite, got {spacing}")
+        origin = V[0] if origin is None else np.asarray(origin, float)
+        edge_pts = []
+        for a, b in zip(V, np.roll(V, -1, axis=0)):
+            m = max(1, int(np.ceil(np.linalg.norm(b - a) / spacing - 1e-9)))
+            t = np.arange(m)[:, None] / m
+            edge_pts.append(a + t * (b - a))
+        edge_pts = np.concatenate(edge_pts)
+        lo, hi = V.min(0), V.max(0)
+        i0 = np.floor((lo - origin) / spacing).astype(int)
+        i1 = np.ceil((hi - origin) / spacing).astype(int)
+        gx = origin[0] + spacing * np.arange(i0[0], i1[0] + 1)
+        gy = origin[1] + spacing * np.arange(i0[1], i1[1] + 1)
+        L = np.stack(np.meshgrid(gx, gy, indexing="ij"), -1).reshape(-1, 2)
+        inside = polygons.contains(V, L) & (polygons.distance_to_boundary(V, L) > spacing / 3)
+        X = np.concatenate([edge_pts, L[inside]])
+        vol = polygons.voronoi_areas(X, V)
+        return Body(X, vol, float(spacing), lo, hi, V, False, cKDTree(X))
+
+    # ------------------------------------------------------------------ queries
+    def select(self, predicate: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        """Indices of the particles where ``predicate(X) -> (N,) bool`` is true."""
+        mask = np.asarray(predicate(self.X), bool)
+        if mask.shape != (self.n,):
+            raise ValueError(f"predicate must return a ({self.n},) boolean array, got shape {mask.shape}")
+        return np.flatnonzero(mask)
+
+    def nearest(self, points, k: int = 1) -> np.ndarray:
+        """Indices of the k particles nearest to each point: (P,) or (P, k)."""
+        _, idx = self._tree.query(np.atleast_2d(points), k=k)
+        return idx
+
+    def contains(self, points, tol: float | None = None) -> np.ndarray:
+        """(P,) bool: points inside the closed domain (with a small tolerance)."""
+        P = np.atleast_2d(np.asarray(points, float))
+        tol = 1e-9 * self.spacing if tol is None else tol
+        if self.is_box:
+            return np.all((P >= self.lower - tol) & (P <= self.upper + tol), axis=1)
+        return polygons.contains(self.vertices, P) | (polygons.distance_to_boundary(self.vertices, P) <= tol)
+
+    def check_inside(self, points, what: str = "point") -> np.ndarray:
+        P = np.atleast_2d(np.asarray(points, float))
+        if P.ndim != 2 or P.shape[1] != self.dim:
+            raise ValueError(f"{what}s must have shape (P, {self.dim}), got {np.shape(points)}")
+        if not np.all(np.isfinite(P)):
+            raise ValueError(f"{what}s contain non-finite coordinates")
+        out = ~self.contains(P)
+        if out.any():
+            i = int(np.flatnonzero(out)[0])
+            raise ValueError(f"{what} {i} at {P[i].tolist()} is outside the body "
+                             f"(bounding box {self.lower.tolist()} .. {self.upper.tolist()})")
+        return P
+
+    def boundary_facets(self, n_per_edge: float | None = None):
+        """Boundary pieces of size <= spacing: 2D segments (M, 2, 2) with outward normals (M, 2);
+        3D quads (M, 4, 3) with outward normals (M, 3). Counter-clockwise ordering in 2D."""
+        h = self.spacing if n_per_edge is None else n_per_edge
+        if self.dim == 2:
+            segs = []
+            V = self.vertices
+            for a, b in zip(V, np.roll(V, -1, axis=0)):
+                m = max(1, int(np.ceil(np.linalg.norm(b - a) / h - 1e-9)))
+                t = np.arange(m + 1)[:, None] / m
+                p = a + t * (b - a)
+                segs.append(np.stack([p[:-1], p[1:]], 1))
+            segs = np.concatenate(segs)
+            tang = segs[:, 1] - segs[:, 0]
+            normal = np.stack([tang[:, 1], -tang[:, 0]], 1)
+            normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+            return segs, normal
+        quads, normals = [], []
+        lo, hi = self.lower, self.upper
+        for ax in range(3):
+            a1, a2 = [i for i in range(3) if i != ax]
+            n1 = max(1, int(np.ceil((hi[a1] - lo[a1]) / h - 1e-9)))
+            n2 = max(1, int(np.ceil((hi[a2] - lo[a2]) / h - 1e-9)))
+            s1 = np.linspace(lo[a1], hi[a1], n1 + 1)
+            s2 = np.linspace(lo[a2], hi[a2], n2 + 1)
+            for side, val in ((-1, lo[ax]), (1, hi[ax])):
+                for i in range(n1):
+                    for j in range(n2):
+                        q = np.zeros((4, 3))
+                        q[:, ax] = val
+                        q[:, a1] = [s1[i], s1[i + 1], s1[i + 1], s1[i]]
+                        q[:, a2] = [s2[j], s2[j], s2[j + 1], s2[j + 1]]
+                        nrm = np.zeros(3)
+                        nrm[ax] = side
+                        quads.append(q)
+                        normals.append(nrm)
+        return np.array(quads), np.array(normals)

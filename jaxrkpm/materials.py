@@ -1,0 +1,171 @@
+"""Hyperelastic materials as scalar JAX strain energies W(E, p).
+
+The 2nd Piola-Kirchhoff stress S = sym(dW/dE) and every tangent come from autodiff.
+Scalar parameters may be fields: pass a callable X (Q, d) -> (Q,) and it is evaluated at
+the integration points when a model is built (an inclusion is data, not code).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def _sym(A):
+    return 0.5 * (A + jnp.swapaxes(A, -1, -2))
+
+
+@dataclass(frozen=True, eq=False)
+class Material:
+    """A strain energy W(E, p) -> scalar, with E the (d, d) Green-Lagrange strain and p a
+    dict of parameters at one point.
+
+    ``params``: name -> float | callable field X (n, d) -> (n,) | array (global tensor).
+    ``positive``: names of parameters that must be > 0 everywhere.
+    ``tensors``: optional callable dim -> dict of extra global arrays (e.g. Fung's A, C)."""
+
+    W: Callable
+    params: dict = field(default_factory=dict)
+    name: str = "custom"
+    positive: tuple = ()
+    nonnegative: tuple = ()
+    tensors: Callable | None = None
+
+    def __post_init__(self):
+        for k, v in self.params.items():
+            if callable(v):
+                continue
+            arr = np.asarray(v, float)
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"{self.name}: parameter {k!r} is not finite: {v}")
+            self._check_sign(k, arr)
+
+    def _check_sign(self, k, arr):
+        if k in self.positive and np.any(arr <= 0):
+            raise ValueError(f"{self.name}: parameter {k!r} must be positive, got {np.min(arr):g}")
+        if k in self.nonnegative and np.any(arr < 0):
+            raise ValueError(f"{self.name}: parameter {k!r} must be non-negative, got {np.min(arr):g}")
+
+    def point_params(self, points: np.ndarray) -> dict:
+        """Scalar parameters (plain or fields) evaluated to (Q,) arrays at ``points``."""
+        out = {}
+        for k, v in self.params.items():
+            if callable(v):
+                arr = np.asarray(v(points), float)
+                if arr.shape != (len(points),):
+                    raise ValueError(f"{self.name}: field {k!r} must return shape ({len(points)},), "
+                                     f"got {arr.shape}")
+                if not np.all(np.isfinite(arr)):
+                    raise ValueError(f"{self.name}: field {k!r} has non-finite values")
+                self._check_sign(k, arr)
+            else:
+                arr = np.asarray(v, float)
+                if arr.ndim == 0:
+                    arr = np.full(len(points), float(arr))
+            out[k] = arr
+        return out
+
+    def global_params(self, dim: int) -> dict:
+        return {} if self.tensors is None else {k: np.asarray(v, float) for k, v in self.tensors(dim).items()}
+
+    def describe(self) -> dict:
+        return {"name": self.name, **{k: (v if not callable(v) else "field")
+                                      for k, v in self.params.items()}}
+
+
+def pk2(W: Callable, E, p):
+    """S = sym(dW/dE)."""
+    return _sym(jax.grad(W)(E, p))
+
+
+def green_lagrange(F):
+    return 0.5 * (jnp.swapaxes(F, -1, -2) @ F - jnp.eye(F.shape[-1]))
+
+
+# ---------------------------------------------------------------------------- energies
+def _quadratic(E, p):
+    return 0.5 * p["alpha"] * jnp.sum(E * E)
+
+
+def _fung(E, p):
+    q = jnp.einsum("ij,ijkl,kl->", E, p["C"], E)
+    return p["alpha"] * jnp.expm1(q) + p["beta"] * jnp.einsum("ij,ijkl,kl->", E, p["A"], E)
+
+
+def _svk(E, p):
+    tr = jnp.trace(E)
+    return 0.5 * p["lam"] * tr**2 + p["mu"] * jnp.sum(E * E)
+
+
+def _neo_hookean(E, p):
+    d = E.shape[-1]
+    C = jnp.eye(d) + 2.0 * E
+    lnJ = 0.5 * jnp.log(jnp.linalg.det(C))
+    return 0.5 * p["mu"] * (jnp.trace(C) - d) - p["mu"] * lnJ + 0.5 * p["lam"] * lnJ**2
+
+
+def fung_tensor(dim: int, iiii: float, ijij: float, iijj: float) -> np.ndarray:
+    """Orthotropic-pattern 4th-order tensor of thesis Table 5.2: T_iiii, T_ijij and
+    T_iijj = T_ijji (i != j); every other entry zero."""
+    T = np.zeros((dim,) * 4)
+    for i in range(dim):
+        T[i, i, i, i] = iiii
+        for j in range(dim):
+            if i != j:
+                T[i, j, i, j] = ijij
+                T[i, i, j, j] = iijj
+                T[i, j, j, i] = iijj
+    return T
+
+
+def Quadratic(alpha: float = 1.0) -> Material:
+    """W = 1/2 alpha E:E (thesis eq 5.1)."""
+    return Material(_quadratic, {"alpha": alpha}, "Quadratic", positive=("alpha",))
+
+
+def Fung(alpha: float = 1.0, beta: float = 1.0, A=None, C=None) -> Material:
+    """W = alpha (exp(E:C:E) - 1) + beta E:A:E (thesis eq 5.2; the constant -alpha makes
+    W(0) = 0). A and C default to Table 5.2 (2D) and its 3D pattern."""
+    def tensors(dim):
+        return {"A": fung_tensor(dim, 1020.0, 254.0, 383.0) if A is None else A,
+                "C": fung_tensor(dim, 3.5, 0.5, 1.5) if C is None else C}
+    return Material(_fung, {"alpha": alpha, "beta": beta}, "Fung", positive=("alpha", "beta"),
+                    tensors=tensors)
+
+
+def SaintVenantKirchhoff(lam: float, mu: float) -> Material:
+    """W = lam/2 tr(E)^2 + mu E:E. In 2D this is plane strain; for plane stress use
+    ``SaintVenantKirchhoff.plane_stress(E, nu)``."""
+    return Material(_svk, {"lam": lam, "mu": mu}, "SaintVenantKirchhoff",
+                    positive=("mu",), nonnegative=("lam",))
+
+
+def _svk_plane_stress(young: float, nu: float) -> Material:
+    """2D SVK whose small-strain limit is plane-stress linear elasticity."""
+    if not young > 0:
+        raise ValueError(f"Young's modulus must be positive, got {young}")
+    if not -1 < nu < 0.5:
+        raise ValueError(f"Poisson's ratio must lie in (-1, 0.5), got {nu}")
+    mu = young / (2 * (1 + nu))
+    return SaintVenantKirchhoff(young * nu / (1 - nu**2), mu)
+
+
+def _svk_from_young(young: float, nu: float) -> Material:
+    if not young > 0:
+        raise ValueError(f"Young's modulus must be positive, got {young}")
+    if not -1 < nu < 0.5:
+        raise ValueError(f"Poisson's ratio must lie in (-1, 0.5), got {nu}")
+    return SaintVenantKirchhoff(young * nu / ((1 + nu) * (1 - 2 * nu)), young / (2 * (1 + nu)))
+
+
+SaintVenantKirchhoff.plane_stress = _svk_plane_stress
+SaintVenantKirchhoff.from_young = _svk_from_young
+
+
+def NeoHookean(lam: float, mu: float) -> Material:
+    """Compressible neo-Hookean: W = mu/2 (tr C - d) - mu ln J + lam/2 (ln J)^2 (in 2D: plane strain)."""
+    return Material(_neo_hookean, {"lam": lam, "mu": mu}, "NeoHookean",
+                    positive=("mu",), nonnegative=("lam",))

@@ -1,0 +1,290 @@
+"""The user-facing model: builds every table once, then solves and post-processes."""
+from __future__ import annotations
+
+from typing import Callable, Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+
+from . import integration as integ
+from .boundary import EssentialSets, Transformation, nodal_forces
+from .geometry import Body
+from .materials import Material, green_lagrange, pk2
+from .rk import shape_functions
+from .solve import (Config, DenseSolver, Ops, Params, Solution, SparseSolver, Status,
+                    coefficients, deformation_gradients, energy_full, solve_path_jit)
+
+DENSE_LIMIT = 2500  # free DOFs up to which the dense factorisation is used ("auto")
+
+
+class SolveError(RuntimeError):
+    """A solve did not converge; ``.solution`` holds the last converged state."""
+
+    def __init__(self, solution: Solution):
+        super().__init__(solution.message)
+        self.solution = solution
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+class Model:
+    """Total-Lagrangian RKPM hyperelastic model.
+
+    body        the reference Body
+    material    a Material (strain energy W(E, p))
+    integration "gauss" (background cells, ``order`` points per direction)
+    essential   name -> particle indices (or boolean mask) of each essential set
+    support     kernel dilation a = support x spacing (eq 3.20)
+    body_force  (d,) or X -> (Q, d): dead load per unit reference volume
+    tractions   [(predicate, h0), ...]: dead load per unit reference area on the boundary
+                points where predicate(X) holds
+    solver      "auto" | "dense" | "sparse"
+    """
+
+    def __init__(self, body: Body, material: Material, integration: str = "gauss",
+                 essential: Mapping | None = None, support: float = 2.01, order: int = 2,
+                 cell_size: float | None = None, body_force=None, tractions=(),
+                 solver: str = "auto"):
+        if not isinstance(body, Body):
+            raise ValueError(f"body must be a jaxrkpm Body, got {type(body).__name__}")
+        if not isinstance(material, Material):
+            raise ValueError(f"material must be a jaxrkpm Material, got {type(material).__name__}")
+        if not (np.isfinite(support) and support > 0):
+            raise ValueError(f"support must be a positive number (x spacing), got {support}")
+        if integration not in ("gauss",):
+            raise ValueError(f"unknown integration {integration!r}: choose 'gauss'")
+        if solver not in ("auto", "dense", "sparse"):
+            raise ValueError(f"unknown solver {solver!r}: choose 'auto', 'dense' or 'sparse'")
+        self.body, self.material, self.integration = body, material, integration
+        self.support = float(support)
+        self.a = self.support * body.spacing
+        d = body.dim
+
+        pts, wts = integ.gauss_points(body, order, cell_size)
+        self.volume = integ.table(body, pts, wts, self.a, support_factor=self.support)
+        bp, bw, bn = integ.boundary_points(body, order)
+        self.surface = integ.table(body, bp, bw, self.a, normals=bn, support_factor=self.support)
+
+        self.sets = EssentialSets.build(body, dict(essential or {}))
+        trans = Transformation.build(body, self.sets, self.a, self.support) if len(self.sets.bnd) else None
+        f_ext = nodal_forces(body, self.volume, self.surface, body_force, tractions)
+
+        # particle pairs that share an integration point: the tangent's sparsity pattern
+        N = body.n
+        idx = self.volume.idx.astype(np.int64)
+        key = (idx[:, :, None] * N + idx[:, None, :]).ravel()
+        uniq, inverse = np.unique(key, return_inverse=True)
+        pair_i, pair_j = uniq // N, uniq % N
+        Q, K = idx.shape
+
+        Nb, Nf = len(self.sets.bnd), len(self.sets.free)
+        if trans is not None:
+            A = trans.coupling(self.sets, N)
+            near = np.flatnonzero(np.any(A != 0, axis=0))
+            A_near = A[:, near]
+            Dbinv, nb_idx, nb_psi = trans.Dbinv, trans.nb_idx, trans.nb_psi
+        else:
+            near, A_near = np.zeros(0, np.int64), np.zeros((0, 0))
+            Dbinv, nb_idx, nb_psi = np.zeros((0, 0)), np.zeros((0, 1), np.int64), np.zeros((0, 1))
+        self.ops = Ops(
+            idx=jnp.asarray(idx, jnp.int32), dpsi=jnp.asarray(self.volume.dpsi),
+            w=jnp.asarray(wts), free=jnp.asarray(self.sets.free, jnp.int32),
+            bnd=jnp.asarray(self.sets.bnd, jnp.int32), Dbinv=jnp.asarray(Dbinv),
+            nb_idx=jnp.asarray(nb_idx, jnp.int32), nb_psi=jnp.asarray(nb_psi),
+            f_ext=jnp.asarray(f_ext), pair_id=jnp.asarray(inverse.reshape(Q, K, K), jnp.int32),
+            pair_i=jnp.asarray(pair_i, jnp.int32), pair_j=jnp.asarray(pair_j, jnp.int32),
+            near=jnp.asarray(near, jnp.int32), A_near=jnp.asarray(A_near),
+            spacing=jnp.asarray(body.spacing))
+
+        n_free = Nf * d
+        use_dense = solver == "dense" or (solver == "auto" and n_free <= DENSE_LIMIT)
+        if use_dense:
+            self.linear = DenseSolver()
+        else:
+            self.linear = self._sparse_solver(trans, pair_i, pair_j)
+        self.params = Params(
+            {k: jnp.asarray(v) for k, v in material.point_params(self.volume.points).items()},
+            {k: jnp.asarray(v) for k, v in material.global_params(d).items()})
+
+    # ----------------------------------------------------------------------- internals
+    def _sparse_solver(self, trans, pair_i, pair_j) -> SparseSolver:
+        d, N = self.body.dim, self.body.n
+        a, b = np.meshgrid(np.arange(d), np.arange(d), indexing="ij")
+        rows = (pair_i[:, None, None] * d + a[None]).ravel()
+        cols = (pair_j[:, None, None] * d + b[None]).ravel()
+        Nb = len(self.sets.bnd)
+        if trans is not None:
+            Kb = trans.nb_idx.shape[1]
+            r = (np.arange(Nb)[:, None, None] * d + np.arange(d)[None, None, :]).repeat(Kb, 1)
+            c = trans.nb_idx[:, :, None] * d + np.arange(d)[None, None, :]
+            v = np.repeat(trans.rows_psi[:, :, None], d, axis=2)
+            C = sp.csr_matrix((v.ravel(), (r.ravel(), c.ravel())), shape=(Nb * d, N * d))
+        else:
+            C = sp.csr_matrix((0, N * d))
+        free_dofs = (self.sets.free[:, None] * d + np.arange(d)[None]).ravel()
+        return SparseSolver(rows, cols, C, free_dofs, N * d)
+
+    def _config(self, steps=1, max_iter=25, **kw) -> Config:
+        if int(steps) < 1:
+            raise ValueError(f"steps must be >= 1, got {steps}")
+        return Config(W=self.material.W, linear=self.linear, steps=int(steps),
+                      max_iter=int(max_iter), **kw)
+
+    @property
+    def dim(self) -> int:
+        return self.body.dim
+
+    @property
+    def set_names(self) -> tuple:
+        return self.sets.names
+
+    def set_indices(self, name: str) -> np.ndarray:
+        self._check_set(name)
+        return self.sets.bnd[self.sets.slices[name]]
+
+    def _check_set(self, name):
+        if name not in self.sets.slices:
+            raise ValueError(f"unknown essential set {name!r}; this model has {list(self.sets.names)}")
+
+    def prescribed(self, values: Mapping | None = None, base=None):
+        """(Nb, d) prescribed displacements from name -> (d,) rigid translation or (n_set, d);
+        sets not named keep ``base`` (default: zero)."""
+        d = self.dim
+        g = jnp.zeros((len(self.sets.bnd), d)) if base is None else jnp.asarray(base)
+        for name, v in (values or {}).items():
+            self._check_set(name)
+            sl = self.sets.slices[name]
+            n = sl.stop - sl.start
+            v = jnp.asarray(v, dtype=jnp.float64)
+            if v.shape == (d,):
+                v = jnp.broadcast_to(v, (n, d))
+            elif v.shape != (n, d):
+                raise ValueError(f"prescribed value for {name!r} must have shape ({d},) (rigid) "
+                                 f"or ({n}, {d}) (per particle), got {v.shape}")
+            if _is_concrete(v) and not np.all(np.isfinite(np.asarray(v))):
+                raise ValueError(f"prescribed value for {name!r} is not finite")
+            g = g.at[sl].set(v)
+        return g
+
+    def params_with(self, overrides: Mapping | None = None) -> Params:
+        """Model parameters with overrides: name -> scalar, (Q,) array, or field X -> (Q,)."""
+        if not overrides:
+            return self.params
+        point, tensors = dict(self.params.point), dict(self.params.tensors)
+        Q = self.ops.w.shape[0]
+        for k, v in overrides.items():
+            if k in point:
+                if callable(v):
+                    v = np.asarray(v(self.volume.points), float)
+                v = jnp.asarray(v, jnp.float64)
+                if v.ndim == 0:
+                    v = jnp.broadcast_to(v, (Q,))
+                if v.shape != (Q,):
+                    raise ValueError(f"parameter {k!r} must be a scalar or ({Q},) values, got {v.shape}")
+                if _is_concrete(v):
+                    arr = np.asarray(v)
+                    if not np.all(np.isfinite(arr)):
+                        raise ValueError(f"parameter {k!r} is not finite")
+                    self.material._check_sign(k, arr)
+                point[k] = v
+            elif k in tensors:
+                tensors[k] = jnp.asarray(v, jnp.float64)
+            else:
+                raise ValueError(f"unknown material parameter {k!r}; {self.material.name} has "
+                                 f"{sorted(point) + sorted(tensors)}")
+        return Params(point, tensors)
+
+    # -------------------------------------------------------------------------- solve
+    def initial(self) -> Solution:
+        """The undeformed, unloaded equilibrium."""
+        z = jnp.array(0)
+        return Solution(jnp.zeros((len(self.sets.free), self.dim)),
+                        jnp.zeros((len(self.sets.bnd), self.dim)), jnp.array(0.0),
+                        z, jnp.array(1.0), z, z, z, jnp.array(0.0))
+
+    def solve(self, prescribed: Mapping | None = None, *, loads: float = 1.0, params=None,
+              steps: int = 1, initial: Solution | None = None, throw: bool = True,
+              max_iter: int = 25, **options) -> Solution:
+        """Equilibrium under the prescribed displacements and load scale ``loads``.
+
+        ``initial`` warm-starts from a previous Solution (its prescribed values and load
+        are the start of the path; sets not named in ``prescribed`` keep its values).
+        ``steps`` is the initial number of load steps (halved on failure, grown when easy).
+        With ``throw`` a failed solve raises SolveError (carrying the last converged state);
+        under jit/vmap the status is returned instead."""
+        start = self.initial() if initial is None else initial
+        g1 = self.prescribed(prescribed, base=start.g)
+        if _is_concrete(loads) and not np.isfinite(loads):
+            raise ValueError(f"loads must be finite, got {loads}")
+        sol = solve_path_jit(self.ops, self.params_with(params), self._config(steps, max_iter, **options),
+                             start.u, start.g, g1, start.load, jnp.asarray(loads, jnp.float64))
+        if throw and _is_concrete(sol.status) and int(sol.status) != Status.CONVERGED:
+            raise SolveError(sol)
+        return sol
+
+    # ------------------------------------------------------------------ post-processing
+    def coefficients(self, sol: Solution):
+        """(N, d) RK coefficients of a solution (essential ones by eq 3.22)."""
+        return coefficients(self.ops, sol.u, sol.g)
+
+    def shape_functions(self, points, gradients=True):
+        P = self.body.check_inside(points)
+        return shape_functions(self.body.X, self.body.volumes, self.body._tree, P, self.a,
+                               gradients=gradients, support_factor=self.support)
+
+    def displacement(self, sol: Solution, points):
+        """u(X) at reference points (P, d)."""
+        sf = self.shape_functions(points, gradients=False)
+        d = self.coefficients(sol)
+        return jnp.einsum("pk,pki->pi", sf.psi, d[sf.idx])
+
+    def particle_displacements(self, sol: Solution):
+        """u at every particle (N, d) (RK coefficients are not displacements)."""
+        return self.displacement(sol, self.body.X)
+
+    def deformation_gradient(self, sol: Solution, points):
+        sf = self.shape_functions(points)
+        return deformation_gradients(sf.idx, jnp.asarray(sf.dpsi), self.coefficients(sol))
+
+    def stress(self, sol: Solution, points, kind: str = "cauchy", params=None):
+        """Stress at points (P, d, d): 'pk2' (S), 'pk1' (P = F S) or 'cauchy' (eq 3.5)."""
+        if kind not in ("pk2", "pk1", "cauchy"):
+            raise ValueError(f"unknown stress kind {kind!r}: choose 'pk2', 'pk1' or 'cauchy'")
+        P_ = self.body.check_inside(points)
+        F = self.deformation_gradient(sol, P_)
+        prm = self.material.point_params(P_)
+        base = self.params_with(params)
+        prm = {k: jnp.asarray(v) for k, v in prm.items()}
+        if params:
+            prm.update({k: jnp.broadcast_to(jnp.asarray(v), (len(P_),)) for k, v in params.items()
+                        if k in prm and not callable(v) and jnp.ndim(v) == 0})
+        axes = {**{k: 0 for k in prm}, **{k: None for k in base.tensors}}
+        S = jax.vmap(lambda E, p: pk2(self.material.W, E, p), in_axes=(0, axes))(
+            green_lagrange(F), {**prm, **base.tensors})
+        if kind == "pk2":
+            return S
+        if kind == "pk1":
+            return F @ S
+        J = jnp.linalg.det(F)
+        return F @ S @ jnp.swapaxes(F, -1, -2) / J[:, None, None]
+
+    def reactions(self, sol: Solution, params=None):
+        """(Nb, d) generalized reaction at each essential particle: dPi/dg, the force the
+        constraint exerts on the body (exact discrete reaction from the residual)."""
+        d = self.coefficients(sol)
+        prm = self.params_with(params)
+        r_d = jax.grad(lambda c: energy_full(self.ops, prm, self.material.W, c, sol.load)[0])(d)
+        return self.ops.Dbinv.T @ r_d[self.ops.bnd]
+
+    def reaction(self, sol: Solution, name: str, params=None):
+        """(d,) resultant force exerted on the body by the essential set ``name``."""
+        self._check_set(name)
+        return jnp.sum(self.reactions(sol, params)[self.sets.slices[name]], axis=0)
+
+    def energy(self, sol: Solution, params=None):
+        return energy_full(self.ops, self.params_with(params), self.material.W,
+                           self.coefficients(sol), sol.load)[0]

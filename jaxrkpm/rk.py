@@ -1,0 +1,137 @@
+"""Reproducing-kernel shape functions (thesis eqs 3.16-3.21), NumPy, build time only.
+
+Psi_I(X) = H(0)^T M(X)^-1 H((X - X_I)/a) Phi_a(X - X_I) V_I with a linear basis H and the
+cubic-spline tensor-product window of eq 3.21. Values and gradients are evaluated over
+padded neighbour lists (a KD-tree query in the max-norm, since the window is a box).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+_CHUNK = 8192  # evaluation points per block; bounds the (P, K, d, d+1) temporaries
+
+
+def kernel(x: np.ndarray) -> np.ndarray:
+    """Cubic spline of eq 3.21 (support |x| <= 1)."""
+    r = np.abs(x)
+    return np.where(r <= 0.5, 2 / 3 - 4 * r**2 + 4 * r**3,
+                    np.where(r <= 1.0, 4 / 3 - 4 * r + 4 * r**2 - 4 / 3 * r**3, 0.0))
+
+
+def kernel_derivative(x: np.ndarray) -> np.ndarray:
+    r = np.abs(x)
+    dr = np.where(r <= 0.5, -8 * r + 12 * r**2, np.where(r <= 1.0, -4 + 8 * r - 4 * r**2, 0.0))
+    return dr * np.sign(x)
+
+
+@dataclass(frozen=True)
+class Neighbours:
+    """Padded neighbour lists: idx (P, K) particle indices (padding repeats index 0),
+    mask (P, K) true where the entry is a real neighbour."""
+
+    idx: np.ndarray
+    mask: np.ndarray
+
+
+def neighbours(tree: cKDTree, points: np.ndarray, radius: float,
+               capacity: int | None = None) -> Neighbours:
+    """Particles whose (box-shaped) window covers each point. ``capacity`` fixes K; a point
+    with more neighbours than that raises instead of being silently truncated."""
+    lists = tree.query_ball_point(points, r=radius * (1 - 1e-12), p=np.inf)
+    counts = np.array([len(l) for l in lists])
+    K = int(counts.max()) if capacity is None else int(capacity)
+    if counts.max() > K:
+        i = int(np.argmax(counts))
+        raise ValueError(f"neighbour capacity {K} overflows at point {i} {points[i].tolist()} "
+                         f"which has {counts[i]} neighbours; raise the capacity")
+    idx = np.zeros((len(points), K), dtype=np.int32)
+    mask = np.zeros((len(points), K), dtype=bool)
+    for p, l in enumerate(lists):
+        l = sorted(l)
+        idx[p, :len(l)] = l
+        mask[p, :len(l)] = True
+    return Neighbours(idx, mask)
+
+
+@dataclass(frozen=True)
+class ShapeFunctions:
+    """Shape function values and gradients at P points over K padded neighbours.
+
+    idx (P, K) int, psi (P, K), dpsi (P, K, d); padded entries have psi = dpsi = 0."""
+
+    idx: np.ndarray
+    psi: np.ndarray
+    dpsi: np.ndarray
+
+
+def shape_functions(X: np.ndarray, volumes: np.ndarray, tree: cKDTree, points: np.ndarray,
+                    a: float, capacity: int | None = None, gradients: bool = True,
+                    support_factor: float | None = None) -> ShapeFunctions:
+    """RK shape functions of the particles (X, volumes) with dilation ``a`` at ``points``."""
+    points = np.atleast_2d(np.asarray(points, float))
+    nb = neighbours(tree, points, a, capacity)
+    P, K = nb.idx.shape
+    d = X.shape[1]
+    psi = np.zeros((P, K))
+    dpsi = np.zeros((P, K, d))
+    for s in range(0, P, _CHUNK):
+        sl = slice(s, s + _CHUNK)
+        out = _evaluate(X, volumes, points[sl], nb.idx[sl], nb.mask[sl], a, gradients,
+                        support_factor, s)
+        psi[sl] = out[0]
+        if gradients:
+            dpsi[sl] = out[1]
+    return ShapeFunctions(nb.idx, psi, dpsi)
+
+
+def _evaluate(X, volumes, pts, idx, mask, a, gradients, support_factor, offset):
+    d = X.shape[1]
+    R = (pts[:, None, :] - X[idx]) / a                       # (P, K, d)
+    k1 = kernel(R)                                             # (P, K, d)
+    phi = np.prod(k1, axis=-1) / a**d * volumes[idx] * mask   # Phi_a * V_I, (P, K)
+    H = np.concatenate([np.ones(R.shape[:-1] + (1,)), R], axis=-1)  # H((X - X_I)/a), eq 3.19
+    M = np.einsum("pk,pka,pkb->pab", phi, H, H)
+    _check_moment_matrix(M, pts, mask, a, support_factor, offset)
+    Minv = np.linalg.inv(M)
+    b = Minv[:, :, 0]                                          # M^-1 H(0), (P, d+1)
+    bH = np.einsum("pa,pka->pk", b, H)
+    psi = bH * phi
+    if not gradients:
+        return (psi,)
+    # d/dX_j of each factor (R depends on X with dR/dX = 1/a)
+    dk1 = kernel_derivative(R) / a                             # (P, K, d)
+    dphi = np.empty(R.shape)
+    for j in range(d):
+        others = np.prod(np.delete(k1, j, axis=-1), axis=-1)
+        dphi[..., j] = dk1[..., j] * others
+    dphi *= (volumes[idx] * mask / a**d)[..., None]            # (P, K, d)
+    dH = np.zeros(R.shape[:-1] + (d, d + 1))                   # dH/dX_j = e_j / a
+    for j in range(d):
+        dH[..., j, j + 1] = 1.0 / a
+    dM = (np.einsum("pk,pkja,pkb->pjab", phi, dH, H)
+          + np.einsum("pk,pka,pkjb->pjab", phi, H, dH)
+          + np.einsum("pkj,pka,pkb->pjab", dphi, H, H))        # (P, d, d+1, d+1)
+    db = -np.einsum("pab,pjbc,pc->pja", Minv, dM, b)           # (P, d, d+1)
+    dpsi = (np.einsum("pja,pka->pkj", db, H) * phi[..., None]
+            + np.einsum("pa,pkja->pkj", b, dH) * phi[..., None]
+            + bH[..., None] * dphi)
+    return psi, dpsi
+
+
+def _check_moment_matrix(M, pts, mask, a, support_factor, offset):
+    n_real = mask.sum(1)
+    d = pts.shape[1]
+    with np.errstate(all="ignore"):
+        cond = np.linalg.cond(M)
+    bad = (n_real < d + 1) | ~np.isfinite(cond) | (cond > 1e12)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        hint = (f"support factor {support_factor:g}" if support_factor else f"dilation a={a:g}")
+        raise ValueError(
+            f"moment matrix is singular at point {offset + i} {pts[i].tolist()} "
+            f"({int(n_real[i])} particles cover it, condition number {cond[i]:.3g}): "
+            f"the {hint} is too small for a linear basis (or the point is outside the body); "
+            f"use a larger support (e.g. 2.01 x spacing or more)")

@@ -1,0 +1,367 @@
+"""The discrete problem inside jit, and the Newton solver.
+
+Inside jit there is only gather -> F -> E -> W -> scatter: all geometry arrives in
+``Ops`` (built once by ``Model``). Unknowns are the free RK coefficients u_f (Nf, d);
+prescribed values g (Nb, d) and the load scale are explicit, differentiable inputs.
+"""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from functools import partial
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .materials import green_lagrange
+
+
+class Status(enum.IntEnum):
+    CONVERGED = 0
+    MAX_ITERATIONS = 1
+    NONFINITE = 2
+    INVERTED = 3
+    LINE_SEARCH = 4
+
+    @property
+    def message(self) -> str:
+        return _MESSAGES[self]
+
+
+_MESSAGES = {
+    Status.CONVERGED: "converged",
+    Status.MAX_ITERATIONS: "Newton reached its iteration cap on the smallest load step allowed",
+    Status.NONFINITE: "non-finite residual or energy (NaN/inf) on the smallest load step allowed",
+    Status.INVERTED: "a step would invert the material (det F <= 0 at an integration point) "
+                     "even on the smallest load step allowed",
+    Status.LINE_SEARCH: "the line search found no decrease of energy or residual "
+                        "on the smallest load step allowed",
+}
+
+
+class Ops(NamedTuple):
+    """Geometry and topology as arrays (no Python objects), passed into jit."""
+
+    idx: jax.Array      # (Q, K) neighbour particles of each integration point
+    dpsi: jax.Array     # (Q, K, d) shape function gradients
+    w: jax.Array        # (Q,) integration weights
+    free: jax.Array     # (Nf,) free particle indices
+    bnd: jax.Array      # (Nb,) essential particle indices
+    Dbinv: jax.Array    # (Nb, Nb) (D^b)^-1
+    nb_idx: jax.Array   # (Nb, Kb) neighbours of the essential particles
+    nb_psi: jax.Array   # (Nb, Kb) Psi_J(X_b), zero for essential J
+    f_ext: jax.Array    # (N, d) nodal dead load at load scale 1
+    pair_id: jax.Array  # (Q, K, K) index of the particle pair (idx[q,k], idx[q,m])
+    pair_i: jax.Array   # (P,) first particle of each pair
+    pair_j: jax.Array   # (P,)
+    near: jax.Array     # (Nc,) positions in ``free`` of the free particles that D^nb couples
+    A_near: jax.Array   # (Nb, Nc) (D^b)^-1 D^nb restricted to those columns
+    spacing: jax.Array  # () particle spacing
+
+
+class Params(NamedTuple):
+    point: dict   # name -> (Q,) values at the integration points
+    tensors: dict  # name -> global arrays (e.g. Fung's A and C)
+
+
+@dataclass(frozen=True)
+class Config:
+    """Static solver settings (hashable: part of the jit cache key)."""
+
+    W: Callable
+    linear: Any            # DenseSolver() or a SparseSolver instance
+    steps: int = 1         # initial (and largest) number of load steps
+    max_iter: int = 25
+    max_cuts: int = 10     # halvings of the initial load step before giving up
+    rtol: float = 1e-10    # residual tolerance relative to the internal force scale
+    line_search: int = 8   # step halvings in the line search
+    easy: int = 4          # a step converging within this many iterations lets dt grow
+
+
+class Solution(NamedTuple):
+    """A solve's result (a pytree: batched solves stack every field).
+
+    u (Nf, d) free coefficients at the last converged load; g (Nb, d) prescribed values and
+    ``load`` the load scale there; ``t`` the fraction of the requested increment reached;
+    ``status`` a Status code."""
+
+    u: jax.Array
+    g: jax.Array
+    load: jax.Array
+    status: jax.Array
+    t: jax.Array
+    iterations: jax.Array
+    steps: jax.Array
+    cuts: jax.Array
+    residual_norm: jax.Array
+
+    @property
+    def converged(self) -> bool:
+        return bool(np.all(np.asarray(self.status) == Status.CONVERGED))
+
+    @property
+    def message(self) -> str:
+        st = np.asarray(self.status)
+        if st.ndim:
+            bad = np.flatnonzero(st != 0)
+            if not len(bad):
+                return f"all {st.size} solves converged"
+            return f"{len(bad)} of {st.size} solves failed; first (#{bad[0]}): " + Status(int(st.flat[bad[0]])).message
+        s = Status(int(st))
+        if s == Status.CONVERGED:
+            return (f"converged in {int(self.steps)} load steps, {int(self.iterations)} Newton "
+                    f"iterations (|r| = {float(self.residual_norm):.2e})")
+        return (f"{s.name}: {s.message}; stopped at {100 * float(self.t):.1f}% of the increment "
+                f"after {int(self.steps)} steps and {int(self.cuts)} step cuts; the last converged "
+                f"state is kept")
+
+
+# ------------------------------------------------------------------------ discrete model
+def coefficients(ops: Ops, u, g):
+    """Full RK coefficients (N, d): free ones from u, essential ones by eq 3.22."""
+    N, dim = ops.f_ext.shape
+    d = jnp.zeros((N, dim), u.dtype).at[ops.free].set(u)
+    s = jnp.einsum("bk,bki->bi", ops.nb_psi, d[ops.nb_idx])
+    return d.at[ops.bnd].set(ops.Dbinv @ (g - s))
+
+
+def deformation_gradients(idx, dpsi, d):
+    """F = I + sum_K d_K (x) grad Psi_K at each point: (Q, d, d)."""
+    return jnp.eye(d.shape[1]) + jnp.einsum("qkj,qki->qij", dpsi, d[idx])
+
+
+def _point_energy(W):
+    def psi(F, p):
+        return W(green_lagrange(F), p)
+    return psi
+
+
+def _merged(params: Params):
+    return {**params.point, **params.tensors}, {**{k: 0 for k in params.point},
+                                                 **{k: None for k in params.tensors}}
+
+
+def energy_full(ops: Ops, params: Params, W, d, load):
+    """Total potential energy in the full coefficients; aux: min det F."""
+    F = deformation_gradients(ops.idx, ops.dpsi, d)
+    p, axes = _merged(params)
+    Wq = jax.vmap(_point_energy(W), in_axes=(0, axes))(F, p)
+    return jnp.sum(ops.w * Wq) - load * jnp.sum(ops.f_ext * d), jnp.min(jnp.linalg.det(F))
+
+
+def energy(ops, params, W, u, g, load):
+    return energy_full(ops, params, W, coefficients(ops, u, g), load)
+
+
+def residual(ops, params, W, u, g, load):
+    """r_f = dPi/du_f (Nf, d)."""
+    return jax.grad(lambda v: energy(ops, params, W, v, g, load)[0])(u)
+
+
+def internal_force_scale(ops, params, W, d):
+    """|| sum_q w |grad Psi| |P| ||: the size of the terms summed into the residual."""
+    F = deformation_gradients(ops.idx, ops.dpsi, d)
+    p, axes = _merged(params)
+    P = jax.vmap(jax.grad(_point_energy(W)), in_axes=(0, axes))(F, p)
+    contrib = jnp.einsum("qkj,qij->qki", jnp.abs(ops.dpsi), jnp.abs(P)) * ops.w[:, None, None]
+    return jnp.linalg.norm(jnp.zeros_like(d).at[ops.idx].add(contrib)) + jnp.linalg.norm(ops.f_ext)
+
+
+def pair_blocks(ops, params, W, d):
+    """Tangent in the full coefficients as (P, d, d) blocks over the particle pairs:
+    K_IJ = sum_q w_q grad Psi_I . dP/dF . grad Psi_J (dP/dF by autodiff of W)."""
+    F = deformation_gradients(ops.idx, ops.dpsi, d)
+    p, axes = _merged(params)
+    C = jax.vmap(jax.hessian(_point_energy(W)), in_axes=(0, axes))(F, p)   # (Q, d, d, d, d)
+    blocks = jnp.einsum("qkj,qajbl,qml->qkmab", ops.dpsi * ops.w[:, None, None], C, ops.dpsi)
+    dim = d.shape[1]
+    return jax.ops.segment_sum(blocks.reshape(-1, dim, dim), ops.pair_id.reshape(-1),
+                               num_segments=ops.pair_i.shape[0])
+
+
+def dense_tangent(ops: Ops, blocks):
+    """K_ff = T^T K T with T = [I; -A] (the thesis transformation), dense (Nf*d, Nf*d)."""
+    N, dim = ops.f_ext.shape
+    K = jnp.zeros((N, N, dim, dim), blocks.dtype).at[ops.pair_i, ops.pair_j].add(blocks)
+    K = K.transpose(0, 2, 1, 3)                                   # (N, d, N, d)
+    Kff = K[ops.free][:, :, ops.free]
+    if ops.bnd.shape[0]:
+        Kfb = K[ops.free][:, :, ops.bnd]                          # (Nf, d, Nb, d)
+        Kbb = K[ops.bnd][:, :, ops.bnd]
+        X = jnp.einsum("faBb,Bc->facb", Kfb, ops.A_near)         # (Nf, d, Nc, d)
+        Kff = Kff.at[:, :, ops.near].add(-X)
+        Kff = Kff.at[ops.near].add(-X.transpose(2, 3, 0, 1))
+        corr = jnp.einsum("Bc,BaDb,De->caeb", ops.A_near, Kbb, ops.A_near)
+        Kff = Kff.at[ops.near[:, None], :, ops.near[None, :], :].add(corr.transpose(0, 2, 1, 3))
+    n = Kff.shape[0] * dim
+    return Kff.reshape(n, n)
+
+
+@dataclass(frozen=True)
+class DenseSolver:
+    """Dense LU of the transformed tangent (small systems)."""
+
+    name: str = "dense"
+
+    def matrix(self, ops, blocks):
+        return dense_tangent(ops, blocks)
+
+    def solve(self, ops, K, rhs):
+        """Solve K_ff x = rhs for rhs (Nf, d) or (Nf, d, m)."""
+        n = K.shape[0]
+        b = rhs.reshape(n, -1)
+        return jnp.linalg.solve(K, b).reshape(rhs.shape)
+
+
+@dataclass(frozen=True, eq=False)
+class SparseSolver:
+    """Sparse path for large systems: the saddle-point form of the same transformation,
+
+        [K  C^T] [dd]   [r]
+        [C   0 ] [l ] = [0],   C dd = 0  <=>  dd = T du_f,
+
+    whose free part solves T^T K T du_f = r exactly. Factorised by SciPy's SuperLU on the
+    host (a jax.pure_callback), so it runs inside jit and while-loops."""
+
+    rows: np.ndarray      # (P*d*d,) pattern of K in the full coefficients
+    cols: np.ndarray
+    C: Any                # scipy.sparse (Nb*d, N*d) constraint rows [D^nb D^b] (x) I
+    free_dofs: np.ndarray  # (Nf*d,)
+    n_dof: int
+    name: str = "sparse"
+
+    def matrix(self, ops, blocks):
+        return blocks  # the factorisation happens on the host
+
+    def _host_solve(self, blocks, rhs):
+        blocks = np.asarray(blocks)
+        rhs = np.asarray(rhs)
+        K = sp.csc_matrix((blocks.ravel(), (self.rows, self.cols)), shape=(self.n_dof, self.n_dof))
+        nc = self.C.shape[0]
+        KKT = sp.bmat([[K, self.C.T], [self.C, None]], format="csc")
+        b = rhs.reshape(len(self.free_dofs), -1)
+        B = np.zeros((self.n_dof + nc, b.shape[1]))
+        B[self.free_dofs] = b
+        x = spla.splu(KKT).solve(B)
+        return x[self.free_dofs].reshape(rhs.shape)
+
+    def solve(self, ops, blocks, rhs):
+        return jax.pure_callback(self._host_solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
+                                 blocks, rhs, vmap_method="sequential")
+
+
+def tangent(ops, params, cfg: Config, u, g):
+    d = coefficients(ops, u, g)
+    return cfg.linear.matrix(ops, pair_blocks(ops, params, cfg.W, d))
+
+
+# ---------------------------------------------------------------------------- Newton
+def _newton_step(ops, params, cfg: Config, u, g0, g1, l0, l1):
+    """Newton from the equilibrium at (g0, l0) to (g1, l1).
+
+    The first linear solve is the predictor: it carries the prescribed increment,
+    K_ff du = -(r(u, g0, l1) + K_fg (g1 - g0)). Returns (u, status, iterations, |r|)."""
+    W = cfg.W
+    res = partial(residual, ops, params, W)
+    r_pred, kfg_dg = jax.jvp(lambda g: res(u, g, l1), (g0,), (g1 - g0,))
+    rhs = r_pred + kfg_dg
+    r_ref = jnp.linalg.norm(rhs)
+    du = -cfg.linear.solve(ops, tangent(ops, params, cfg, u, g0), rhs)
+
+    def evaluate(v):
+        (Pi, detmin), r = jax.value_and_grad(lambda x: energy(ops, params, W, x, g1, l1), has_aux=True)(v)
+        return Pi, detmin, r
+
+    Pi0, det0, r0 = evaluate(u)
+
+    def line_search(u, Pi, r, du):
+        slope = jnp.sum(du * r)
+        rn = jnp.linalg.norm(r)
+        start_ok = jnp.isfinite(Pi) & jnp.all(jnp.isfinite(r))
+
+        def cond(c):
+            k, accepted = c[0], c[1]
+            return (~accepted) & (k <= cfg.line_search)
+
+        def body(c):
+            k, _, _, _, _, any_finite, _ = c
+            alpha = 0.5 ** k
+            v = u + alpha * du
+            Pi_v, det_v, r_v = evaluate(v)
+            finite = jnp.isfinite(Pi_v) & jnp.all(jnp.isfinite(r_v))
+            valid = finite & (det_v > 0)
+            decrease = (Pi_v <= Pi + 1e-4 * alpha * slope) | (jnp.linalg.norm(r_v) < rn) | ~start_ok
+            return (k + 1, valid & decrease, v, Pi_v, r_v, any_finite | finite, det_v > 0)
+
+        init = (jnp.array(0), jnp.array(False), u, Pi, r, jnp.array(False), jnp.array(True))
+        k, accepted, v, Pi_v, r_v, any_finite, det_ok = jax.lax.while_loop(cond, body, init)
+        why = jnp.where(~any_finite, Status.NONFINITE,
+                        jnp.where(~det_ok, Status.INVERTED, Status.LINE_SEARCH))
+        return accepted, v, Pi_v, r_v, why
+
+    def cond(c):
+        it, _, _, _, _, done, _ = c
+        return ~done
+
+    def body(c):
+        it, u, Pi, r, du, _, _ = c
+        ok, v, Pi_v, r_v, why = line_search(u, Pi, r, du)
+        rn = jnp.linalg.norm(r_v)
+        scale = internal_force_scale(ops, params, W, coefficients(ops, v, g1))
+        converged = ok & (rn <= cfg.rtol * jnp.maximum(r_ref, scale))
+        capped = it + 1 >= cfg.max_iter
+        status = jnp.where(~ok, why, jnp.where(converged, Status.CONVERGED,
+                                               jnp.where(capped, Status.MAX_ITERATIONS, -1)))
+        done = status >= 0
+        du_next = jax.lax.cond(done, lambda: jnp.zeros_like(du),
+                               lambda: -cfg.linear.solve(ops, tangent(ops, params, cfg, v, g1), r_v))
+        v = jnp.where(ok, v, u)
+        return (it + 1, v, jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), du_next, done, status)
+
+    init = (jnp.array(0), u, Pi0, r0, du, jnp.array(False), jnp.array(-1))
+    it, u_new, _, r, _, _, status = jax.lax.while_loop(cond, body, init)
+    return u_new, status, it, jnp.linalg.norm(r)
+
+
+def solve_path(ops: Ops, params: Params, cfg: Config, u0, g0, g1, l0, l1) -> Solution:
+    """Adaptive load stepping from the equilibrium (u0, g0, l0) to (g1, l1).
+
+    Halves the step on failure (up to cfg.max_cuts times below the initial step), grows it
+    by 1.5x after easy steps (never above the initial step). On failure the last converged
+    state is returned with the failing status."""
+    dt0 = 1.0 / cfg.steps
+    dt_min = dt0 * 0.5 ** cfg.max_cuts
+
+    def at(t):
+        return g0 + t * (g1 - g0), l0 + t * (l1 - l0)
+
+    def cond(c):
+        t, dt, u, status, *_ = c
+        return (t < 1.0) & (status <= 0)
+
+    def body(c):
+        t, dt, u, status, iters, steps, cuts, rn = c
+        t1 = jnp.minimum(t + dt, 1.0)
+        t1 = jnp.where(1.0 - t1 < 1e-12, 1.0, t1)
+        ga, la = at(t)
+        gb, lb = at(t1)
+        v, st, it, rn_v = _newton_step(ops, params, cfg, u, ga, gb, la, lb)
+        ok = st == Status.CONVERGED
+        grow = jnp.where(it <= cfg.easy, 1.5, 1.0)
+        dt_next = jnp.where(ok, jnp.minimum(dt * grow, dt0), dt / 2)
+        give_up = (~ok) & (dt / 2 < dt_min * (1 - 1e-9))
+        return (jnp.where(ok, t1, t), dt_next, jnp.where(ok, v, u),
+                jnp.where(give_up, st, 0), iters + it, steps + ok, cuts + (~ok), jnp.where(ok, rn_v, rn))
+
+    zero = jnp.array(0)
+    init = (jnp.array(0.0), jnp.array(dt0), u0, zero, zero, zero, zero, jnp.array(0.0))
+    t, _, u, status, iters, steps, cuts, rn = jax.lax.while_loop(cond, body, init)
+    g, load = at(t)
+    return Solution(u, g, load, status, t, iters, steps, cuts, rn)
+
+
+solve_path_jit = jax.jit(solve_path, static_argnames=("cfg",))
