@@ -18,7 +18,7 @@ def kernel(x: np.ndarray) -> np.ndarray:
     """Cubic spline of eq 3.21 (support |x| <= 1)."""
     r = np.abs(x)
     return np.where(r <= 0.5, 2 / 3 - 4 * r**2 + 4 * r**3,
-                    np.where(r <= 1.0, 4 / 3 - 4 * r + 4 * r**2 - 4 / 3 * r**3, 0.0))
+                    np.where(r < 1.0, 4 / 3 - 4 * r + 4 * r**2 - 4 / 3 * r**3, 0.0))
 
 
 def kernel_derivative(x: np.ndarray) -> np.ndarray:

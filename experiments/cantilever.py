@@ -1,0 +1,55 @@
+"""Timoshenko cantilever (Timoshenko & Goodier; plane stress, small load, SVK) under
+refinement: displacement error against the analytic solution and its convergence rate."""
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+import jaxrkpm as jr
+
+
+def exact(X, L, D, P, E, nu):
+    """Analytic displacement (u_x, u_y) of the cantilever fixed at x=0, end load P at x=L."""
+    x, y = X[:, 0], X[:, 1] - D / 2
+    I = D**3 / 12
+    ux = -P * y / (6 * E * I) * ((6 * L - 3 * x) * x + (2 + nu) * (y**2 - D**2 / 4))
+    uy = P / (6 * E * I) * (3 * nu * y**2 * (L - x) + (4 + 5 * nu) * D**2 * x / 4 + (3 * L - x) * x**2)
+    return np.stack([ux, uy], 1)
+
+
+def solve(h, L=2.0, D=1.0, P=1e-3, E=1e3, nu=0.3, order=2):
+    """Relative L2 displacement error at the particles for spacing h."""
+    nx, ny = int(round(L / h)) + 1, int(round(D / h)) + 1
+    body = jr.Body.grid((nx, ny), spacing=h)
+    left = body.select(lambda X: X[:, 0] < 1e-9)
+    I = D**3 / 12
+
+    def shear(X):  # parabolic end shear, per unit reference length
+        y = X[:, 1] - D / 2
+        return np.stack([np.zeros(len(X)), P / (2 * I) * (D**2 / 4 - y**2)], 1)
+
+    model = jr.Model(body, jr.SaintVenantKirchhoff.plane_stress(E, nu), essential={"left": left},
+                     tractions=[(lambda X: X[:, 0] > L - 1e-9, shear)], order=order)
+    sol = model.solve({"left": exact(body.X[left], L, D, P, E, nu)})
+    u = np.asarray(model.particle_displacements(sol))
+    ue = exact(body.X, L, D, P, E, nu)
+    return float(np.linalg.norm(u - ue) / np.linalg.norm(ue)), model, sol
+
+
+def convergence(hs=(1 / 4, 1 / 8, 1 / 16)):
+    errs = [solve(h)[0] for h in hs]
+    rates = [float(np.log(errs[i] / errs[i + 1]) / np.log(hs[i] / hs[i + 1])) for i in range(len(hs) - 1)]
+    return {"h": list(hs), "relative_l2_error": errs, "rates": rates}
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--levels", type=int, default=3)
+    a = p.parse_args(argv)
+    print(json.dumps(convergence(tuple(0.25 / 2**k for k in range(a.levels))), indent=2))
+
+
+if __name__ == "__main__":
+    main()
