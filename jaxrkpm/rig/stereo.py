@@ -26,6 +26,7 @@ __all__ = [
     "MarkerCountError",
     "AmbiguousMatchError",
     "StereoFrame",
+    "auto_threshold",
     "detect_blobs",
     "match_by_row",
     "ParallelStereo",
@@ -39,6 +40,14 @@ __all__ = [
 # leaves ~1e-3 px of error under strong radial distortion. Converge it fully: it is cheap
 # for a few markers and removes one error source from the accuracy budget.
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+
+
+def _undistort(uv, K, D, R, P):
+    # OpenCV 4.x takes the criteria only in undistortPointsIter; 5.x folded it into
+    # undistortPoints (and dropped undistortPointsIter). pyproject allows both.
+    if hasattr(cv2, "undistortPointsIter"):
+        return cv2.undistortPointsIter(uv, K, D, R, P, _UNDISTORT_CRITERIA)
+    return cv2.undistortPoints(uv, K, D, R=R, P=P, criteria=_UNDISTORT_CRITERIA)
 
 
 # ----------------------------------------------------------------------------- errors
@@ -121,14 +130,35 @@ def _to_gray(image: np.ndarray) -> np.ndarray:
     return img
 
 
+def auto_threshold(image: np.ndarray, noise_k: float = 6.0) -> float:
+    """Binarisation level for bright markers on a dark, noisy background (image units).
+
+    Otsu's method, floored at ``median + noise_k * sigma`` (sigma = 1.4826 * MAD, a robust
+    estimate of the background noise). Why the floor: Otsu assumes two classes of
+    comparable size; a few small LEDs are ~0.01% of the pixels, so once the noise exceeds a
+    couple of grey levels Otsu splits the background itself (thousands of noise "blobs").
+    At 6 sigma a Gaussian background gives ~1e-9 false pixels per pixel.
+    """
+    f = _to_gray(image).astype(np.float64)
+    lo, hi = float(f.min()), float(f.max())
+    if hi <= lo:
+        return hi  # flat image: nothing is above it
+    g8 = np.clip(np.rint((f - lo) * (255.0 / (hi - lo))), 0, 255).astype(np.uint8)
+    t8, _ = cv2.threshold(g8, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+    otsu = lo + float(t8) * (hi - lo) / 255.0
+    med = float(np.median(f))
+    sigma = 1.4826 * float(np.median(np.abs(f - med)))
+    return max(otsu, med + noise_k * sigma)
+
+
 def detect_blobs(image: np.ndarray, threshold: float | None = None, min_area: int = 4,
                  max_area: int | None = None, grow_px: int = 2) -> np.ndarray:
     """Bright blobs in a dark image -> sub-pixel centroids.
 
     Args:
       image: (H, W) grey image (uint8, or any real dtype; (H, W, 3) BGR is converted).
-      threshold: fixed binarisation level in image units; ``None`` = Otsu's method
-        (computed on the image scaled to 0..255).
+      threshold: fixed binarisation level in image units (pixels > threshold are blob);
+        ``None`` = :func:`auto_threshold` (Otsu, floored by a robust noise estimate).
       min_area: components smaller than this many pixels are rejected as noise specks.
       max_area: components larger than this are rejected (large glare patches); None = no cap.
       grow_px: the centroid is taken over each component dilated by this many pixels, so
@@ -141,16 +171,8 @@ def detect_blobs(image: np.ndarray, threshold: float | None = None, min_area: in
     """
     gray = _to_gray(image)
     f = gray.astype(np.float64)
-    if threshold is None:
-        if gray.dtype == np.uint8:
-            g8 = gray
-        else:
-            lo, hi = float(f.min()), float(f.max())
-            scale = 255.0 / (hi - lo) if hi > lo else 0.0
-            g8 = np.clip((f - lo) * scale, 0, 255).astype(np.uint8)
-        _, binary = cv2.threshold(g8, 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
-    else:
-        binary = (f > threshold).astype(np.uint8) * 255
+    level = auto_threshold(gray) if threshold is None else float(threshold)
+    binary = (f > level).astype(np.uint8)
     n_lab, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8,
                                                                ltype=cv2.CV_32S)
     background = float(np.median(f))
@@ -457,8 +479,7 @@ class CalibratedStereo:
             K, D, Rr, P = self.K2, self.D2, self.R2, self.P2
         else:
             raise ValueError(f"side must be 'left' or 'right', got {side!r}")
-        out = cv2.undistortPoints(uv, K, D, R=Rr, P=P, criteria=_UNDISTORT_CRITERIA)
-        return out.reshape(-1, 2)
+        return _undistort(uv, K, D, Rr, P).reshape(-1, 2)
 
     def triangulate_rectified(self, left_rect: np.ndarray, right_rect: np.ndarray) -> np.ndarray:
         """Rectified pixel pairs (n, 2), (n, 2) -> (n, 3) metres in the LEFT camera frame."""
