@@ -9,12 +9,14 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import integration as integ
+from . import scni
 from .boundary import EssentialSets, Transformation, nodal_forces
 from .geometry import Body
 from .materials import Material, green_lagrange, pk2
 from .rk import shape_functions
 from .solve import (Config, DenseSolver, Ops, Params, Solution, SparseSolver, Status,
-                    coefficients, deformation_gradients, energy_full, solve_path_jit)
+                    coefficients, deformation_gradients, energy_full, implicit_jacobian,
+                    point_values, solve_path_jit)
 
 DENSE_LIMIT = 2500  # free DOFs up to which the dense factorisation is used ("auto")
 
@@ -36,7 +38,9 @@ class Model:
 
     body        the reference Body
     material    a Material (strain energy W(E, p))
-    integration "gauss" (background cells, ``order`` points per direction)
+    integration "gauss" (background cells, ``order`` points per direction) | "scni" (stabilised
+                conforming nodal integration, ``order`` points per facet; see jaxrkpm.scni)
+                | "scni-plain" (SCNI without the sub-cell stabilisation)
     essential   name -> particle indices (or boolean mask) of each essential set
     support     kernel dilation a = support x spacing (eq 3.20)
     body_force  (d,) or X -> (Q, d): dead load per unit reference volume
@@ -55,8 +59,9 @@ class Model:
             raise ValueError(f"material must be a jaxrkpm Material, got {type(material).__name__}")
         if not (np.isfinite(support) and support > 0):
             raise ValueError(f"support must be a positive number (x spacing), got {support}")
-        if integration not in ("gauss",):
-            raise ValueError(f"unknown integration {integration!r}: choose 'gauss'")
+        if integration not in ("gauss", *scni.SCHEMES):
+            raise ValueError(f"unknown integration {integration!r}: choose 'gauss', "
+                             + ", ".join(repr(k) for k in scni.SCHEMES))
         if solver not in ("auto", "dense", "sparse"):
             raise ValueError(f"unknown solver {solver!r}: choose 'auto', 'dense' or 'sparse'")
         self.body, self.material, self.integration = body, material, integration
@@ -64,8 +69,12 @@ class Model:
         self.a = self.support * body.spacing
         d = body.dim
 
-        pts, wts = integ.gauss_points(body, order, cell_size)
-        self.volume = integ.table(body, pts, wts, self.a, support_factor=self.support)
+        if integration == "gauss":
+            pts, wts = integ.gauss_points(body, order, cell_size)
+            self.volume = integ.table(body, pts, wts, self.a, support_factor=self.support)
+        else:
+            self.volume = scni.table(body, self.a, integration, order, support_factor=self.support)
+            wts = self.volume.weights
         bp, bw, bn = integ.boundary_points(body, order)
         self.surface = integ.table(body, bp, bw, self.a, normals=bn, support_factor=self.support)
 
@@ -211,20 +220,87 @@ class Model:
               max_iter: int = 25, **options) -> Solution:
         """Equilibrium under the prescribed displacements and load scale ``loads``.
 
-        ``initial`` warm-starts from a previous Solution (its prescribed values and load
-        are the start of the path; sets not named in ``prescribed`` keep its values).
-        ``steps`` is the initial number of load steps (halved on failure, grown when easy).
-        With ``throw`` a failed solve raises SolveError (carrying the last converged state);
-        under jit/vmap the status is returned instead."""
+        ``prescribed``: set name -> (d,) rigid translation or (n_set, d) values; sets not
+        named keep the values of ``initial`` (default: zero).
+        ``initial`` warm-starts from a previous Solution (the path starts at its prescribed
+        values and load). ``steps`` is the initial number of load steps (halved on failure,
+        grown when easy). With ``throw`` a failed solve raises SolveError (carrying the last
+        converged state); under jit/vmap the status is returned instead.
+
+        Differentiable (jax.jacfwd / jax.grad) in the prescribed values, ``loads`` and
+        ``params`` by implicit differentiation of the converged equilibrium."""
         start = self.initial() if initial is None else initial
-        g1 = self.prescribed(prescribed, base=start.g)
+        return self.solve_g(self.prescribed(prescribed, base=start.g), loads=loads, params=params,
+                            steps=steps, initial=start, throw=throw, max_iter=max_iter, **options)
+
+    def solve_g(self, g, *, loads: float = 1.0, params=None, steps: int = 1,
+                initial: Solution | None = None, throw: bool = True, max_iter: int = 25,
+                **options) -> Solution:
+        """``solve`` with all prescribed values as one (Nb, d) array (see ``prescribed``)."""
+        start = self.initial() if initial is None else initial
         if _is_concrete(loads) and not np.isfinite(loads):
             raise ValueError(f"loads must be finite, got {loads}")
         sol = solve_path_jit(self.ops, self.params_with(params), self._config(steps, max_iter, **options),
-                             start.u, start.g, g1, start.load, jnp.asarray(loads, jnp.float64))
+                             start.u, start.g, jnp.asarray(g, jnp.float64), start.load,
+                             jnp.asarray(loads, jnp.float64))
         if throw and _is_concrete(sol.status) and int(sol.status) != Status.CONVERGED:
             raise SolveError(sol)
         return sol
+
+    def directions(self, name: str, rigid: bool = True):
+        """Unit prescribed-value directions (m, Nb, d) that drive set ``name``: d rigid
+        translations, or one per particle and component (m = n_set * d)."""
+        self._check_set(name)
+        sl = self.sets.slices[name]
+        Nb, d = len(self.sets.bnd), self.dim
+        if rigid:
+            G = np.zeros((d, Nb, d))
+            for a in range(d):
+                G[a, sl, a] = 1.0
+            return jnp.asarray(G)
+        n = sl.stop - sl.start
+        G = np.zeros((n * d, Nb, d))
+        for i in range(n):
+            for a in range(d):
+                G[i * d + a, sl.start + i, a] = 1.0
+        return jnp.asarray(G)
+
+    def jacobian(self, sol: Solution, driven: str, points, method: str = "implicit",
+                 eps: float = 1e-6, scheme: str = "central", rigid: bool = True, params=None):
+        """J = d(displacement at points)/d(displacement of the driven set): (P*d, m), m = d for
+        a rigidly driven set (else n_set*d, per particle and component).
+
+        "implicit": one factorisation of K_ff at the converged state and m solves
+        K_ff du_f = -K_fg dg (no re-solve). "fd": the thesis' Algorithm 4: perturb each
+        direction by eps, re-solve from the converged state, restore (``scheme`` "forward"
+        or "central")."""
+        if method not in ("implicit", "fd"):
+            raise ValueError(f"unknown Jacobian method {method!r}: choose 'implicit' or 'fd'")
+        if scheme not in ("forward", "central"):
+            raise ValueError(f"unknown difference scheme {scheme!r}: choose 'forward' or 'central'")
+        sf = self.shape_functions(points, gradients=False)
+        G = self.directions(driven, rigid)
+        P = len(sf.idx)
+        if method == "implicit":
+            J = implicit_jacobian(self.ops, self.params_with(params), self._config(), sol.u, sol.g,
+                                  sol.load, G, jnp.asarray(sf.idx), jnp.asarray(sf.psi))
+            return J.reshape(P * self.dim, -1)
+        if not (np.isfinite(eps) and eps > 0):
+            raise ValueError(f"eps must be positive, got {eps}")
+        idx, psi = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
+
+        def at(g):  # Algorithm 4: solve from the saved state; ``sol`` itself is never modified
+            s = self.solve_g(g, initial=sol, params=params, loads=sol.load)
+            return point_values(self.ops, idx, psi, s.u, s.g).ravel()
+
+        base = point_values(self.ops, idx, psi, sol.u, sol.g).ravel()
+        cols = []
+        for dg in G:
+            if scheme == "forward":
+                cols.append((at(sol.g + eps * dg) - base) / eps)
+            else:
+                cols.append((at(sol.g + eps * dg) - at(sol.g - eps * dg)) / (2 * eps))
+        return jnp.stack(cols, axis=1)
 
     # ------------------------------------------------------------------ post-processing
     def coefficients(self, sol: Solution):

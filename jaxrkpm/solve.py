@@ -171,16 +171,42 @@ def internal_force_scale(ops, params, W, d):
     return jnp.linalg.norm(jnp.zeros_like(d).at[ops.idx].add(contrib)) + jnp.linalg.norm(ops.f_ext)
 
 
+_BLOCK_BUDGET = 2**25  # doubles of (chunk, K, K, d, d) tangent blocks held at once
+
+
 def pair_blocks(ops, params, W, d):
     """Tangent in the full coefficients as (P, d, d) blocks over the particle pairs:
-    K_IJ = sum_q w_q grad Psi_I . dP/dF . grad Psi_J (dP/dF by autodiff of W)."""
+    K_IJ = sum_q w_q grad Psi_I . dP/dF . grad Psi_J (dP/dF by autodiff of W).
+
+    Large tables are swept in chunks of integration points (a scan that accumulates the
+    pair sums) so the (Q, K, K, d, d) local blocks never exist all at once."""
     F = deformation_gradients(ops.idx, ops.dpsi, d)
     p, axes = _merged(params)
     C = jax.vmap(jax.hessian(_point_energy(W)), in_axes=(0, axes))(F, p)   # (Q, d, d, d, d)
-    blocks = jnp.einsum("qkj,qajbl,qml->qkmab", ops.dpsi * ops.w[:, None, None], C, ops.dpsi)
-    dim = d.shape[1]
-    return jax.ops.segment_sum(blocks.reshape(-1, dim, dim), ops.pair_id.reshape(-1),
-                               num_segments=ops.pair_i.shape[0])
+    Q, K, dim = ops.dpsi.shape
+    n_pairs = ops.pair_i.shape[0]
+    wdpsi = ops.dpsi * ops.w[:, None, None]
+
+    def chunk_sum(wdp, c, dp, pid):
+        blocks = jnp.einsum("qkj,qajbl,qml->qkmab", wdp, c, dp)
+        return jax.ops.segment_sum(blocks.reshape(-1, dim, dim), pid.reshape(-1), num_segments=n_pairs)
+
+    chunk = max(1, _BLOCK_BUDGET // (K * K * dim * dim))
+    if Q <= chunk:
+        return chunk_sum(wdpsi, C, ops.dpsi, ops.pair_id)
+    n_chunks = -(-Q // chunk)
+    pad = n_chunks * chunk - Q
+
+    def split(x):  # zero-padded points contribute nothing (their weight is zero)
+        x = jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)])
+        return x.reshape((n_chunks, chunk) + x.shape[1:])
+
+    def body(acc, xs):
+        return acc + chunk_sum(*xs), None
+
+    acc, _ = jax.lax.scan(body, jnp.zeros((n_pairs, dim, dim), d.dtype),
+                          (split(wdpsi), split(C), split(ops.dpsi), split(ops.pair_id)))
+    return acc
 
 
 def dense_tangent(ops: Ops, blocks):
@@ -364,4 +390,70 @@ def solve_path(ops: Ops, params: Params, cfg: Config, u0, g0, g1, l0, l1) -> Sol
     return Solution(u, g, load, status, t, iters, steps, cuts, rn)
 
 
-solve_path_jit = jax.jit(solve_path, static_argnames=("cfg",))
+# ------------------------------------------------------------ implicit differentiation
+def _zero_tangent(x):
+    x = jnp.asarray(x)
+    if jnp.issubdtype(x.dtype, jnp.integer) or x.dtype == jnp.bool_:
+        return np.zeros(x.shape, dtype=jax.dtypes.float0)
+    return jnp.zeros_like(x)
+
+
+def _solve_linearized(ops, params, cfg: Config, u, g, load, rhs):
+    """x = K_ff^-1 rhs at the state (u, g) as a custom linear solve: the matrix-vector
+    product is the exact Hessian-vector product of the energy, the solve uses the assembled
+    tangent, and symmetry makes it transposable (so reverse mode works too)."""
+    K = tangent(ops, params, cfg, u, g)
+
+    def matvec(v):
+        return jax.jvp(lambda x: residual(ops, params, cfg.W, x, g, load), (u,), (v,))[1]
+
+    return jax.lax.custom_linear_solve(matvec, rhs, solve=lambda _, b: cfg.linear.solve(ops, K, b),
+                                       symmetric=True)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(2,))
+def solve_path_diff(ops, params, cfg, u0, g0, g1, l0, l1):
+    """``solve_path`` differentiable in (g1, l1, params) by the implicit function theorem at
+    the converged state: K_ff du = -(dr/dg dg + dr/dl dl + dr/dp dp). No Newton iteration is
+    differentiated; the path start (u0, g0, l0) only selects the equilibrium branch."""
+    return solve_path(ops, params, cfg, u0, g0, g1, l0, l1)
+
+
+@solve_path_diff.defjvp
+def _solve_path_jvp(cfg, primals, tangents):
+    ops, params, u0, g0, g1, l0, l1 = primals
+    _, dparams, _, _, dg1, _, dl1 = tangents
+    sol = solve_path_diff(ops, params, cfg, u0, g0, g1, l0, l1)
+    dg, dl = sol.t * dg1, sol.t * dl1
+    _, dr = jax.jvp(lambda g, l, p: residual(ops, p, cfg.W, sol.u, g, l),
+                    (sol.g, sol.load, params), (dg, dl, dparams))
+    du = -_solve_linearized(ops, params, cfg, sol.u, sol.g, sol.load, dr)
+    dsol = Solution(du, dg, dl, *(_zero_tangent(x) for x in sol[3:]))
+    return sol, dsol
+
+
+solve_path_jit = jax.jit(solve_path_diff, static_argnames=("cfg",))
+
+
+def response(ops, params, cfg: Config, u, g, load, dG):
+    """Implicit sensitivity of the free coefficients to m prescribed directions dG (m, Nb, d):
+    one tangent factorisation, m right-hand sides K_ff du = -K_fg dG. Returns (m, Nf, d)."""
+    dr = jax.vmap(lambda dg: jax.jvp(lambda x: residual(ops, params, cfg.W, u, x, load),
+                                     (g,), (dg,))[1])(dG)                      # (m, Nf, d)
+    K = tangent(ops, params, cfg, u, g)
+    du = -cfg.linear.solve(ops, K, jnp.moveaxis(dr, 0, -1))                  # (Nf, d, m)
+    return jnp.moveaxis(du, -1, 0)
+
+
+def point_values(ops, idx, psi, u, g):
+    """Displacement at points with precomputed (P, K) shape functions: (P, d)."""
+    d = coefficients(ops, u, g)
+    return jnp.einsum("pk,pki->pi", psi, d[idx])
+
+
+@partial(jax.jit, static_argnames=("cfg",))
+def implicit_jacobian(ops, params, cfg: Config, u, g, load, dG, idx, psi):
+    """d(displacement at points)/d(direction) for the m directions dG: (P, d, m)."""
+    du = response(ops, params, cfg, u, g, load, dG)
+    dU = jax.vmap(lambda a, b: jax.jvp(lambda x, y: point_values(ops, idx, psi, x, y), (u, g), (a, b))[1])(du, dG)
+    return jnp.moveaxis(dU, 0, -1)

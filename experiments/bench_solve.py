@@ -1,0 +1,68 @@
+"""Benchmark: compile time, warm solve time (median) and peak memory for neo-Hookean blocks
+compressed 30% in 10 load steps (left face immobile, right face pushed).
+
+Each case runs in a fresh subprocess so its peak RSS is its own. Prints JSON."""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+CASES = {"2d_9": (9, 9), "2d_101": (101, 101), "3d_20": (20, 20, 20)}
+
+
+def run_case(shape, repeats):
+    import jax.numpy as jnp
+
+    import jaxrkpm as jr
+    t0 = time.perf_counter()
+    body = jr.Body.grid(shape, 1.0 / (shape[0] - 1))
+    sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
+    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets)
+    build = time.perf_counter() - t0
+    g = jnp.zeros(len(shape)).at[0].set(-0.3)
+    t0 = time.perf_counter()
+    sol = model.solve({"right": g}, steps=10)
+    sol.u.block_until_ready()
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        sol = model.solve({"right": g}, steps=10)
+        sol.u.block_until_ready()
+        times.append(time.perf_counter() - t0)
+    warm = statistics.median(times)
+    return {"shape": list(shape), "dof": int(len(model.sets.free) * len(shape)),
+            "solver": model.linear.name, "build_s": build, "compile_s": first - warm,
+            "first_solve_s": first, "warm_solve_s_median": warm, "warm_solve_s_all": times,
+            "newton_iterations": int(sol.iterations), "load_steps": int(sol.steps),
+            "status": jr.Status(int(sol.status)).name,
+            "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--cases", nargs="*", default=list(CASES))
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--case", help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    if a.case:
+        print(json.dumps(run_case(CASES[a.case], a.repeats)))
+        return
+    out = {}
+    for name in a.cases:
+        reps = a.repeats if name == "2d_9" else max(1, min(a.repeats, 2))
+        r = subprocess.run([sys.executable, "-m", "experiments.bench_solve", "--case", name,
+                            "--repeats", str(reps)], capture_output=True, text=True)
+        out[name] = json.loads(r.stdout.strip().splitlines()[-1]) if r.returncode == 0 else \
+            {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}
+        print(name, json.dumps(out[name]), file=sys.stderr)
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,255 @@
+"""Jacobian path tracking (thesis Algorithm 3): MP <- MP + K J^-1 e.
+
+The whole tracking run is one jitted while-loop: at each iteration the controller model's
+implicit Jacobian J = d CP / d MP is taken at its converged state, the manipulation point
+(a rigidly driven essential set) moves by K J^+ e clamped to ``clamp`` per component, and
+the models re-equilibrate. The plant (whose control point is measured) is the controller
+itself, or a second model (reduced -> refined control, section 5.3.1).
+"""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .model import Model
+from .solve import Config, Ops, Params, Solution, Status, implicit_jacobian, point_values, solve_path
+
+
+class TrackStatus(enum.IntEnum):
+    DONE = 0            # every waypoint reached within tol
+    SOLVE_FAILED = 1    # a model solve failed (see solve_status)
+    ITERATION_CAP = 2   # a waypoint took more than max_iter iterations
+    NO_PROGRESS = 3     # the error stopped falling (a physically unreachable waypoint?)
+    HISTORY_FULL = 4    # max_steps iterations in all
+
+    @property
+    def message(self):
+        return {
+            TrackStatus.DONE: "every waypoint reached",
+            TrackStatus.SOLVE_FAILED: "a model solve failed; the history up to it is kept",
+            TrackStatus.ITERATION_CAP: "the waypoint was not reached within the iteration cap",
+            TrackStatus.NO_PROGRESS: "the control point error stopped decreasing: the waypoint "
+                                     "looks unreachable with this manipulation",
+            TrackStatus.HISTORY_FULL: "the total iteration budget (max_steps) ran out",
+        }[self]
+
+
+def control_increment(J, e, gain, clamp, damping=0.0):
+    """K J^+ e, clamped so no component exceeds ``clamp``.
+
+    Square J: J^-1 e. Otherwise damped least squares: (J^T J + damping^2 I)^-1 J^T e
+    (more control than manipulation coordinates) or J^T (J J^T + damping^2 I)^-1 e."""
+    m, n = J.shape
+    if m >= n:
+        step = jnp.linalg.solve(J.T @ J + damping**2 * jnp.eye(n), J.T @ e)
+    else:
+        step = J.T @ jnp.linalg.solve(J @ J.T + damping**2 * jnp.eye(m), e)
+    if m == n:  # undamped square J: the plain inverse (better conditioned than the normal equations)
+        step = jnp.where(damping > 0, step, jnp.linalg.solve(J, e))
+    step = gain * step
+    biggest = jnp.max(jnp.abs(step))
+    return jnp.where(biggest > clamp, step * (clamp / biggest), step)
+
+
+class _Side(NamedTuple):
+    """One model inside the loop: its arrays, the driven set's directions and the control
+    point shape functions."""
+
+    ops: Ops
+    params: Params
+    G: jax.Array     # (d_mp, Nb, d) rigid directions of the driven set
+    idx: jax.Array   # (C, K) control point neighbours
+    psi: jax.Array   # (C, K)
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """History of a tracking run (numpy arrays, n = iterations run).
+
+    mp (n+1, d_mp) manipulation point displacement, cp (n+1, C*d) control point displacement
+    (plant), error (n+1,) |e| against the current waypoint, waypoint (n+1,) its index,
+    newton (n+1,) Newton iterations of the step, solve_status (n+1,);
+    reached (W,) iteration at which each waypoint was reached (-1 if not);
+    achieved (W, C*d) the control point there; desired (W, C*d)."""
+
+    mp: np.ndarray
+    cp: np.ndarray
+    error: np.ndarray
+    waypoint: np.ndarray
+    newton: np.ndarray
+    solve_status: np.ndarray
+    reached: np.ndarray
+    achieved: np.ndarray
+    desired: np.ndarray
+    status: TrackStatus
+    controller_solution: Solution
+    plant_solution: Solution
+
+    @property
+    def waypoint_errors(self) -> np.ndarray:
+        err = np.linalg.norm(self.achieved - self.desired, axis=1)
+        return np.where(self.reached >= 0, err, np.nan)
+
+    @property
+    def max_waypoint_error(self) -> float:
+        return float(np.nanmax(self.waypoint_errors)) if np.any(self.reached >= 0) else float("nan")
+
+    @property
+    def message(self) -> str:
+        n = int(np.sum(self.reached >= 0))
+        return f"{self.status.name}: {self.status.message} ({n}/{len(self.reached)} waypoints, " \
+               f"{len(self.error) - 1} iterations)"
+
+
+def _side(model: Model, driven: str, control_points, params=None) -> _Side:
+    sf = model.shape_functions(control_points, gradients=False)
+    return _Side(model.ops, model.params_with(params), model.directions(driven),
+                 jnp.asarray(sf.idx), jnp.asarray(sf.psi))
+
+
+@partial(jax.jit, static_argnames=("ccfg", "pcfg", "same", "max_iter", "max_steps", "window"))
+def _track_loop(ctrl: _Side, plant: _Side, ccfg: Config, pcfg: Config, same: bool,
+                c0: Solution, p0: Solution, desired, gain, clamp, tol, damping,
+                max_iter: int, max_steps: int, window: int):
+    dim_mp = ctrl.G.shape[0]
+    n_wp, n_cp = desired.shape
+
+    def measure(side, sol):
+        return point_values(side.ops, side.idx, side.psi, sol.u, sol.g).ravel()
+
+    def g_of(side, g_base, mp):
+        return g_base + jnp.einsum("a,abi->bi", mp, side.G)
+
+    cg_base, pg_base = c0.g, p0.g   # the manipulation point moves relative to the start
+    H = max_steps + 1
+    hist = dict(mp=jnp.zeros((H, dim_mp)), cp=jnp.zeros((H, n_cp)), error=jnp.zeros(H),
+                waypoint=jnp.zeros(H, jnp.int32), newton=jnp.zeros(H, jnp.int32),
+                solve_status=jnp.zeros(H, jnp.int32))
+    cp0 = measure(plant, p0)
+    hist["cp"] = hist["cp"].at[0].set(cp0)
+    hist["error"] = hist["error"].at[0].set(jnp.linalg.norm(desired[0] - cp0))
+
+    class S(NamedTuple):
+        k: jax.Array
+        wp: jax.Array
+        it_wp: jax.Array
+        best: jax.Array
+        since_best: jax.Array
+        mp: jax.Array
+        c: Solution
+        p: Solution
+        hist: dict
+        reached: jax.Array
+        achieved: jax.Array
+        status: jax.Array
+
+    def cond(s):
+        return (s.status < 0) & (s.wp < n_wp)
+
+    def body(s):
+        cp = measure(plant, s.p)
+        e = desired[s.wp] - cp
+        en = jnp.linalg.norm(e)
+        hit = en < tol
+
+        def advance(s):
+            return s._replace(wp=s.wp + 1, it_wp=jnp.array(0), best=jnp.array(jnp.inf),
+                              since_best=jnp.array(0), reached=s.reached.at[s.wp].set(s.k),
+                              achieved=s.achieved.at[s.wp].set(cp))
+
+        def move(s):
+            J = implicit_jacobian(ctrl.ops, ctrl.params, ccfg, s.c.u, s.c.g, s.c.load, ctrl.G,
+                                  ctrl.idx, ctrl.psi).reshape(n_cp, dim_mp)
+            mp = s.mp + control_increment(J, e, gain, clamp, damping)
+            c = solve_path(ctrl.ops, ctrl.params, ccfg, s.c.u, s.c.g, g_of(ctrl, cg_base, mp), s.c.load, s.c.load)
+            if same:
+                p = c
+            else:
+                p = solve_path(plant.ops, plant.params, pcfg, s.p.u, s.p.g, g_of(plant, pg_base, mp),
+                               s.p.load, s.p.load)
+            ok = (c.status == Status.CONVERGED) & (p.status == Status.CONVERGED)
+            k = s.k + 1
+            cp_new = measure(plant, p)
+            e_new = jnp.linalg.norm(desired[s.wp] - cp_new)
+            improved = e_new < 0.99 * s.best
+            best = jnp.where(improved, e_new, s.best)
+            since = jnp.where(improved, 0, s.since_best + 1)
+            h = s.hist
+            h = dict(mp=h["mp"].at[k].set(mp), cp=h["cp"].at[k].set(cp_new), error=h["error"].at[k].set(e_new),
+                     waypoint=h["waypoint"].at[k].set(s.wp), newton=h["newton"].at[k].set(c.iterations + (0 if same else p.iterations)),
+                     solve_status=h["solve_status"].at[k].set(jnp.maximum(c.status, p.status)))
+            status = jnp.where(~ok, TrackStatus.SOLVE_FAILED,
+                               jnp.where(s.it_wp + 1 >= max_iter, TrackStatus.ITERATION_CAP,
+                                         jnp.where(since >= window, TrackStatus.NO_PROGRESS,
+                                                   jnp.where(k >= max_steps, TrackStatus.HISTORY_FULL, -1))))
+            # a failed solve keeps the last converged states
+            c = jax.tree.map(lambda a, b: jnp.where(ok, a, b), c, s.c)
+            p = jax.tree.map(lambda a, b: jnp.where(ok, a, b), p, s.p)
+            mp = jnp.where(ok, mp, s.mp)
+            return s._replace(k=k, it_wp=s.it_wp + 1, best=best, since_best=since, mp=mp, c=c, p=p,
+                              hist=h, status=status)
+
+        return jax.lax.cond(hit, advance, move, s)
+
+    s0 = S(jnp.array(0), jnp.array(0), jnp.array(0), jnp.array(jnp.inf), jnp.array(0), jnp.zeros(dim_mp),
+           c0, p0, hist, -jnp.ones(n_wp, jnp.int32), jnp.zeros((n_wp, n_cp)), jnp.array(-1))
+    s = jax.lax.while_loop(cond, body, s0)
+    status = jnp.where(s.status < 0, TrackStatus.DONE, s.status)
+    return s.k, status, s.hist, s.reached, s.achieved, s.c, s.p
+
+
+def track(model: Model, path, driven: str, control_points, *, plant: Model | None = None,
+          plant_driven: str | None = None, gain: float = 0.05, clamp: float = 0.01,
+          tol: float = 1e-4, damping: float = 0.0, max_iter: int = 2000, max_steps: int = 20000,
+          window: int = 300, initial: Solution | None = None, plant_initial: Solution | None = None,
+          params=None, plant_params=None) -> TrackResult:
+    """Track a path of control point displacements (W, C*d) by moving the rigidly driven set
+    ``driven`` (Algorithm 3). ``plant``: a second model that is actually moved and measured
+    (its driven set ``plant_driven``, default the same name); the controller's Jacobian
+    drives it. Stops with a status (never raises on an unreachable waypoint) and keeps the
+    whole history."""
+    path = np.atleast_2d(np.asarray(path, float))
+    cps = np.atleast_2d(np.asarray(control_points, float))
+    if path.shape[1] != cps.size:
+        raise ValueError(f"path must have {cps.size} columns (control points x dimensions), got {path.shape}")
+    for name, v in (("gain", gain), ("clamp", clamp), ("tol", tol)):
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be positive, got {v}")
+    ctrl = _side(model, driven, cps, params)
+    same = plant is None
+    plant_model = model if same else plant
+    pside = ctrl if same else _side(plant_model, plant_driven or driven, cps, plant_params)
+    if pside.G.shape[0] != ctrl.G.shape[0]:
+        raise ValueError("controller and plant must drive the same number of coordinates")
+    c0 = model.initial() if initial is None else initial
+    p0 = c0 if same else (plant_model.initial() if plant_initial is None else plant_initial)
+    k, status, hist, reached, achieved, c, p = _track_loop(
+        ctrl, pside, model._config(), plant_model._config(), same, c0, p0, jnp.asarray(path),
+        gain, clamp, tol, damping, int(max_iter), int(max_steps), int(window))
+    n = int(k) + 1
+    h = {key: np.asarray(v)[:n] for key, v in hist.items()}
+    return TrackResult(h["mp"], h["cp"], h["error"], h["waypoint"], h["newton"], h["solve_status"],
+                       np.asarray(reached), np.asarray(achieved), path, TrackStatus(int(status)), c, p)
+
+
+# ----------------------------------------------------------------- the thesis' paths
+PATHS = {
+    # control point displacements (chapter 5); the set point goes (0,0) -> (0.05,0.05)
+    "setpoint": [[0.0, 0.0], [0.05, 0.05]],
+    "box": [[0.00, 0.00], [0.00, 0.01], [0.00, 0.02], [0.00, 0.03], [0.00, 0.04], [0.01, 0.04],
+            [0.02, 0.04], [0.03, 0.04], [0.04, 0.04], [0.04, 0.03], [0.04, 0.02], [0.04, 0.01],
+            [0.04, 0.00], [0.03, 0.00], [0.02, 0.00], [0.01, 0.00], [0.00, 0.00]],     # Table 5.3
+    "figure8": [[0.00, 0.00], [0.01, 0.01], [0.01, 0.02], [0.00, 0.03], [-0.01, 0.02], [-0.01, 0.01],
+                [0.00, 0.00], [0.01, -0.01], [0.01, -0.02], [0.00, -0.03], [-0.01, -0.02],
+                [-0.01, -0.01]],                                                         # Table 5.4
+    "line": [[0.01 * i, 0.0] for i in range(16)],                                        # Table 5.5
+}
+# Table 5.1: control point positions of the 3D cube (object coordinates)
+TABLE_5_1 = [[-2.0, 0.0, 2.5], [-2.0, 0.0, 2.7], [-2.2, 0.0, 2.7], [-2.3, 0.0, 2.9],
+             [-2.5, 0.0, 2.9], [-2.6, 0.0, 3.0]]
