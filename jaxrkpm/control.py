@@ -18,7 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .model import Model
-from .solve import Config, Ops, Params, Solution, Status, implicit_jacobian, point_values, solve_path
+from .solve import (Config, Limits, Ops, Params, Solution, Status, implicit_jacobian, point_values,
+                    solve_path)
 
 
 class TrackStatus(enum.IntEnum):
@@ -115,7 +116,7 @@ def _side(model: Model, driven: str, control_points, params=None) -> _Side:
 
 @partial(jax.jit, static_argnames=("ccfg", "pcfg", "same", "max_iter", "max_steps", "window"))
 def _track_loop(ctrl: _Side, plant: _Side, ccfg: Config, pcfg: Config, same: bool,
-                c0: Solution, p0: Solution, desired, gain, clamp, tol, damping,
+                lim: Limits, c0: Solution, p0: Solution, desired, gain, clamp, tol, damping,
                 max_iter: int, max_steps: int, window: int):
     dim_mp = ctrl.G.shape[0]
     n_wp, n_cp = desired.shape
@@ -167,11 +168,11 @@ def _track_loop(ctrl: _Side, plant: _Side, ccfg: Config, pcfg: Config, same: boo
             J = implicit_jacobian(ctrl.ops, ctrl.params, ccfg, s.c.u, s.c.g, s.c.load, ctrl.G,
                                   ctrl.idx, ctrl.psi).reshape(n_cp, dim_mp)
             mp = s.mp + control_increment(J, e, gain, clamp, damping)
-            c = solve_path(ctrl.ops, ctrl.params, ccfg, s.c.u, s.c.g, g_of(ctrl, cg_base, mp), s.c.load, s.c.load)
+            c = solve_path(ctrl.ops, ctrl.params, ccfg, lim, s.c.u, s.c.g, g_of(ctrl, cg_base, mp), s.c.load, s.c.load)
             if same:
                 p = c
             else:
-                p = solve_path(plant.ops, plant.params, pcfg, s.p.u, s.p.g, g_of(plant, pg_base, mp),
+                p = solve_path(plant.ops, plant.params, pcfg, lim, s.p.u, s.p.g, g_of(plant, pg_base, mp),
                                s.p.load, s.p.load)
             ok = (c.status == Status.CONVERGED) & (p.status == Status.CONVERGED)
             k = s.k + 1
@@ -230,7 +231,7 @@ def track(model: Model, path, driven: str, control_points, *, plant: Model | Non
     c0 = model.initial() if initial is None else initial
     p0 = c0 if same else (plant_model.initial() if plant_initial is None else plant_initial)
     k, status, hist, reached, achieved, c, p = _track_loop(
-        ctrl, pside, model._config(), plant_model._config(), same, c0, p0, jnp.asarray(path),
+        ctrl, pside, model._config(), plant_model._config(), same, Limits.of(steps=1), c0, p0, jnp.asarray(path),
         gain, clamp, tol, damping, int(max_iter), int(max_steps), int(window))
     n = int(k) + 1
     h = {key: np.asarray(v)[:n] for key, v in hist.items()}

@@ -14,7 +14,7 @@ from .boundary import EssentialSets, Transformation, nodal_forces
 from .geometry import Body
 from .materials import Material, green_lagrange, pk2
 from .rk import shape_functions
-from .solve import (Config, DenseSolver, Ops, Params, Solution, SparseSolver, Status,
+from .solve import (Config, DenseSolver, Limits, Ops, Params, Solution, SparseSolver, Status,
                     coefficients, deformation_gradients, energy_full, implicit_jacobian,
                     point_values, solve_path_jit)
 
@@ -137,11 +137,8 @@ class Model:
         free_dofs = (self.sets.free[:, None] * d + np.arange(d)[None]).ravel()
         return SparseSolver(rows, cols, C, free_dofs, N * d)
 
-    def _config(self, steps=1, max_iter=25, **kw) -> Config:
-        if int(steps) < 1:
-            raise ValueError(f"steps must be >= 1, got {steps}")
-        return Config(W=self.material.W, linear=self.linear, steps=int(steps),
-                      max_iter=int(max_iter), **kw)
+    def _config(self, **kw) -> Config:
+        return Config(W=self.material.W, linear=self.linear, **kw)
 
     @property
     def dim(self) -> int:
@@ -210,10 +207,10 @@ class Model:
     # -------------------------------------------------------------------------- solve
     def initial(self) -> Solution:
         """The undeformed, unloaded equilibrium."""
-        z = jnp.array(0)
+        z = jnp.zeros((), jnp.int32)
+        f = jnp.zeros((), jnp.float64)  # not weak-typed: the same jit signature as a solve's output
         return Solution(jnp.zeros((len(self.sets.free), self.dim)),
-                        jnp.zeros((len(self.sets.bnd), self.dim)), jnp.array(0.0),
-                        z, jnp.array(1.0), z, z, z, jnp.array(0.0))
+                        jnp.zeros((len(self.sets.bnd), self.dim)), f, z, f + 1.0, z, z, z, f)
 
     def solve(self, prescribed: Mapping | None = None, *, loads: float = 1.0, params=None,
               steps: int = 1, initial: Solution | None = None, throw: bool = True,
@@ -235,14 +232,14 @@ class Model:
 
     def solve_g(self, g, *, loads: float = 1.0, params=None, steps: int = 1,
                 initial: Solution | None = None, throw: bool = True, max_iter: int = 25,
-                **options) -> Solution:
+                max_cuts: int = 10, **options) -> Solution:
         """``solve`` with all prescribed values as one (Nb, d) array (see ``prescribed``)."""
         start = self.initial() if initial is None else initial
         if _is_concrete(loads) and not np.isfinite(loads):
             raise ValueError(f"loads must be finite, got {loads}")
-        sol = solve_path_jit(self.ops, self.params_with(params), self._config(steps, max_iter, **options),
-                             start.u, start.g, jnp.asarray(g, jnp.float64), start.load,
-                             jnp.asarray(loads, jnp.float64))
+        sol = solve_path_jit(self.ops, self.params_with(params), self._config(**options),
+                             Limits.of(steps, max_iter, max_cuts), start.u, start.g, jnp.asarray(g, jnp.float64),
+                             jnp.asarray(start.load, jnp.float64), jnp.asarray(loads, jnp.float64))
         if throw and _is_concrete(sol.status) and int(sol.status) != Status.CONVERGED:
             raise SolveError(sol)
         return sol

@@ -74,12 +74,26 @@ class Config:
 
     W: Callable
     linear: Any            # DenseSolver() or a SparseSolver instance
-    steps: int = 1         # initial (and largest) number of load steps
-    max_iter: int = 25
-    max_cuts: int = 10     # halvings of the initial load step before giving up
     rtol: float = 1e-10    # residual tolerance relative to the internal force scale
     line_search: int = 8   # step halvings in the line search
     easy: int = 4          # a step converging within this many iterations lets dt grow
+
+
+class Limits(NamedTuple):
+    """Dynamic solver limits (arrays, so changing them does not recompile)."""
+
+    steps: jax.Array      # initial (and largest) number of load steps
+    max_iter: jax.Array   # Newton iterations per load step
+    max_cuts: jax.Array   # halvings of the initial load step before giving up
+
+    @staticmethod
+    def of(steps=1, max_iter=25, max_cuts=10) -> "Limits":
+        for name, v in (("steps", steps), ("max_iter", max_iter)):
+            if int(v) < 1:
+                raise ValueError(f"{name} must be >= 1, got {v}")
+        if int(max_cuts) < 0:
+            raise ValueError(f"max_cuts must be >= 0, got {max_cuts}")
+        return Limits(jnp.asarray(int(steps)), jnp.asarray(int(max_iter)), jnp.asarray(int(max_cuts)))
 
 
 class Solution(NamedTuple):
@@ -286,23 +300,22 @@ def tangent(ops, params, cfg: Config, u, g):
 
 
 # ---------------------------------------------------------------------------- Newton
-def _newton_step(ops, params, cfg: Config, u, g0, g1, l0, l1):
+def _newton_step(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1):
     """Newton from the equilibrium at (g0, l0) to (g1, l1).
 
     The first linear solve is the predictor: it carries the prescribed increment,
-    K_ff du = -(r(u, g0, l1) + K_fg (g1 - g0)). Returns (u, status, iterations, |r|)."""
+    K_ff(u, g0) du = -(r(u, g0, l1) + K_fg (g1 - g0)); later ones are plain Newton at g1.
+    (One tangent site in the loop body keeps the compiled graph small.)
+    Returns (u, status, iterations, |r|)."""
     W = cfg.W
     res = partial(residual, ops, params, W)
     r_pred, kfg_dg = jax.jvp(lambda g: res(u, g, l1), (g0,), (g1 - g0,))
-    rhs = r_pred + kfg_dg
-    r_ref = jnp.linalg.norm(rhs)
-    du = -cfg.linear.solve(ops, tangent(ops, params, cfg, u, g0), rhs)
+    rhs0 = r_pred + kfg_dg
+    r_ref = jnp.linalg.norm(rhs0)
 
     def evaluate(v):
         (Pi, detmin), r = jax.value_and_grad(lambda x: energy(ops, params, W, x, g1, l1), has_aux=True)(v)
         return Pi, detmin, r
-
-    Pi0, det0, r0 = evaluate(u)
 
     def line_search(u, Pi, r, du):
         slope = jnp.sum(du * r)
@@ -310,8 +323,7 @@ def _newton_step(ops, params, cfg: Config, u, g0, g1, l0, l1):
         start_ok = jnp.isfinite(Pi) & jnp.all(jnp.isfinite(r))
 
         def cond(c):
-            k, accepted = c[0], c[1]
-            return (~accepted) & (k <= cfg.line_search)
+            return (~c[1]) & (c[0] <= cfg.line_search)
 
         def body(c):
             k, _, _, _, _, any_finite, _ = c
@@ -324,43 +336,40 @@ def _newton_step(ops, params, cfg: Config, u, g0, g1, l0, l1):
             return (k + 1, valid & decrease, v, Pi_v, r_v, any_finite | finite, det_v > 0)
 
         init = (jnp.array(0), jnp.array(False), u, Pi, r, jnp.array(False), jnp.array(True))
-        k, accepted, v, Pi_v, r_v, any_finite, det_ok = jax.lax.while_loop(cond, body, init)
+        _, accepted, v, Pi_v, r_v, any_finite, det_ok = jax.lax.while_loop(cond, body, init)
         why = jnp.where(~any_finite, Status.NONFINITE,
                         jnp.where(~det_ok, Status.INVERTED, Status.LINE_SEARCH))
         return accepted, v, Pi_v, r_v, why
 
     def cond(c):
-        it, _, _, _, _, done, _ = c
-        return ~done
+        return c[4] < 0
 
     def body(c):
-        it, u, Pi, r, du, _, _ = c
+        it, u, Pi, r, _ = c
+        first = it == 0
+        K = tangent(ops, params, cfg, u, jnp.where(first, g0, g1))
+        du = -cfg.linear.solve(ops, K, jnp.where(first, rhs0, r))
         ok, v, Pi_v, r_v, why = line_search(u, Pi, r, du)
         rn = jnp.linalg.norm(r_v)
         scale = internal_force_scale(ops, params, W, coefficients(ops, v, g1))
         converged = ok & (rn <= cfg.rtol * jnp.maximum(r_ref, scale))
-        capped = it + 1 >= cfg.max_iter
         status = jnp.where(~ok, why, jnp.where(converged, Status.CONVERGED,
-                                               jnp.where(capped, Status.MAX_ITERATIONS, -1)))
-        done = status >= 0
-        du_next = jax.lax.cond(done, lambda: jnp.zeros_like(du),
-                               lambda: -cfg.linear.solve(ops, tangent(ops, params, cfg, v, g1), r_v))
-        v = jnp.where(ok, v, u)
-        return (it + 1, v, jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), du_next, done, status)
+                                               jnp.where(it + 1 >= max_iter, Status.MAX_ITERATIONS, -1)))
+        return (it + 1, jnp.where(ok, v, u), jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), status)
 
-    init = (jnp.array(0), u, Pi0, r0, du, jnp.array(False), jnp.array(-1))
-    it, u_new, _, r, _, _, status = jax.lax.while_loop(cond, body, init)
+    Pi0, _, r0 = evaluate(u)
+    it, u_new, _, r, status = jax.lax.while_loop(cond, body, (jnp.array(0), u, Pi0, r0, jnp.array(-1)))
     return u_new, status, it, jnp.linalg.norm(r)
 
 
-def solve_path(ops: Ops, params: Params, cfg: Config, u0, g0, g1, l0, l1) -> Solution:
+def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l0, l1) -> Solution:
     """Adaptive load stepping from the equilibrium (u0, g0, l0) to (g1, l1).
 
-    Halves the step on failure (up to cfg.max_cuts times below the initial step), grows it
+    Halves the step on failure (up to lim.max_cuts times below the initial step), grows it
     by 1.5x after easy steps (never above the initial step). On failure the last converged
     state is returned with the failing status."""
-    dt0 = 1.0 / cfg.steps
-    dt_min = dt0 * 0.5 ** cfg.max_cuts
+    dt0 = 1.0 / lim.steps
+    dt_min = dt0 * 0.5 ** lim.max_cuts
 
     def at(t):
         return g0 + t * (g1 - g0), l0 + t * (l1 - l0)
@@ -375,7 +384,7 @@ def solve_path(ops: Ops, params: Params, cfg: Config, u0, g0, g1, l0, l1) -> Sol
         t1 = jnp.where(1.0 - t1 < 1e-12, 1.0, t1)
         ga, la = at(t)
         gb, lb = at(t1)
-        v, st, it, rn_v = _newton_step(ops, params, cfg, u, ga, gb, la, lb)
+        v, st, it, rn_v = _newton_step(ops, params, cfg, lim.max_iter, u, ga, gb, la, lb)
         ok = st == Status.CONVERGED
         grow = jnp.where(it <= cfg.easy, 1.5, 1.0)
         dt_next = jnp.where(ok, jnp.minimum(dt * grow, dt0), dt / 2)
@@ -412,18 +421,18 @@ def _solve_linearized(ops, params, cfg: Config, u, g, load, rhs):
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(2,))
-def solve_path_diff(ops, params, cfg, u0, g0, g1, l0, l1):
+def solve_path_diff(ops, params, cfg, lim, u0, g0, g1, l0, l1):
     """``solve_path`` differentiable in (g1, l1, params) by the implicit function theorem at
     the converged state: K_ff du = -(dr/dg dg + dr/dl dl + dr/dp dp). No Newton iteration is
     differentiated; the path start (u0, g0, l0) only selects the equilibrium branch."""
-    return solve_path(ops, params, cfg, u0, g0, g1, l0, l1)
+    return solve_path(ops, params, cfg, lim, u0, g0, g1, l0, l1)
 
 
 @solve_path_diff.defjvp
 def _solve_path_jvp(cfg, primals, tangents):
-    ops, params, u0, g0, g1, l0, l1 = primals
-    _, dparams, _, _, dg1, _, dl1 = tangents
-    sol = solve_path_diff(ops, params, cfg, u0, g0, g1, l0, l1)
+    ops, params, lim, u0, g0, g1, l0, l1 = primals
+    _, dparams, _, _, _, dg1, _, dl1 = tangents
+    sol = solve_path_diff(ops, params, cfg, lim, u0, g0, g1, l0, l1)
     dg, dl = sol.t * dg1, sol.t * dl1
     _, dr = jax.jvp(lambda g, l, p: residual(ops, p, cfg.W, sol.u, g, l),
                     (sol.g, sol.load, params), (dg, dl, dparams))
