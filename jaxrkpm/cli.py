@@ -7,6 +7,7 @@ import sys
 # command -> module with a main(argv) in experiments/
 COMMANDS = {
     "demo": "experiments.demo",
+    "track": "experiments.track",
 }
 
 

@@ -38,9 +38,9 @@ class Model:
 
     body        the reference Body
     material    a Material (strain energy W(E, p))
-    integration "gauss" (background cells, ``order`` points per direction) | "scni" (stabilised
-                conforming nodal integration, ``order`` points per facet; see jaxrkpm.scni)
-                | "scni-plain" (SCNI without the sub-cell stabilisation)
+    integration "gauss" (background cells, ``order`` points per direction) | "scni" (stabilized
+                conforming nodal integration, ``order`` points per cell facet) | "mscni"
+                (SCNI + sub-cell stabilisation); see jaxrkpm.scni
     essential   name -> particle indices (or boolean mask) of each essential set
     support     kernel dilation a = support x spacing (eq 3.20)
     body_force  (d,) or X -> (Q, d): dead load per unit reference volume

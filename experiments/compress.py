@@ -1,0 +1,272 @@
+"""Compression to failure (thesis section 5.2, "Comparison of Gauss Quadrature and Collocated
+Integration Rules", Figs 5.10-5.18).
+
+Unit-square Fung object (thesis Table 5.2 tensors, alpha = beta = 1), n x n particles, left
+edge x = 0 immobile; the paddle is the right-edge particles with |y - 0.5| <= 0.125 (the three
+nearest (1, 0.5) at 9x9, the same physical segment under refinement). The paddle moves
+rigidly in 1% steps: "straight" = (-c, 0); "shear" = (-c, -c) (our reading of "in the X and
+Y axis using equivalent intervals": equal x and y increments; by the mirror symmetry of the
+problem about y = 0.5 the sign of the y motion does not matter). Each step is a warm-started
+solve from the previous equilibrium.
+
+The run stops at the first of: the Newton solve failing (its status), det F <= 0 at an
+integration point, or the free tangent losing positive definiteness (its smallest eigenvalue
+crossing zero: the equilibrium path reaches a physical instability, a limit or bifurcation
+point of the discrete system). ``--through`` keeps going past the instability until the
+solve fails, still recording where the eigenvalue crossed zero.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxrkpm as jr
+from jaxrkpm import plot
+from jaxrkpm import solve as jsolve
+from jaxrkpm.solve import coefficients, deformation_gradients
+
+MODES = {"straight": (-1.0, 0.0), "shear": (-1.0, -1.0)}
+
+
+MATERIALS = {
+    # thesis eq 5.2 / Table 5.2 (the study's material)
+    "fung": lambda: jr.Fung(alpha=1.0, beta=1.0),
+    # control: a compressible neo-Hookean solid with Fung's small-strain shear and bulk
+    # moduli order (mu = 2 A_1212, lam = 2 A_1122), which stays elliptic in compression
+    "neohookean": lambda: jr.NeoHookean(lam=766.0, mu=508.0),
+}
+
+
+def setup(n: int = 9, integration: str = "gauss", material: str = "fung", half_width: float = 0.125):
+    h = 1.0 / (n - 1)
+    body = jr.Body.grid((n, n), spacing=h)
+    wall = body.select(lambda X: X[:, 0] < 1e-9)
+    paddle = body.select(lambda X: (X[:, 0] > 1 - 1e-9) & (np.abs(X[:, 1] - 0.5) <= half_width + 1e-9))
+    model = jr.Model(body, MATERIALS[material](), integration=integration,
+                     essential={"wall": wall, "paddle": paddle})
+    return model
+
+
+def _diagnostics(model):
+    """Jitted state diagnostics: (smallest eigenvalue of the free tangent, smallest det F at
+    the integration points, smallest acoustic-tensor eigenvalue min_q min_|n|=1 eig A(n),
+    A_ik = dP_ij/dF_kl n_j n_l: it turns negative where the material itself loses strong
+    ellipticity, i.e. admits a localised (shear band / kink) instability)."""
+    cfg = model._config()
+    W = model.material.W
+    theta = np.linspace(0, np.pi, 90, endpoint=False)
+    normals = jnp.asarray(np.stack([np.cos(theta), np.sin(theta)], 1))   # 2D directions
+
+    def psi(F, p):
+        return W(jr.green_lagrange(F), p)
+
+    @jax.jit
+    def diag(ops, params, u, g):
+        K = jsolve.tangent(ops, params, cfg, u, g)
+        F = deformation_gradients(ops.idx, ops.dpsi, coefficients(ops, u, g))
+        axes = ({k: 0 for k in params.point}, {k: None for k in params.tensors})
+        C = jax.vmap(lambda F, p, t: jax.hessian(psi)(F, {**p, **t}), in_axes=(0, axes[0], None))(
+            F, params.point, params.tensors)                                # (Q, d, d, d, d)
+        A = jnp.einsum("qijkl,nj,nl->qnik", C, normals, normals)
+        ac = jnp.min(jnp.linalg.eigvalsh(A))
+        return jnp.linalg.eigvalsh(K)[0], jnp.min(jnp.linalg.det(F)), ac
+    return diag
+
+
+def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_compression: float = 0.9,
+        step: float = 0.01, through: bool = False, material: str = "fung", keep_states: bool = True):
+    """Step the paddle until failure. Returns (summary dict, model, states) where states maps
+    compression -> particle displacements (N, d)."""
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}: choose one of {list(MODES)}")
+    model = setup(n, integration, material)
+    direction = np.array(MODES[mode])
+    diag = _diagnostics(model)
+    sol = model.initial()
+    lam0, _, ac0 = (float(v) for v in diag(model.ops, model.params, sol.u, sol.g))
+    rows, states = [], {0.0: np.zeros_like(model.body.X)}
+    reason, first_unstable, limit = "reached the requested maximum compression", None, None
+    first_nonelliptic = None
+    k_max = int(round(max_compression / step))
+    for k in range(1, k_max + 1):
+        c = k * step
+        t0 = time.perf_counter()
+        new = model.solve({"paddle": jnp.asarray(c * direction)}, initial=sol, throw=False)
+        new.u.block_until_ready()
+        dt = time.perf_counter() - t0
+        status = jr.Status(int(new.status))
+        if status != jr.Status.CONVERGED:
+            # the solver keeps the last converged sub-step: look at the tangent there
+            c_part = (k - 1) * step + float(new.t) * step
+            lam_p, det_p, _ = (float(v) for v in diag(model.ops, model.params, new.u, new.g))
+            limit = {"compression": c_part, "min_eig_rel": lam_p / lam0, "min_detF": det_p}
+            reason = (f"Newton failure in the step to {100 * c:.0f}% ({status.name}); at the last "
+                      f"converged sub-step, {100 * c_part:.2f}%, the smallest tangent eigenvalue is "
+                      f"{lam_p / lam0:.3f} x its rest value and falling: the path reaches a limit "
+                      f"point of the equilibrium (loss of stability), not a solver breakdown"
+                      if lam_p / lam0 < 0.5 else
+                      f"Newton failure in the step to {100 * c:.0f}%: {status.name} ({new.message}); "
+                      f"smallest tangent eigenvalue {lam_p / lam0:.3f} x rest at {100 * c_part:.2f}%")
+            rows.append({"compression": c, "status": status.name, "time_s": dt,
+                         "t_reached": float(new.t), "last_converged_compression": c_part,
+                         "min_eig_rel_there": lam_p / lam0, "min_detF_there": det_p})
+            break
+        sol = new
+        lam, detmin, ac = (float(v) for v in diag(model.ops, model.params, sol.u, sol.g))
+        f = np.asarray(model.reaction(sol, "paddle")).tolist()
+        rows.append({"compression": c, "status": status.name, "time_s": dt,
+                     "newton_iterations": int(sol.iterations), "load_steps": int(sol.steps),
+                     "reaction": f, "min_eig": lam, "min_eig_rel": lam / lam0,
+                     "min_detF": detmin, "min_acoustic_rel": ac / ac0})
+        if keep_states:
+            states[round(c, 6)] = np.asarray(model.particle_displacements(sol))
+        if ac <= 0 and first_nonelliptic is None:
+            first_nonelliptic = c
+        if detmin <= 0:
+            reason = f"det F <= 0 at an integration point at {100 * c:.0f}%"
+            break
+        if lam <= 0 and first_unstable is None:
+            first_unstable = c
+            if not through:
+                reason = (f"tangent lost positive definiteness at {100 * c:.0f}% (smallest eigenvalue "
+                          f"{lam:.3g}): physical instability of the equilibrium path")
+                break
+    ok = [r for r in rows if r["status"] == "CONVERGED"]
+    times = [r["time_s"] for r in ok]
+    summary = {
+        "mode": mode, "direction_per_unit": direction.tolist(), "integration": integration,
+        "particles": [n, n], "paddle_particles": int(len(model.set_indices("paddle"))),
+        "material": model.material.describe(), "step": step,
+        "integration_points": int(model.ops.w.shape[0]),
+        "max_compression": ok[-1]["compression"] if ok else 0.0,
+        "reason": reason,
+        "limit_state": limit,
+        "first_unstable_compression": first_unstable,
+        "first_loss_of_ellipticity": first_nonelliptic,
+        "min_eig_at_rest": lam0,
+        "compression": [r["compression"] for r in ok],
+        "reaction": [r["reaction"] for r in ok],
+        "min_eig": [r["min_eig"] for r in ok],
+        "min_eig_rel": [r["min_eig_rel"] for r in ok],
+        "min_detF": [r["min_detF"] for r in ok],
+        "min_acoustic_rel": [r["min_acoustic_rel"] for r in ok],
+        "newton_iterations": [r["newton_iterations"] for r in ok],
+        "time_per_step_s": times,
+        "median_step_s_excl_first": float(np.median(times[1:])) if len(times) > 1 else None,
+        "first_step_s_incl_compile": times[0] if times else None,
+        "steps": rows,
+    }
+    return summary, model, states
+
+
+def fold_estimate(summary):
+    """Compression where the smallest tangent eigenvalue reaches zero, extrapolated from the
+    last two converged states with lam^2 ~ (c* - c) (the generic behaviour near a fold)."""
+    pts = list(zip(summary["compression"], summary["min_eig_rel"]))
+    if summary.get("limit_state"):
+        ls = summary["limit_state"]
+        if not pts or ls["compression"] > pts[-1][0] + 1e-12:
+            pts.append((ls["compression"], ls["min_eig_rel"]))
+    if len(pts) < 2:
+        return None
+    (c1, l1), (c2, l2) = pts[-2], pts[-1]
+    if l2 <= 0:
+        return c1 + (c2 - c1) * l1 / (l1 - l2)
+    if l1 <= l2:
+        return None
+    return c2 + l2**2 * (c2 - c1) / (l1**2 - l2**2)
+
+
+def figures(out: Path, summary, model, states, tag: str):
+    X = model.body.X
+    wall, paddle = model.set_indices("wall"), model.set_indices("paddle")
+    cmax = summary["max_compression"]
+    levels = [c for c in np.round(np.arange(0, cmax + 1e-9, 0.1), 6) if c in states]
+    if cmax not in levels and cmax in states:
+        levels.append(cmax)
+    vmax = max(float(np.linalg.norm(states[c], axis=1).max()) for c in levels) or 1.0
+    ncol = min(5, len(levels))
+    nrow = int(np.ceil(len(levels) / ncol))
+    fig, axes = plot.plt.subplots(nrow, ncol, figsize=(2.9 * ncol + 1.0, 3.3 * nrow), squeeze=False,
+                                  layout="constrained")
+    sc = None
+    for ax, c in zip(axes.flat, levels):
+        u = states[c]
+        sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=18 if len(X) < 100 else 6)
+        x = X + u
+        ax.scatter(x[paddle, 0], x[paddle, 1], marker="s", s=40, facecolors="none", edgecolors="r",
+                   lw=1.2, label="paddle")
+        ax.scatter(x[wall, 0], x[wall, 1], marker="|", s=60, c="b", lw=1.2, label="wall")
+        ax.set_title(f"{100 * c:.0f}%", fontsize=11)
+        ax.set_xlim(-0.08, 1.08)
+        ax.set_ylim(-0.25, 1.25)
+        ax.tick_params(labelsize=7)
+        ax.set_xlabel("")
+        ax.set_ylabel("")
+    for ax in list(axes.flat)[len(levels):]:
+        ax.axis("off")
+    n = summary["particles"][0]
+    fig.suptitle(f"{summary['mode']} compression, {summary['integration']}, {n}x{n} "
+                 f"{summary['material']['name']}: last converged step {100 * cmax:.0f}%", fontsize=11)
+    fig.colorbar(sc, ax=axes, label="|u|", shrink=0.8)
+    fig.savefig(out / f"deformed_{tag}.png", dpi=110)
+    plot.plt.close(fig)
+
+    c = 100 * np.array(summary["compression"])
+    f = np.array(summary["reaction"]).reshape(-1, 2)
+    fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(10, 4))
+    a1.plot(c, f[:, 0], "o-", ms=3, label="$f_x$")
+    a1.plot(c, f[:, 1], "s-", ms=3, label="$f_y$")
+    a1.set_xlabel("paddle displacement (% of width)")
+    a1.set_ylabel("reaction force of the paddle on the body")
+    a1.legend()
+    a1.grid(alpha=0.3)
+    a2.plot(c, summary["min_eig_rel"], "o-", ms=3, label="free tangent")
+    a2.plot(c, summary["min_acoustic_rel"], "^-", ms=3, label="acoustic tensor (material)")
+    ls = summary.get("limit_state")
+    if ls:
+        a2.plot([100 * ls["compression"]], [ls["min_eig_rel"]], "rx", ms=8, label="last converged sub-step")
+    a2.axhline(0, color="k", lw=0.8)
+    a2.set_xlabel("paddle displacement (% of width)")
+    a2.set_ylabel("smallest eigenvalue / value at rest")
+    a2.legend(fontsize=8)
+    a2.grid(alpha=0.3)
+    fig.suptitle(f"{summary['mode']}, {summary['integration']}, {n}x{n} {summary['material']['name']}",
+                 fontsize=10)
+    plot.save(fig, out / f"reaction_{tag}.png")
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--mode", choices=list(MODES), default="straight")
+    p.add_argument("--integration", choices=["gauss", "scni", "mscni"], default="gauss")
+    p.add_argument("--out", default="results/compress")
+    p.add_argument("--n", type=int, default=9)
+    p.add_argument("--max", type=float, default=0.9, help="largest compression tried (fraction)")
+    p.add_argument("--step", type=float, default=0.01)
+    p.add_argument("--material", choices=list(MATERIALS), default="fung")
+    p.add_argument("--through", action="store_true",
+                   help="continue past the loss of positive definiteness until the solve fails")
+    a = p.parse_args(argv)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    summary, model, states = run(a.mode, a.integration, a.n, a.max, a.step, a.through, a.material)
+    summary["fold_estimate"] = fold_estimate(summary)
+    tag = f"{a.mode}_{a.integration}_{a.n}" + ("" if a.material == "fung" else f"_{a.material}")
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    figures(out, summary, model, states, tag)
+    brief = {k: summary[k] for k in ("mode", "integration", "particles", "max_compression", "reason",
+                                     "limit_state", "fold_estimate", "first_loss_of_ellipticity",
+                                     "median_step_s_excl_first")}
+    print(json.dumps(brief, indent=2))
+    return summary
+
+
+if __name__ == "__main__":
+    main()
