@@ -8,6 +8,7 @@ import sys
 COMMANDS = {
     "demo": "experiments.demo",
     "track": "experiments.track",
+    "compress": "experiments.compress",
 }
 
 
