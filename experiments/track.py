@@ -373,9 +373,10 @@ def fig_deformed_2d(exp, res, snaps, out):
     allx = np.concatenate([X] + [X + u for u in us])
     lo, hi = allx.min(0), allx.max(0)
     n = len(snaps)
-    cols = min(n, 3)
+    cols = n if n <= 5 else 3
     rows = -(-n // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.6 * cols, 4.4 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols + 1.0, 3.9 * rows + 0.6), squeeze=False,
+                             layout="constrained")
     pad = m.set_indices("paddle")
     sc = None
     for ax, (w, k, sol), u in zip(axes.flat, snaps, us):
@@ -391,10 +392,10 @@ def fig_deformed_2d(exp, res, snaps, out):
         ax.set_title(ttl, fontsize=10)
         ax.set_xlim(lo[0] - 0.06, hi[0] + 0.06)
         ax.set_ylim(lo[1] - 0.06, hi[1] + 0.06)
-    axes.flat[0].legend(loc="lower left", fontsize=7, framealpha=0.9)
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
-    fig.colorbar(sc, ax=axes.ravel().tolist(), label="|u|", shrink=0.8)
+    fig.colorbar(sc, ax=axes.ravel().tolist(), label="|u|", shrink=0.85)
+    fig.legend(*axes.flat[0].get_legend_handles_labels(), loc="outside lower center", ncol=5, fontsize=9)
     fig.suptitle(_title(exp, res))
     fig.savefig(out / "deformed.png", dpi=120)
     plt.close(fig)
