@@ -108,8 +108,10 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
             limit = {"compression": c_part, "min_eig_rel": lam_p / lam0, "min_detF": det_p}
             reason = (f"Newton failure in the step to {100 * c:.0f}% ({status.name}); at the last "
                       f"converged sub-step, {100 * c_part:.2f}%, the smallest tangent eigenvalue is "
-                      f"{lam_p / lam0:.3f} x its rest value and falling: the path reaches a limit "
-                      f"point of the equilibrium (loss of stability), not a solver breakdown"
+                      f"{lam_p / lam0:.3f} x its rest value "
+                      + ("(it has crossed zero)" if lam_p < 0 else "and falling")
+                      + ": the path reaches a limit point of the equilibrium (loss of stability), "
+                      "not a solver breakdown"
                       if lam_p / lam0 < 0.5 else
                       f"Newton failure in the step to {100 * c:.0f}%: {status.name} ({new.message}); "
                       f"smallest tangent eigenvalue {lam_p / lam0:.3f} x rest at {100 * c_part:.2f}%")
@@ -185,6 +187,7 @@ def fold_estimate(summary):
 
 def figures(out: Path, summary, model, states, tag: str):
     X = model.body.X
+    n = summary["particles"][0]
     wall, paddle = model.set_indices("wall"), model.set_indices("paddle")
     cmax = summary["max_compression"]
     levels = [c for c in np.round(np.arange(0, cmax + 1e-9, 0.1), 6) if c in states]
@@ -200,8 +203,8 @@ def figures(out: Path, summary, model, states, tag: str):
         u = states[c]
         sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=18 if len(X) < 100 else 6)
         x = X + u
-        ax.scatter(x[paddle, 0], x[paddle, 1], marker="s", s=40, facecolors="none", edgecolors="r",
-                   lw=1.2, label="paddle")
+        ax.scatter(x[paddle, 0], x[paddle, 1], marker="s", s=max(12.0, 40.0 * (9.0 / n) ** 2),
+                   facecolors="none", edgecolors="r", lw=1.2, label="paddle")
         ax.scatter(x[wall, 0], x[wall, 1], marker="|", s=60, c="b", lw=1.2, label="wall")
         ax.set_title(f"{100 * c:.0f}%", fontsize=11)
         ax.set_xlim(-0.08, 1.08)
@@ -211,7 +214,6 @@ def figures(out: Path, summary, model, states, tag: str):
         ax.set_ylabel("")
     for ax in list(axes.flat)[len(levels):]:
         ax.axis("off")
-    n = summary["particles"][0]
     fig.suptitle(f"{summary['mode']} compression, {summary['integration']}, {n}x{n} "
                  f"{summary['material']['name']}: last converged step {100 * cmax:.0f}%", fontsize=11)
     fig.colorbar(sc, ax=axes, label="|u|", shrink=0.8)

@@ -20,21 +20,27 @@ can balance exactly: the affine patch test passes to round-off. ``boundary="gaus
 integrates Psi_I itself on the boundary facets (more accurate gradients near the boundary,
 patch test to O(h)). Both are exact for linear fields (sum_I b_I X_I^T = I).
 
-Stabilisation (``stab`` = beta > 0; Model(integration="mscni") uses beta = 0.5). Plain SCNI on a regular grid has spurious
-low-energy modes (Puso, Chen, Zywicz & Elmer 2008): fields whose gradient oscillates
-inside a cell but whose cell average vanishes. Each cell is split into sub-cells (the
-triangles / pyramids from the cell centroid to each facet); their smoothed gradients b^s
-are built from the same shared-facet machinery and satisfy the integration constraint on
-their own. The energy is the blend
+Stabilisation (``stab`` = beta > 0; Model(integration="mscni") uses beta = 0.5). Nodal
+integration under-integrates fields whose gradient oscillates inside a cell but whose cell
+average is small (Puso, Chen, Zywicz & Elmer 2008). With the default support (2.01 h) plain
+SCNI has no spurious zero-energy mode (only the rigid ones), but such modes carry up to ~7x
+too little energy (~25x at support 1.5 h; experiments/scni_modes.py), and they soften the
+response to strong compression. Each cell is split into sub-cells (the triangles / pyramids
+from the cell centroid to each facet); their smoothed gradients b^s come from the same
+shared-facet machinery and satisfy the integration constraint on their own. The energy is
+the blend
 
     Pi = sum_L [(1 - beta) A_L W(F_L) + beta sum_{s in L} A_s W(F_s)],
 
-i.e. the table simply gets the sub-cell rows with weights beta A_s. Linearised at any state,
-sum_s A_s W(F_s) = A_L W(F_L) + sum_s A_s W(F_s - F_L) + O(3) because sum_s A_s (F_s - F_L)
-= 0, so this is exactly Puso's modified SCNI (MSCNI) with stabilisation parameter beta,
-but written with true deformation gradients only: frame-invariant, positive for a
-positive W, and it lives in the same gather -> F -> W pipeline (no code change in the
-solver). beta = 1 is pure sub-cell smoothing.
+i.e. the table simply gets the sub-cell rows with weights beta A_s. Since
+sum_s A_s (F_s - F_L) = 0, expanding about F_L gives
+
+    sum_s A_s W(F_s) = A_L W(F_L) + 1/2 sum_s A_s dF_s : C(F_L) : dF_s + O(dF^3),  dF_s = F_s - F_L,
+
+so the stabilisation is Puso's modified-SCNI penalty on the sub-cell gradient jumps with the
+current material tangent C, parameter beta; but it is written with true deformation
+gradients only: frame-invariant, non-negative for a non-negative W, and it lives in the same
+gather -> F -> W pipeline (no code change in the solver). beta = 1 is pure sub-cell smoothing.
 """
 from __future__ import annotations
 
@@ -412,13 +418,14 @@ def _boundary_stencils_3d(body: Body, P, degree):
 class Smoothing:
     """The SCNI integration of a body.
 
-    table     the integration Table the Model consumes: rows 0..N-1 are the particles' cells
-              (weights (1 - beta) A_L), then the sub-cells (weights beta A_s) when stabilised
-    areas     (R,) measure of every row's cell / sub-cell (cells first: areas[:N] = A_L)
-    grads     (R, K, d) unweighted smoothed gradients of every row (table.dpsi)
-    level     (R,) 0 for particle cells, 1 for sub-cells
-    boundary_force  (N, d) callable-free result of oint_Gamma Psi_I n dGamma with the same
-              boundary rule (the right-hand side of the integration constraint)
+    table      the integration Table the Model consumes: rows 0..N-1 are the particles' cells
+               (points X_L, weights (1 - beta) A_L), then the sub-cells when stabilised
+               (points at their centroids, weights beta A_s); idx/psi/dpsi over the union of
+               the particles touching each row's facets (padding: index 0, psi = dpsi = 0)
+    areas      (R,) measure of every row's cell / sub-cell (cells first: areas[:N] = A_L)
+    level      (R,) 0 for particle cells, 1 for sub-cells; owner (R,) the particle of each row
+    boundary_integral (N, d) oint_Gamma Psi_I n dGamma with the same boundary rule: the
+               right-hand side of the integration constraint
     """
 
     table: Table
