@@ -9,6 +9,7 @@ COMMANDS = {
     "demo": "experiments.demo",
     "track": "experiments.track",
     "compress": "experiments.compress",
+    "rig-sim": "experiments.rig_sim",
 }
 
 
