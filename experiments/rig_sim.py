@@ -96,8 +96,8 @@ def fig_paths(run: RigRun, name: str, out: Path):
     plt = plot.plt
     a = run.arrays()
     s = run.scale_m
-    D, M, T, P = (_mm(x, s) for x in (run.desired, a["measured"], a["true"], a["predicted"]))
-    fig, ax = plt.subplots(1, 3, figsize=(16, 5.2))
+    D, M, T, P, Pad = (_mm(x, s) for x in (run.desired, a["measured"], a["true"], a["predicted"], a["paddle"]))
+    fig, ax = plt.subplots(1, 4, figsize=(21, 5.2))
     for axis, (other, lab, col) in zip(ax, ((M, "recorded (camera)", "tab:blue"),
                                             (P, "simulated (9x9 model)", "tab:green"),
                                             (None, None, None))):
@@ -116,6 +116,14 @@ def fig_paths(run: RigRun, name: str, out: Path):
     ax[0].set_title("desired vs recorded (Fig 5.37)")
     ax[1].set_title("desired vs simulated model (Fig 5.38)")
     ax[2].set_title("simulated vs recorded (Fig 5.39)")
+    ax[3].plot(*Pad.T, "-o", ms=3, color="tab:purple", label="paddle (robot)")
+    ax[3].plot([0], [0], "k+", ms=10, label="rest")
+    ax[3].set_xlabel("paddle x displacement (mm)")
+    ax[3].set_ylabel("paddle y displacement (mm)")
+    ax[3].set_aspect("equal", adjustable="datalim")
+    ax[3].grid(alpha=0.3)
+    ax[3].legend(fontsize=8)
+    ax[3].set_title("manipulation point moved by the robot (Fig 5.36)")
     fig.suptitle(f"{name}: {run.message}")
     fig.tight_layout()
     plot.save(fig, out / "cp_paths.png")
@@ -128,7 +136,9 @@ def fig_errors(run: RigRun, name: str, tol_mm: float, out: Path):
     s = run.scale_m
     k = np.arange(len(a["true"]))
     desired = run.desired[a["waypoint"]]
+    # an exact zero (at rest, iteration 0) has no logarithm
     e_phys = np.linalg.norm(_mm(a["true"] - desired, s), axis=1)
+    e_phys = np.where(e_phys > 0, e_phys, np.nan)
     e_meas = np.linalg.norm(_mm(a["measured"] - desired, s), axis=1)
     fig, (l, r) = plt.subplots(1, 2, figsize=(14, 4.8))
     l.semilogy(k, e_phys, "-o", ms=3, color="tab:red", label="physical |true - desired|")
@@ -210,7 +220,7 @@ def fig_calibration(cal, rec, out: Path):
     l.set_title(f"calibration: cp RMS {cal.cp_rms[0]:.2e} -> {cal.cp_rms[1]:.2e} (model units)")
     im = r.imshow(cal.stiffness_map.T, origin="lower", extent=(0, 1, 0, 1), cmap="viridis")
     r.add_patch(plot.plt.Circle((0.3, 0.7), 0.15, fill=False, color="w", ls="--", label="true inclusion"))
-    r.set_title("fitted stiffness multiplier (3x3 map)")
+    r.set_title("fitted stiffness multiplier (3x3 map; one marker:\nfits the kinematics, does not locate the inclusion)", fontsize=10)
     r.legend(fontsize=8, loc="lower right")
     fig.colorbar(im, ax=r)
     fig.tight_layout()

@@ -483,7 +483,6 @@ class ClosedLoop:
         run.reached, run.final = -np.ones(W, int), -np.ones(W, int)
         self._record(run, 0)
         wp, it_wp, k = 0, 0, 0
-        last_move = None   # (paddle step, measured before) for the Broyden update
         while wp < W:
             e = path[wp] - run.measured[-1]
             if np.linalg.norm(e) * self.scale < s.tol_m:

@@ -125,6 +125,16 @@ def test_calibrated_stiffness_map_cuts_mismatch_and_tracking_error(loop):
     assert errors["calibrated"] < 0.7 * errors["uncorrected"]
 
 
+def test_runaway_command_is_refused_not_sent(controller):
+    """A workspace smaller than the first paddle step: the client refuses, the robot never moves."""
+    phys = PhysicalObject(9, alpha=1.0, beta=2 * BETA, inclusion=None)
+    with ClosedLoop(controller, phys, Vision(seed=2), RigSettings(workspace_m=1e-3), transport="inprocess") as lp:
+        run = lp.run(PATHS["setpoint"])
+        assert run.status == RigStatus.SAFETY_STOP and "workspace" in run.message
+        assert run.iterations == 0
+        assert np.all(np.asarray(lp.server.position_m) == 0.0)
+
+
 def test_bad_inputs_are_named():
     assert region_index([[0.0, 0.0], [0.99, 0.5], [0.5, 0.1], [1.0, 1.0]], (3, 3)).tolist() == [0, 7, 3, 8]
     with pytest.raises(ValueError, match="regions"):
