@@ -175,13 +175,14 @@ def calibrate(model: Model, rec: Recording, initial: dict, *, fit=("alpha", "bet
     if regions is not None:
         theta["_map"] = jnp.zeros(n_regions)
     state = opt.init(theta)
+    update = jax.jit(opt.update)   # run eagerly, optax's L-BFGS is hundreds of tiny dispatches
     (value, aux), grad = value_and_grad(theta)
     first = aux
     losses = [float(value)]
     for _ in range(int(steps)):
         if float(optax.tree_utils.tree_norm(grad)) < gtol:
             break
-        direction, new_state = opt.update(grad, state, theta)
+        direction, new_state = update(grad, state, theta)
         t = 1.0
         for _ in range(max_halvings):
             trial = optax.apply_updates(theta, jax.tree.map(lambda d: t * d, direction))

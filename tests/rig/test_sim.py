@@ -143,3 +143,17 @@ def test_bad_inputs_are_named():
         RigSettings(gain=-1.0)
     with pytest.raises(ValueError, match="same"):
         Recording(np.zeros((2, 2)), np.zeros((3, 2)), np.zeros((2, 2)), CONTROL_POINT[None])
+
+
+def test_rig_sim_cli_writes_summary_and_figures(tmp_path, loop):
+    from experiments import rig_sim
+
+    s = rig_sim.main(["--path", "box", "--waypoints", "3", "--physical-n", "9", "--broyden",
+                      "--transport", "inprocess", "--out", str(tmp_path)])
+    assert set(s["runs"]) == {"uncorrected", "broyden"}
+    wps = s["runs"]["uncorrected"]["tracking"]["waypoints"]
+    assert len(wps) == 3 and s["runs"]["uncorrected"]["tracking"]["status"] == "DONE"
+    assert all(w["physical_error_mm"] < 0.6 and w["camera_error_mm"] < 0.2 for w in wps)
+    assert wps[2]["desired_mm"] == pytest.approx([0.0, 4.0])
+    for name in ("summary.json", "history.npz", *s["figures"]):
+        assert (tmp_path / name).stat().st_size > 0
