@@ -21,6 +21,10 @@ Per iteration three errors are kept apart (all in the object plane, mm):
 physical error = true physical control point - desired; camera error = measured - true;
 model mismatch = controller-model prediction at the commanded paddle - true physical.
 
+Corrections (see :mod:`jaxrkpm.rig.calibrate`): :meth:`ClosedLoop.probe` records camera and
+force data for calibrating the controller model; ``RigSettings(broyden=True)`` corrects its
+Jacobian online from the camera (J = J_model + D, D updated by Broyden on large enough steps).
+
 The rig imports the core; the core never imports the rig.
 """
 from __future__ import annotations
@@ -36,7 +40,7 @@ import numpy as np
 from .. import Body, Fung, Model
 from ..model import SolveError
 from ..control import control_increment
-from ..solve import Status, implicit_jacobian, point_values
+from ..solve import implicit_jacobian, point_values
 from .calibrate import Recording, broyden_update
 from .frames import RigidTransform, label_l_markers, object_frame_from_l_markers
 from .link import RobotClient, SafetyError, SafetyLimits, SimulatedRobotServer, LinkError
