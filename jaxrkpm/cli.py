@@ -10,6 +10,7 @@ COMMANDS = {
     "track": "experiments.track",
     "compress": "experiments.compress",
     "rig-sim": "experiments.rig_sim",
+    "reproduce": "experiments.reproduce",
 }
 
 

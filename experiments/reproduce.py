@@ -1,0 +1,246 @@
+"""Reproduce the thesis: run every thesis experiment the project implements and write
+``DIR/report.md`` (per experiment: the thesis' figure/table, the thesis' value quoted, ours,
+and the figures we made) and ``DIR/report.json``.
+
+``jaxrkpm reproduce --out DIR [--quick] [--only ID ...]``. Each experiment runs through its
+script's ``main(argv)`` (the same options as its own command) into ``DIR/<id>/``; its printed
+output goes to ``DIR/<id>/log.txt``. ``--quick`` runs a small subset at reduced sizes (5x5
+instead of 9x9, a few compression steps): a smoke test of the pipeline, not the thesis'
+numbers. A tqdm progress bar tracks the experiments (the full run takes tens of minutes on
+two CPU cores). An experiment that fails is reported as failed; the others still run.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from tqdm import tqdm
+
+
+@dataclass
+class Entry:
+    """One thesis experiment: how to run it and how to read our number from its summary."""
+    id: str
+    thesis_ref: str            # figure / table / section of the thesis
+    thesis_value: str          # quoted from the thesis text
+    run: Callable[[Path, bool], dict]   # (out dir, quick) -> summary dict
+    ours: Callable[[dict], str]         # summary -> our value, as text
+    note: str = ""
+    quick: bool = False        # part of --quick
+    tags: list = field(default_factory=list)
+
+
+# ------------------------------------------------------------------ runners
+def _track(path=None, integration="gauss", dim=2, model="reduced", scheme="self"):
+    def run(out: Path, quick: bool) -> dict:
+        from experiments import track
+        argv = ["--dim", str(dim), "--integration", integration, "--out", str(out)]
+        if path:
+            argv += ["--path", path]
+        if dim == 3:
+            argv += ["--model", model, "--scheme", scheme]
+        elif quick:
+            argv += ["--n", "5"]
+        return track.main(argv)
+    return run
+
+
+def _compress(mode, integration):
+    def run(out: Path, quick: bool) -> dict:
+        from experiments import compress
+        argv = ["--mode", mode, "--integration", integration, "--out", str(out)]
+        if quick:
+            argv += ["--n", "5", "--max", "0.03"]
+        return compress.main(argv)
+    return run
+
+
+def _cantilever(out: Path, quick: bool) -> dict:
+    from experiments import cantilever
+    levels = 2 if quick else 3
+    s = cantilever.convergence(tuple(0.25 / 2**k for k in range(levels)))
+    _cantilever_figure(out, s)
+    (out / "summary.json").write_text(json.dumps(s, indent=2))
+    return s
+
+
+def _cantilever_figure(out: Path, s: dict):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(5, 4))
+    ax.loglog(s["h"], s["relative_l2_error"], "o-", label="RKPM (Gauss, SVK)")
+    h0, e0 = s["h"][0], s["relative_l2_error"][0]
+    ax.loglog(s["h"], [e0 * (h / h0) ** 2 for h in s["h"]], "k--", lw=0.8, label=r"$\propto h^2$")
+    ax.set_xlabel("particle spacing h"); ax.set_ylabel("relative L2 displacement error")
+    ax.set_title("Timoshenko cantilever"); ax.legend()
+    fig.tight_layout(); fig.savefig(out / "convergence.png", dpi=110); plt.close(fig)
+
+
+def _rig(path):
+    def run(out: Path, quick: bool) -> dict:
+        from experiments import rig_sim
+        return rig_sim.main(["--path", path, "--out", str(out)])
+    return run
+
+
+# ------------------------------------------------------------------ readers of our numbers
+def _fmt_compress(s):
+    txt = f"last converged step {100 * s['max_compression']:.0f}% ({s.get('reason', '?')})"
+    ls = s.get("limit_state")
+    if isinstance(ls, dict) and ls.get("compression") is not None:
+        txt += f"; tangent loses definiteness near {100 * ls['compression']:.1f}%"
+    return txt
+
+
+def _fmt_track(s):
+    return (f"{s['waypoints_reached']}/{s['waypoints_total']} waypoints to 1e-4, max waypoint error "
+            f"{s['max_waypoint_error']:.2e}, {s['iterations']} iterations; "
+            f"{s['wall_s']:.1f} s warm ({s['first_run_s']:.1f} s with compile) = "
+            f"{s['wall_s'] / 60:.3f} min")
+
+
+def _fmt_track3d(s):
+    return (f"max error at the waypoints {s['max_waypoint_error']:.2e} "
+            f"({s['waypoints_reached']}/{s['waypoints_total']} reached), max path deviation "
+            f"{s['max_path_deviation']:.4f}; {s['wall_s']:.1f} s warm")
+
+
+def _fmt_cantilever(s):
+    return ("relative L2 errors " + ", ".join(f"{e:.2e}" for e in s["relative_l2_error"])
+            + "; rates " + ", ".join(f"{r:.2f}" for r in s["rates"]))
+
+
+def _fmt_rig(s):
+    r = s["runs"]["uncorrected"]["tracking"]
+    return (f"uncorrected: physical error at the waypoints max {r['physical_error_mm']['max']:.2f} mm "
+            f"(mean {r['physical_error_mm']['mean']:.2f} mm), {r['iterations']} iterations, {r['status']}")
+
+
+GAUSS_TIME = "{m} minutes (section 5.3.2, Gaussian Quadrature)"
+COLL = ("the thesis used collocation; we use SCNI (stabilised conforming nodal integration), "
+        "the stable nodal scheme, so this compares the nodal alternative, not the same scheme")
+
+ENTRIES = [
+    Entry("compress_straight_gauss", "Figs 5.10-5.12", '"at 43% for the straight compression"',
+          _compress("straight", "gauss"), _fmt_compress, quick=True),
+    Entry("compress_shear_gauss", "Figs 5.13-5.16", '"the model begins to breakdown at 50% for the '
+          'shear compression" (Fig 5.16 shows 58%, 59%)', _compress("shear", "gauss"), _fmt_compress),
+    Entry("compress_straight_scni", "Fig 5.17", '"The simulations break down at 15% and 14% '
+          'respectively" (straight: 15%)', _compress("straight", "scni"), _fmt_compress, note=COLL),
+    Entry("compress_shear_scni", "Fig 5.18", "shear: 14% (same sentence)",
+          _compress("shear", "scni"), _fmt_compress, note=COLL),
+    Entry("track_setpoint_gauss", "Fig 5.19", '"within 0.0001 of the desired position"; '
+          + GAUSS_TIME.format(m=75), _track("setpoint"), _fmt_track, quick=True),
+    Entry("track_setpoint_scni", "Fig 5.20", '"The Collocated model time was approximately 6 minutes"',
+          _track("setpoint", "scni"), _fmt_track, note=COLL),
+    Entry("track_box_gauss", "Figs 5.21-5.22 (Table 5.3)", GAUSS_TIME.format(m=625),
+          _track("box"), _fmt_track),
+    Entry("track_figure8_gauss", "Figs 5.23-5.24 (Table 5.4)", GAUSS_TIME.format(m=412),
+          _track("figure8"), _fmt_track),
+    Entry("track_line_gauss", "Figs 5.25-5.26 (Table 5.5)", "tracked (no time given)",
+          _track("line"), _fmt_track),
+    Entry("track_box_scni", "Figs 5.27-5.28 (Table 5.3)", '"the Collocated model took 38 ... minutes"',
+          _track("box", "scni"), _fmt_track, note=COLL),
+    Entry("track_figure8_scni", "Figs 5.29-5.30 (Table 5.4)", '"... and 25 minutes"',
+          _track("figure8", "scni"), _fmt_track, note=COLL),
+    Entry("track_line_scni", "Figs 5.31-5.32 (Table 5.5)", "tracked (no time given)",
+          _track("line", "scni"), _fmt_track, note=COLL),
+    Entry("track3d_reduced", "Fig 5.2 (Table 5.1)", '"0.049859 for the reduced model object" '
+          "(maximum absolute error)", _track(dim=3, model="reduced"), _fmt_track3d),
+    Entry("track3d_refined", "Fig 5.6 (Table 5.1)", '"0.090322 for the refined model object"',
+          _track(dim=3, model="refined"), _fmt_track3d),
+    Entry("track3d_reduced_to_refined", "Figs 5.6-5.8 (Table 5.1)", '"0.090322 for the refined model '
+          'object" (Jacobian from the reduced model)', _track(dim=3, model="refined",
+                                                             scheme="reduced-to-refined"), _fmt_track3d),
+    Entry("rig_sim_setpoint", "Figs 5.33, 5.35", '"the physical control point is shown to settle within '
+          'a error margin of 1 millimeter of the target"', _rig("setpoint"), _fmt_rig,
+          note="simulated rig (stereo vision, TCP robot link, a physical object the model does not know)"),
+    Entry("cantilever", "- (verification, not in the thesis)", "-", _cantilever, _fmt_cantilever,
+          quick=True, note="Timoshenko beam, plane stress SVK, small load: the error must fall at least as h^2 (linear RK basis)"),
+]
+
+
+# ------------------------------------------------------------------ running and reporting
+def run_entry(e: Entry, root: Path, quick: bool) -> dict:
+    out = root / e.id
+    out.mkdir(parents=True, exist_ok=True)
+    log = io.StringIO()
+    t0 = time.perf_counter()
+    row = {"id": e.id, "thesis_ref": e.thesis_ref, "thesis_value": e.thesis_value, "note": e.note}
+    try:
+        with contextlib.redirect_stdout(log):
+            s = e.run(out, quick)
+        if s is None:   # scripts that only write their summary
+            s = json.loads((out / "summary.json").read_text())
+        row.update(status="ok", ours=e.ours(s))
+    except Exception as exc:  # one failing experiment must not sink the report
+        log.write(traceback.format_exc())
+        row.update(status="failed", ours=f"failed: {type(exc).__name__}: {exc}")
+    except SystemExit as exc:  # argparse errors inside a script
+        row.update(status="failed", ours=f"failed: bad options (exit {exc.code})")
+    row["wall_s"] = round(time.perf_counter() - t0, 1)
+    (out / "log.txt").write_text(log.getvalue())
+    row["figures"] = sorted(str(p.relative_to(root)) for p in out.rglob("*.png"))
+    return row
+
+
+def report_md(rows, quick: bool, total_s: float) -> str:
+    lines = ["# Reproduction of the thesis", "",
+             ("**Quick run** (reduced sizes): a smoke test of the pipeline, not the thesis' numbers."
+              if quick else "Full run at the thesis' sizes."),
+             f"Total wall time {total_s / 60:.1f} min.", "",
+             "| experiment | thesis | thesis' value | ours | figures |", "|---|---|---|---|---|"]
+    for r in rows:
+        figs = " ".join(f"[{Path(f).stem}]({f})" for f in r["figures"]) or "-"
+        lines.append(f"| `{r['id']}` | {r['thesis_ref']} | {r['thesis_value']} | {r['ours']} | {figs} |")
+    notes = [r for r in rows if r["note"]]
+    if notes:
+        lines += ["", "Notes:", ""] + [f"- `{r['id']}`: {r['note']}" for r in notes]
+    lines += ["", "Figures (first of each experiment):", ""]
+    for r in rows:
+        if r["figures"]:
+            lines += [f"### {r['id']}", "", f"![{r['id']}]({r['figures'][0]})", ""]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog="jaxrkpm reproduce", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", default="results/reproduce")
+    p.add_argument("--quick", action="store_true", help="small subset at reduced sizes (smoke test)")
+    p.add_argument("--only", nargs="*", default=None, metavar="ID",
+                   help=f"run only these ({', '.join(e.id for e in ENTRIES)})")
+    a = p.parse_args(argv)
+    known = {e.id for e in ENTRIES}
+    if a.only:
+        bad = [i for i in a.only if i not in known]
+        if bad:
+            p.error(f"unknown experiment id(s) {bad}; choose from {sorted(known)}")
+    entries = [e for e in ENTRIES if (e.id in a.only if a.only else (e.quick or not a.quick))]
+    root = Path(a.out)
+    root.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    rows = []
+    bar = tqdm(entries, desc="reproduce", unit="exp")
+    for e in bar:
+        bar.set_postfix_str(e.id)
+        rows.append(run_entry(e, root, a.quick))
+    total = time.perf_counter() - t0
+    rep = {"quick": a.quick, "total_wall_s": round(total, 1), "experiments": rows}
+    (root / "report.json").write_text(json.dumps(rep, indent=2))
+    (root / "report.md").write_text(report_md(rows, a.quick, total))
+    n_ok = sum(r["status"] == "ok" for r in rows)
+    print(f"{n_ok}/{len(rows)} experiments ok in {total / 60:.1f} min; wrote {root}/report.md and report.json")
+    return rep
+
+
+if __name__ == "__main__":
+    main()
