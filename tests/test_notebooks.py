@@ -18,7 +18,8 @@ BUDGET_S = 120.0   # issue 7: each notebook runs top to bottom in under two minu
 
 def test_notebooks_exist():
     names = {p.name for p in NOTEBOOKS}
-    assert {"01_quickstart.ipynb", "02_tracking.ipynb", "04_autodiff_vs_fd.ipynb"} <= names
+    assert {"01_quickstart.ipynb", "02_tracking.ipynb", "04_autodiff_vs_fd.ipynb",
+            "05_rig_sim.ipynb"} <= names
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
