@@ -75,10 +75,13 @@ def _cantilever_figure(out: Path, s: dict):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
     fig, ax = plt.subplots(figsize=(5, 4))
     ax.loglog(s["h"], s["relative_l2_error"], "o-", label="RKPM (Gauss, SVK)")
     h0, e0 = s["h"][0], s["relative_l2_error"][0]
     ax.loglog(s["h"], [e0 * (h / h0) ** 2 for h in s["h"]], "k--", lw=0.8, label=r"$\propto h^2$")
+    ax.set_xticks(s["h"], [f"1/{round(1 / h)}" for h in s["h"]])   # readable ticks on the log axis
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_xlabel("particle spacing h"); ax.set_ylabel("relative L2 displacement error")
     ax.set_title("Timoshenko cantilever"); ax.legend()
     fig.tight_layout(); fig.savefig(out / "convergence.png", dpi=110); plt.close(fig)
@@ -93,11 +96,12 @@ def _rig(path):
 
 # ------------------------------------------------------------------ readers of our numbers
 def _fmt_compress(s):
-    txt = f"last converged step {100 * s['max_compression']:.0f}% ({s.get('reason', '?')})"
-    ls = s.get("limit_state")
-    if isinstance(ls, dict) and ls.get("compression") is not None:
-        txt += f"; tangent loses definiteness near {100 * ls['compression']:.1f}%"
-    return txt
+    txt = f"last converged 1% step {100 * s['max_compression']:.0f}%"
+    if s.get("fold_estimate") is not None:
+        txt += f"; limit point (tangent eigenvalue -> 0) extrapolated at {100 * s['fold_estimate']:.1f}%"
+    if s.get("first_loss_of_ellipticity") is not None:
+        txt += f"; material loses strong ellipticity from {100 * s['first_loss_of_ellipticity']:.0f}%"
+    return txt + f" ({s.get('reason', '?').split(';')[0]})"
 
 
 def _fmt_track(s):
@@ -169,15 +173,21 @@ ENTRIES = [
 
 
 # ------------------------------------------------------------------ running and reporting
-def run_entry(e: Entry, root: Path, quick: bool) -> dict:
+def run_entry(e: Entry, root: Path, quick: bool, reuse: bool = False) -> dict:
+    """Run one experiment into root/<id>/ (``reuse``: read an existing summary.json instead,
+    e.g. to resume an interrupted run or to rebuild the report) and return its report row."""
     out = root / e.id
     out.mkdir(parents=True, exist_ok=True)
     log = io.StringIO()
     t0 = time.perf_counter()
     row = {"id": e.id, "thesis_ref": e.thesis_ref, "thesis_value": e.thesis_value, "note": e.note}
     try:
-        with contextlib.redirect_stdout(log):
-            s = e.run(out, quick)
+        if reuse and (out / "summary.json").exists():
+            s = json.loads((out / "summary.json").read_text())
+            row["reused"] = True
+        else:
+            with contextlib.redirect_stdout(log):
+                s = e.run(out, quick)
         if s is None:   # scripts that only write their summary
             s = json.loads((out / "summary.json").read_text())
         row.update(status="ok", ours=e.ours(s))
@@ -187,7 +197,8 @@ def run_entry(e: Entry, root: Path, quick: bool) -> dict:
     except SystemExit as exc:  # argparse errors inside a script
         row.update(status="failed", ours=f"failed: bad options (exit {exc.code})")
     row["wall_s"] = round(time.perf_counter() - t0, 1)
-    (out / "log.txt").write_text(log.getvalue())
+    if not row.get("reused"):
+        (out / "log.txt").write_text(log.getvalue())
     row["figures"] = sorted(str(p.relative_to(root)) for p in out.rglob("*.png"))
     return row
 
@@ -196,7 +207,9 @@ def report_md(rows, quick: bool, total_s: float) -> str:
     lines = ["# Reproduction of the thesis", "",
              ("**Quick run** (reduced sizes): a smoke test of the pipeline, not the thesis' numbers."
               if quick else "Full run at the thesis' sizes."),
-             f"Total wall time {total_s / 60:.1f} min.", "",
+             f"Total wall time {total_s / 60:.1f} min"
+             + (f" ({sum(bool(r.get('reused')) for r in rows)} experiments read from an earlier run, --reuse)."
+                if any(r.get("reused") for r in rows) else "."), "",
              "| experiment | thesis | thesis' value | ours | figures |", "|---|---|---|---|---|"]
     for r in rows:
         figs = " ".join(f"[{Path(f).stem}]({f})" for f in r["figures"]) or "-"
@@ -218,6 +231,8 @@ def main(argv=None):
     p.add_argument("--quick", action="store_true", help="small subset at reduced sizes (smoke test)")
     p.add_argument("--only", nargs="*", default=None, metavar="ID",
                    help=f"run only these ({', '.join(e.id for e in ENTRIES)})")
+    p.add_argument("--reuse", action="store_true",
+                   help="read DIR/<id>/summary.json where it exists instead of re-running (resume / rebuild)")
     a = p.parse_args(argv)
     known = {e.id for e in ENTRIES}
     if a.only:
@@ -232,7 +247,7 @@ def main(argv=None):
     bar = tqdm(entries, desc="reproduce", unit="exp")
     for e in bar:
         bar.set_postfix_str(e.id)
-        rows.append(run_entry(e, root, a.quick))
+        rows.append(run_entry(e, root, a.quick, a.reuse))
     total = time.perf_counter() - t0
     rep = {"quick": a.quick, "total_wall_s": round(total, 1), "experiments": rows}
     (root / "report.json").write_text(json.dumps(rep, indent=2))

@@ -61,3 +61,11 @@ def test_failure_is_reported_not_raised(tmp_path):
 def test_unknown_only_id_is_rejected(tmp_path):
     with pytest.raises(SystemExit):
         reproduce.main(["--only", "nope", "--out", str(tmp_path)])
+
+
+def test_reuse_rebuilds_the_report_without_rerunning(quick):
+    out, rep = quick
+    again = reproduce.main(["--quick", "--reuse", "--out", str(out)])
+    assert all(r.get("reused") for r in again["experiments"])
+    assert [r["ours"] for r in again["experiments"]] == [r["ours"] for r in rep["experiments"]]
+    assert "read from an earlier run" in (out / "report.md").read_text()
