@@ -18,8 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .model import Model
-from .solve import (Config, Limits, Ops, Params, Solution, Status, implicit_jacobian, point_values,
-                    solve_path)
+from .solve import (Config, DenseSolver, Limits, Ops, Params, Solution, Status, coefficients, energy,
+                    implicit_jacobian, internal_force_scale, point_values, residual, solve_path, tangent)
 
 
 class TrackStatus(enum.IntEnum):
@@ -75,9 +75,9 @@ class TrackResult:
 
     mp (n+1, d_mp) manipulation point displacement, cp (n+1, C*d) control point displacement
     (plant), error (n+1,) |e| against the current waypoint, waypoint (n+1,) its index,
-    newton (n+1,) Newton iterations of the step, solve_status (n+1,);
-    reached (W,) iteration at which each waypoint was reached (-1 if not);
-    achieved (W, C*d) the control point there; desired (W, C*d)."""
+    newton (n+1,) nonlinear iterations (linear solves: predictor + corrections) of the step,
+    solve_status (n+1,); reached (W,) iteration at which each waypoint was reached (-1 if
+    not); achieved (W, C*d) the control point there; desired (W, C*d)."""
 
     mp: np.ndarray
     cp: np.ndarray
@@ -114,12 +114,93 @@ def _side(model: Model, driven: str, control_points, params=None) -> _Side:
                  jnp.asarray(sf.idx), jnp.asarray(sf.psi))
 
 
-@partial(jax.jit, static_argnames=("ccfg", "pcfg", "same", "max_iter", "max_steps", "window"))
+# ------------------------------------------------------- one factorisation per iteration
+class _Factored(NamedTuple):
+    """The controller's tangent at its converged state, factorised once and used three
+    times: the implicit Jacobian, the predictor of the next solve and its corrections."""
+
+    K: jax.Array      # (n, n) dense K_ff
+    L: jax.Array      # (n, n) its Cholesky factor (NaN where K_ff is not positive definite)
+    spd: jax.Array    # () K_ff positive definite (a stable equilibrium): L is usable
+    du: jax.Array     # (m, Nf, d) responses to the driven directions: K_ff du = -K_fg G
+    z: jax.Array      # (Nf, d) K_ff^-1 r0
+    r0: jax.Array     # (Nf, d) the residual left at the converged state
+    dr: jax.Array     # (m, Nf, d) K_fg G
+
+
+def _factor(side: _Side, cfg: Config, sol: Solution) -> _Factored:
+    ops, params = side.ops, side.params
+    K = tangent(ops, params, cfg, sol.u, sol.g)
+    L = jnp.linalg.cholesky(K)
+    spd = jnp.all(jnp.isfinite(L))
+    r0, dr = jax.vmap(lambda t: jax.jvp(lambda x: residual(ops, params, cfg.W, sol.u, x, sol.load),
+                                        (sol.g,), (t,)), out_axes=(None, 0))(side.G)
+    n, m = K.shape[0], side.G.shape[0]
+    B = jnp.concatenate([dr.reshape(m, n).T, r0.reshape(n, 1)], axis=1)   # (n, m+1)
+    # a non-positive-definite tangent (loss of stability) falls back to LU on the same matrix
+    X = jax.lax.cond(spd, lambda b: jax.scipy.linalg.cho_solve((L, True), b),
+                     lambda b: jnp.linalg.solve(K, b), B)
+    du = -X[:, :m].T.reshape(dr.shape)
+    return _Factored(K, L, spd, du, X[:, m].reshape(r0.shape), r0, dr)
+
+
+def _jacobian(side: _Side, f: _Factored):
+    """J = d CP / d MP (C*d, m) from the responses (the control point is linear in (u, g))."""
+    cols = jax.vmap(lambda du, dg: point_values(side.ops, side.idx, side.psi, du, dg).ravel())(f.du, side.G)
+    return cols.T
+
+
+def _chord_solve(side: _Side, cfg: Config, f: _Factored, sol: Solution, dmp, max_corr: int):
+    """Equilibrium at g1 = g + G^T dmp from the converged ``sol`` with the factorised
+    tangent of ``sol``: the Newton predictor K du = -(r + K_fg dg) (the same first step as
+    ``solve_path``, at no extra assembly), then chord corrections K dv = -r(v) with the same
+    factor. Converged by ``solve_path``'s test |r| <= rtol max(|rhs0|, internal force scale);
+    every correction must lower |r| and keep det F > 0, else (or after ``max_corr``
+    corrections, or for a tangent that is not positive definite) ``ok`` is False and the
+    caller re-solves with the full Newton path. Returns (u, g1, iterations, |r|, ok)."""
+    ops, params, W = side.ops, side.params, cfg.W
+    g1 = sol.g + jnp.einsum("a,abi->bi", dmp, side.G)
+    r_ref = jnp.linalg.norm(f.r0 + jnp.einsum("a,aid->id", dmp, f.dr))   # |r + K_fg dg|, as solve_path
+    v = sol.u - f.z + jnp.einsum("a,aid->id", dmp, f.du)
+
+    def evaluate(x):
+        r, det = jax.grad(lambda y: energy(ops, params, W, y, g1, sol.load), has_aux=True)(x)
+        return r, jnp.linalg.norm(r), jnp.all(jnp.isfinite(r)) & (det > 0)
+
+    r, rn, valid = evaluate(v)
+    tol = cfg.rtol * jnp.maximum(r_ref, internal_force_scale(ops, params, W, coefficients(ops, v, g1)))
+    # status: -1 running, 0 converged, 1 failed
+    st0 = jnp.where(~valid | ~f.spd, 1, jnp.where(rn <= tol, 0, -1))
+
+    def cond(c):
+        return c[4] < 0
+
+    def body(c):
+        it, v, r, rn, _ = c
+        v2 = v - jax.scipy.linalg.cho_solve((f.L, True), r.reshape(-1)).reshape(v.shape)
+        r2, rn2, valid = evaluate(v2)
+        ok = valid & (rn2 < rn)
+        st = jnp.where(~ok, 1, jnp.where(rn2 <= tol, 0, jnp.where(it >= max_corr, 1, -1)))
+        return it + 1, v2, r2, rn2, st
+
+    it, v, r, rn, st = jax.lax.while_loop(cond, body, (jnp.array(1), v, r, rn, st0))
+    return v, g1, it, rn, st == 0
+
+
+@partial(jax.jit, static_argnames=("ccfg", "pcfg", "same", "max_iter", "max_steps", "window", "max_corr"))
 def _track_loop(ctrl: _Side, plant: _Side, ccfg: Config, pcfg: Config, same: bool,
                 lim: Limits, c0: Solution, p0: Solution, desired, gain, clamp, tol, damping,
-                max_iter: int, max_steps: int, window: int):
+                max_iter: int, max_steps: int, window: int, max_corr: int = 6):
+    """Algorithm 3 as one while-loop. Per iteration with a dense controller: one tangent
+    assembly and one Cholesky factorisation at the converged state serve the Jacobian, the
+    predictor and the chord corrections of the next solve (``_chord_solve``); the full
+    ``solve_path`` (adaptive Newton) runs only where that shortcut fails. A separate dense
+    plant is re-solved the same way with its own factorisation; sparse models use
+    ``solve_path``."""
     dim_mp = ctrl.G.shape[0]
     n_wp, n_cp = desired.shape
+    fast = isinstance(ccfg.linear, DenseSolver)
+    fast_p = isinstance(pcfg.linear, DenseSolver)
 
     def measure(side, sol):
         return point_values(side.ops, side.idx, side.psi, sol.u, sol.g).ravel()
@@ -145,61 +226,90 @@ def _track_loop(ctrl: _Side, plant: _Side, ccfg: Config, pcfg: Config, same: boo
         mp: jax.Array
         c: Solution
         p: Solution
+        cp: jax.Array
         hist: dict
         reached: jax.Array
         achieved: jax.Array
         status: jax.Array
 
+    class Step(NamedTuple):   # what one iteration changes (the history is written outside the cond)
+        mp: jax.Array
+        c: Solution
+        p: Solution
+        cp: jax.Array
+        newton: jax.Array
+        solve_status: jax.Array
+
     def cond(s):
         return (s.status < 0) & (s.wp < n_wp)
 
-    def body(s):
-        cp = measure(plant, s.p)
-        e = desired[s.wp] - cp
-        en = jnp.linalg.norm(e)
-        hit = en < tol
+    def quick_or_full(side, cfg, f, sol, dmp, full):
+        u, g1, its, rn, ok = _chord_solve(side, cfg, f, sol, dmp, max_corr)
+        quick = Solution(u, g1, sol.load, jnp.zeros_like(sol.status), jnp.ones_like(sol.t),
+                         its.astype(sol.iterations.dtype), jnp.ones_like(sol.steps),
+                         jnp.zeros_like(sol.cuts), rn.astype(sol.residual_norm.dtype))
+        return jax.lax.cond(ok, lambda: quick, full)
 
-        def advance(s):
-            return s._replace(wp=s.wp + 1, it_wp=jnp.array(0), best=jnp.array(jnp.inf),
-                              since_best=jnp.array(0), reached=s.reached.at[s.wp].set(s.k),
-                              achieved=s.achieved.at[s.wp].set(cp))
-
-        def move(s):
+    def step(s, e):
+        if fast:
+            f = _factor(ctrl, ccfg, s.c)
+            J = _jacobian(ctrl, f)
+        else:
             J = implicit_jacobian(ctrl.ops, ctrl.params, ccfg, s.c.u, s.c.g, s.c.load, ctrl.G,
                                   ctrl.idx, ctrl.psi).reshape(n_cp, dim_mp)
-            mp = s.mp + control_increment(J, e, gain, clamp, damping)
-            c = solve_path(ctrl.ops, ctrl.params, ccfg, lim, s.c.u, s.c.g, g_of(ctrl, cg_base, mp), s.c.load, s.c.load)
-            if same:
-                p = c
-            else:
-                p = solve_path(plant.ops, plant.params, pcfg, lim, s.p.u, s.p.g, g_of(plant, pg_base, mp),
-                               s.p.load, s.p.load)
-            ok = (c.status == Status.CONVERGED) & (p.status == Status.CONVERGED)
-            k = s.k + 1
-            cp_new = measure(plant, p)
-            e_new = jnp.linalg.norm(desired[s.wp] - cp_new)
-            improved = e_new < 0.99 * s.best
-            best = jnp.where(improved, e_new, s.best)
-            since = jnp.where(improved, 0, s.since_best + 1)
-            h = s.hist
-            h = dict(mp=h["mp"].at[k].set(mp), cp=h["cp"].at[k].set(cp_new), error=h["error"].at[k].set(e_new),
-                     waypoint=h["waypoint"].at[k].set(s.wp), newton=h["newton"].at[k].set(c.iterations + (0 if same else p.iterations)),
-                     solve_status=h["solve_status"].at[k].set(jnp.maximum(c.status, p.status)))
-            status = jnp.where(~ok, TrackStatus.SOLVE_FAILED,
-                               jnp.where(s.it_wp + 1 >= max_iter, TrackStatus.ITERATION_CAP,
-                                         jnp.where(since >= window, TrackStatus.NO_PROGRESS,
-                                                   jnp.where(k >= max_steps, TrackStatus.HISTORY_FULL, -1))))
-            # a failed solve keeps the last converged states
-            c = jax.tree.map(lambda a, b: jnp.where(ok, a, b), c, s.c)
-            p = jax.tree.map(lambda a, b: jnp.where(ok, a, b), p, s.p)
-            mp = jnp.where(ok, mp, s.mp)
-            return s._replace(k=k, it_wp=s.it_wp + 1, best=best, since_best=since, mp=mp, c=c, p=p,
-                              hist=h, status=status)
+        dmp = control_increment(J, e, gain, clamp, damping)
+        mp = s.mp + dmp
+        like = lambda new, old: jax.tree.map(lambda a, b: a.astype(b.dtype), new, old)   # the carry's dtypes
+        full = lambda: like(solve_path(ctrl.ops, ctrl.params, ccfg, lim, s.c.u, s.c.g, g_of(ctrl, cg_base, mp),
+                                       s.c.load, s.c.load), s.c)
+        c = quick_or_full(ctrl, ccfg, f, s.c, dmp, full) if fast else full()
+        if same:
+            p = c
+        else:
+            full_p = lambda: like(solve_path(plant.ops, plant.params, pcfg, lim, s.p.u, s.p.g,
+                                             g_of(plant, pg_base, mp), s.p.load, s.p.load), s.p)
+            p = quick_or_full(plant, pcfg, _factor(plant, pcfg, s.p), s.p, dmp, full_p) if fast_p else full_p()
+        return Step(mp, c, p, measure(plant, p), c.iterations + (0 if same else p.iterations),
+                    jnp.maximum(c.status, p.status))
 
-        return jax.lax.cond(hit, advance, move, s)
+    def body(s):
+        e = desired[s.wp] - s.cp
+        hit = jnp.linalg.norm(e) < tol
+        keep = Step(s.mp, s.c, s.p, s.cp, jnp.array(0, s.c.iterations.dtype), jnp.array(0, s.c.status.dtype))
+        st = jax.lax.cond(hit, lambda: keep, lambda: step(s, e))
+        moved = ~hit
+        ok = (st.c.status == Status.CONVERGED) & (st.p.status == Status.CONVERGED)
+        k = s.k + moved
+        e_new = jnp.linalg.norm(desired[s.wp] - st.cp)
+        improved = e_new < 0.99 * s.best
+        best = jnp.where(improved, e_new, s.best)
+        since = jnp.where(improved, 0, s.since_best + 1)
+        at = jnp.where(moved, k, H)    # out of range: dropped (no history row for a waypoint hit)
+        h = s.hist
+        h = dict(mp=h["mp"].at[at].set(st.mp, mode="drop"), cp=h["cp"].at[at].set(st.cp, mode="drop"),
+                 error=h["error"].at[at].set(e_new, mode="drop"),
+                 waypoint=h["waypoint"].at[at].set(s.wp, mode="drop"),
+                 newton=h["newton"].at[at].set(st.newton, mode="drop"),
+                 solve_status=h["solve_status"].at[at].set(st.solve_status, mode="drop"))
+        status = jnp.where(~ok, TrackStatus.SOLVE_FAILED,
+                           jnp.where(s.it_wp + 1 >= max_iter, TrackStatus.ITERATION_CAP,
+                                     jnp.where(since >= window, TrackStatus.NO_PROGRESS,
+                                               jnp.where(k >= max_steps, TrackStatus.HISTORY_FULL, -1))))
+        # a failed solve keeps the last converged states
+        c = jax.tree.map(lambda a, b: jnp.where(ok, a, b), st.c, s.c)
+        p = jax.tree.map(lambda a, b: jnp.where(ok, a, b), st.p, s.p)
+        mp = jnp.where(ok, st.mp, s.mp)
+        cp = jnp.where(ok, st.cp, s.cp)
+        # a waypoint hit moves on to the next one: no solve ran, the states and history stay
+        at_wp = jnp.where(hit, s.wp, n_wp)
+        return s._replace(
+            k=k, wp=s.wp + hit, it_wp=jnp.where(hit, 0, s.it_wp + 1), best=jnp.where(hit, jnp.inf, best),
+            since_best=jnp.where(hit, 0, since), mp=mp, c=c, p=p, cp=cp, hist=h,
+            reached=s.reached.at[at_wp].set(s.k, mode="drop"),
+            achieved=s.achieved.at[at_wp].set(s.cp, mode="drop"), status=jnp.where(hit, s.status, status))
 
     s0 = S(jnp.array(0), jnp.array(0), jnp.array(0), jnp.array(jnp.inf), jnp.array(0), jnp.zeros(dim_mp),
-           c0, p0, hist, -jnp.ones(n_wp, jnp.int32), jnp.zeros((n_wp, n_cp)), jnp.array(-1))
+           c0, p0, cp0, hist, -jnp.ones(n_wp, jnp.int32), jnp.zeros((n_wp, n_cp)), jnp.array(-1))
     s = jax.lax.while_loop(cond, body, s0)
     status = jnp.where(s.status < 0, TrackStatus.DONE, s.status)
     return s.k, status, s.hist, s.reached, s.achieved, s.c, s.p

@@ -12,10 +12,13 @@ CP = np.array([[0.5, 0.5]])
 
 @pytest.fixture(scope="module")
 def planar():
-    """The chapter-5 object: 9x9 Fung square, left edge immobile, 3-particle paddle."""
+    """The chapter-5 object: 9x9 Fung square, left edge immobile, paddle = the three right-edge
+    particles nearest (1, 0.5). (Not the three particles nearest (1, 0.5): (0.875, 0.5),
+    (1, 0.375) and (1, 0.625) tie at 0.125 and a sort by distance picked the interior one.)"""
     body = jr.Body.grid((9, 9), 0.125)
     wall = body.select(lambda X: X[:, 0] < 1e-9)
-    paddle = np.argsort(np.linalg.norm(body.X - [1.0, 0.5], axis=1))[:3]
+    paddle = body.select(lambda X: (X[:, 0] > 1 - 1e-9) & (np.abs(X[:, 1] - 0.5) < 0.2))
+    assert sorted(map(tuple, body.X[paddle])) == [(1.0, 0.375), (1.0, 0.5), (1.0, 0.625)]
     model = jr.Model(body, jr.Fung(alpha=1.0, beta=1.0), essential={"wall": wall, "paddle": paddle})
     sol = model.solve({"paddle": jnp.array([-0.08, 0.05])}, steps=2)
     return model, sol
@@ -128,3 +131,25 @@ def test_unreachable_waypoint_stops_with_status_and_history(planar):
     assert res.reached[1] > 0 and res.reached[2] == -1
     assert len(res.error) == res.reached[1] + 16
     assert np.isnan(res.waypoint_errors[2])
+
+
+def test_tracking_step_reuses_one_factorisation(planar):
+    """The tracking loop's step: one Cholesky factorisation at the converged state gives the
+    implicit Jacobian and the predictor + chord corrections of the next solve, which lands on
+    the same equilibrium as the full Newton solve; a step too big for it is refused."""
+    from jaxrkpm import control as C
+
+    model, sol = planar
+    side, cfg = C._side(model, "paddle", CP), model._config()
+    f = jax.jit(lambda s: C._factor(side, cfg, s))(sol)
+    assert bool(f.spd)
+    J = np.asarray(C._jacobian(side, f))
+    assert np.abs(J - np.asarray(model.jacobian(sol, "paddle", CP))).max() < 1e-12 * np.abs(J).max()
+    chord = jax.jit(lambda f, s, d: C._chord_solve(side, cfg, f, s, d, 6))
+    u, g1, its, rn, ok = chord(f, sol, jnp.array([0.004, -0.003]))
+    ref = model.solve_g(g1, initial=sol, loads=sol.load)
+    assert bool(ok) and 2 <= int(its) <= 6
+    assert np.abs(np.asarray(u - ref.u)).max() < 1e-10
+    # half the object's size in one step: the chord iteration must give up (the loop then
+    # runs the full Newton path)
+    assert not bool(chord(f, sol, jnp.array([0.5, 0.0]))[4])
