@@ -14,6 +14,7 @@ from .boundary import EssentialSets, Transformation, nodal_forces
 from .geometry import Body
 from .materials import Material, green_lagrange, pk2
 from .rk import shape_functions
+from .sparse import SaddlePointSystem
 from .solve import (Config, DenseSolver, Limits, Ops, Params, Solution, SparseSolver, Status,
                     coefficients, deformation_gradients, energy_full, implicit_jacobian,
                     point_values, solve_path_jit)
@@ -89,6 +90,20 @@ class Model:
         uniq, inverse = np.unique(key, return_inverse=True)
         pair_i, pair_j = uniq // N, uniq % N
         Q, K = idx.shape
+        # points with identical neighbour lists (Gauss points of one cell) form a group
+        # whose tangent contributions are summed before the scatter (see pair_blocks)
+        _, grp_of, counts = np.unique(idx, axis=0, return_inverse=True, return_counts=True)
+        grp_of = grp_of.ravel()
+        if len(counts) * counts.max() <= 1.25 * Q:
+            srt = np.argsort(grp_of, kind="stable")
+            S = counts.max()
+            groups = np.full((len(counts), S), Q, np.int64)
+            start = np.r_[0, np.cumsum(counts)[:-1]]
+            slot = np.arange(Q) - np.repeat(start, counts)
+            groups[grp_of[srt], slot] = srt
+        else:
+            groups = np.arange(Q)[:, None]
+        pair_id = inverse.reshape(Q, K, K)[groups[:, 0]]
 
         Nb, Nf = len(self.sets.bnd), len(self.sets.free)
         if trans is not None:
@@ -104,10 +119,10 @@ class Model:
             w=jnp.asarray(wts), free=jnp.asarray(self.sets.free, jnp.int32),
             bnd=jnp.asarray(self.sets.bnd, jnp.int32), Dbinv=jnp.asarray(Dbinv),
             nb_idx=jnp.asarray(nb_idx, jnp.int32), nb_psi=jnp.asarray(nb_psi),
-            f_ext=jnp.asarray(f_ext), pair_id=jnp.asarray(inverse.reshape(Q, K, K), jnp.int32),
+            f_ext=jnp.asarray(f_ext), pair_id=jnp.asarray(pair_id, jnp.int32),
             pair_i=jnp.asarray(pair_i, jnp.int32), pair_j=jnp.asarray(pair_j, jnp.int32),
             near=jnp.asarray(near, jnp.int32), A_near=jnp.asarray(A_near),
-            spacing=jnp.asarray(body.spacing))
+            spacing=jnp.asarray(body.spacing), groups=jnp.asarray(groups, jnp.int32))
 
         n_free = Nf * d
         use_dense = solver == "dense" or (solver == "auto" and n_free <= DENSE_LIMIT)
@@ -135,7 +150,7 @@ class Model:
         else:
             C = sp.csr_matrix((0, N * d))
         free_dofs = (self.sets.free[:, None] * d + np.arange(d)[None]).ravel()
-        return SparseSolver(rows, cols, C, free_dofs, N * d)
+        return SparseSolver(SaddlePointSystem(self.body.X, rows, cols, C, free_dofs, self.sets.bnd, d))
 
     def _config(self, **kw) -> Config:
         return Config(W=self.material.W, linear=self.linear, **kw)

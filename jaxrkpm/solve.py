@@ -14,8 +14,6 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from .materials import green_lagrange
 
@@ -26,6 +24,7 @@ class Status(enum.IntEnum):
     NONFINITE = 2
     INVERTED = 3
     LINE_SEARCH = 4
+    UNSTABLE_TANGENT = 5
 
     @property
     def message(self) -> str:
@@ -40,6 +39,11 @@ _MESSAGES = {
                      "even on the smallest load step allowed",
     Status.LINE_SEARCH: "the line search found no decrease of energy or residual "
                         "on the smallest load step allowed",
+    Status.UNSTABLE_TANGENT: "the tangent K_ff is not positive definite at the equilibrium "
+                             "reached (loss of stability: a limit or bifurcation point, buckling "
+                             "or loss of ellipticity passed), even on the smallest load step "
+                             "allowed; the path is stopped at the last stable state (solve with "
+                             "check_stability=False to follow the unstable branch)",
 }
 
 
@@ -55,12 +59,13 @@ class Ops(NamedTuple):
     nb_idx: jax.Array   # (Nb, Kb) neighbours of the essential particles
     nb_psi: jax.Array   # (Nb, Kb) Psi_J(X_b), zero for essential J
     f_ext: jax.Array    # (N, d) nodal dead load at load scale 1
-    pair_id: jax.Array  # (Q, K, K) index of the particle pair (idx[q,k], idx[q,m])
+    pair_id: jax.Array  # (G, K, K) index of the particle pair (idx[q,k], idx[q,m]) for the q of group G
     pair_i: jax.Array   # (P,) first particle of each pair
     pair_j: jax.Array   # (P,)
     near: jax.Array     # (Nc,) positions in ``free`` of the free particles that D^nb couples
     A_near: jax.Array   # (Nb, Nc) (D^b)^-1 D^nb restricted to those columns
     spacing: jax.Array  # () particle spacing
+    groups: jax.Array   # (G, S) integration points sharing one neighbour list (padded with Q)
 
 
 class Params(NamedTuple):
@@ -77,6 +82,7 @@ class Config:
     rtol: float = 1e-10    # residual tolerance relative to the internal force scale
     line_search: int = 8   # step halvings in the line search
     easy: int = 4          # a step converging within this many iterations lets dt grow
+    check_stability: bool = True  # an equilibrium with K_ff not positive definite -> UNSTABLE_TANGENT
 
 
 class Limits(NamedTuple):
@@ -192,34 +198,43 @@ def pair_blocks(ops, params, W, d):
     """Tangent in the full coefficients as (P, d, d) blocks over the particle pairs:
     K_IJ = sum_q w_q grad Psi_I . dP/dF . grad Psi_J (dP/dF by autodiff of W).
 
-    Large tables are swept in chunks of integration points (a scan that accumulates the
-    pair sums) so the (Q, K, K, d, d) local blocks never exist all at once."""
+    Integration points with the same neighbour list (the Gauss points of one background
+    cell) are summed together as one batched matrix product before the scatter into the
+    pair sums, so the scatter runs once per group, not once per point. Large tables are
+    swept in chunks of groups (a scan that accumulates the pair sums) so the (G, K, K, d, d)
+    local blocks never exist all at once."""
     F = deformation_gradients(ops.idx, ops.dpsi, d)
     p, axes = _merged(params)
     C = jax.vmap(jax.hessian(_point_energy(W)), in_axes=(0, axes))(F, p)   # (Q, d, d, d, d)
     Q, K, dim = ops.dpsi.shape
     n_pairs = ops.pair_i.shape[0]
-    wdpsi = ops.dpsi * ops.w[:, None, None]
+    G = ops.groups.shape[0]
 
-    def chunk_sum(wdp, c, dp, pid):
-        blocks = jnp.einsum("qkj,qajbl,qml->qkmab", wdp, c, dp)
+    def ext(x):  # index Q is the padding of the groups: a zero row
+        return jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)])
+
+    wdpsi, C, dpsi = ext(ops.dpsi * ops.w[:, None, None]), ext(C), ext(ops.dpsi)
+
+    def chunk_sum(grp, pid):
+        X = jnp.einsum("cskj,csajbl->ckabsl", wdpsi[grp], C[grp])
+        blocks = jnp.einsum("ckabsl,csml->ckmab", X, dpsi[grp])
         return jax.ops.segment_sum(blocks.reshape(-1, dim, dim), pid.reshape(-1), num_segments=n_pairs)
 
     chunk = max(1, _BLOCK_BUDGET // (K * K * dim * dim))
-    if Q <= chunk:
-        return chunk_sum(wdpsi, C, ops.dpsi, ops.pair_id)
-    n_chunks = -(-Q // chunk)
-    pad = n_chunks * chunk - Q
+    if G <= chunk:
+        return chunk_sum(ops.groups, ops.pair_id)
+    n_chunks = -(-G // chunk)
+    pad = n_chunks * chunk - G
 
-    def split(x):  # zero-padded points contribute nothing (their weight is zero)
-        x = jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)])
+    def split(x, fill):
+        x = jnp.concatenate([x, jnp.full((pad,) + x.shape[1:], fill, x.dtype)])
         return x.reshape((n_chunks, chunk) + x.shape[1:])
 
     def body(acc, xs):
         return acc + chunk_sum(*xs), None
 
     acc, _ = jax.lax.scan(body, jnp.zeros((n_pairs, dim, dim), d.dtype),
-                          (split(wdpsi), split(C), split(ops.dpsi), split(ops.pair_id)))
+                          (split(ops.groups, Q), split(ops.pair_id, 0)))
     return acc
 
 
@@ -256,6 +271,16 @@ class DenseSolver:
         b = rhs.reshape(n, -1)
         return jnp.linalg.solve(K, b).reshape(rhs.shape)
 
+    def solve_checked(self, ops, K, rhs):
+        """(x, K_ff positive definite?): a Cholesky factorisation, LU where it fails."""
+        n = K.shape[0]
+        b = rhs.reshape(n, -1)
+        L = jnp.linalg.cholesky(K)
+        pd = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
+        x = jax.lax.cond(pd, lambda: jax.scipy.linalg.cho_solve((L, True), b),
+                         lambda: jnp.linalg.solve(K, b))
+        return x.reshape(rhs.shape), pd
+
 
 @dataclass(frozen=True, eq=False)
 class SparseSolver:
@@ -264,34 +289,28 @@ class SparseSolver:
         [K  C^T] [dd]   [r]
         [C   0 ] [l ] = [0],   C dd = 0  <=>  dd = T du_f,
 
-    whose free part solves T^T K T du_f = r exactly. Factorised by SciPy's SuperLU on the
-    host (a jax.pure_callback), so it runs inside jit and while-loops."""
+    whose free part solves T^T K T du_f = r exactly, on the host (a jax.pure_callback, so it
+    runs inside jit and while-loops): nested-dissection ordered SuperLU factorisations,
+    reused as conjugate-gradient preconditioners while they work (see jaxrkpm.sparse)."""
 
-    rows: np.ndarray      # (P*d*d,) pattern of K in the full coefficients
-    cols: np.ndarray
-    C: Any                # scipy.sparse (Nb*d, N*d) constraint rows [D^nb D^b] (x) I
-    free_dofs: np.ndarray  # (Nf*d,)
-    n_dof: int
+    system: Any           # jaxrkpm.sparse.SaddlePointSystem
     name: str = "sparse"
 
     def matrix(self, ops, blocks):
         return blocks  # the factorisation happens on the host
 
     def _host_solve(self, blocks, rhs):
-        blocks = np.asarray(blocks)
-        rhs = np.asarray(rhs)
-        K = sp.csc_matrix((blocks.ravel(), (self.rows, self.cols)), shape=(self.n_dof, self.n_dof))
-        nc = self.C.shape[0]
-        KKT = sp.bmat([[K, self.C.T], [self.C, None]], format="csc")
-        b = rhs.reshape(len(self.free_dofs), -1)
-        B = np.zeros((self.n_dof + nc, b.shape[1]))
-        B[self.free_dofs] = b
-        x = spla.splu(KKT).solve(B)
-        return x[self.free_dofs].reshape(rhs.shape)
+        return self.system.solve(blocks, rhs)[0]
 
     def solve(self, ops, blocks, rhs):
         return jax.pure_callback(self._host_solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
                                  blocks, rhs, vmap_method="sequential")
+
+    def solve_checked(self, ops, blocks, rhs):
+        """(x, K_ff positive definite?): the inertia of a fresh factorisation, or no negative
+        curvature met by CG preconditioned with an earlier positive definite one."""
+        out = (jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), jax.ShapeDtypeStruct((), jnp.bool_))
+        return jax.pure_callback(self.system.solve, out, blocks, rhs, vmap_method="sequential")
 
 
 def tangent(ops, params, cfg: Config, u, g):
@@ -348,12 +367,16 @@ def _newton_step(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1):
         it, u, Pi, r, _ = c
         first = it == 0
         K = tangent(ops, params, cfg, u, jnp.where(first, g0, g1))
-        du = -cfg.linear.solve(ops, K, jnp.where(first, rhs0, r))
+        dx, pd = cfg.linear.solve_checked(ops, K, jnp.where(first, rhs0, r))
+        du = -dx
         ok, v, Pi_v, r_v, why = line_search(u, Pi, r, du)
         rn = jnp.linalg.norm(r_v)
         scale = internal_force_scale(ops, params, W, coefficients(ops, v, g1))
         converged = ok & (rn <= cfg.rtol * jnp.maximum(r_ref, scale))
-        status = jnp.where(~ok, why, jnp.where(converged, Status.CONVERGED,
+        # stability from the last factorised tangent (at the iterate before the converged one)
+        stable = pd | (not cfg.check_stability)
+        status = jnp.where(~ok, why, jnp.where(converged, jnp.where(stable, Status.CONVERGED,
+                                                                    Status.UNSTABLE_TANGENT),
                                                jnp.where(it + 1 >= max_iter, Status.MAX_ITERATIONS, -1)))
         return (it + 1, jnp.where(ok, v, u), jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), status)
 

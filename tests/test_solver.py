@@ -273,3 +273,40 @@ def test_parameter_field_changes_the_answer():
     # and overriding the field at solve time reproduces the homogeneous answer
     back = np.asarray(stiff.displacement(stiff.solve(params={"mu": 1.0}), [[1.0, 0.5]]))[0, 0]
     assert back == pytest.approx(us, rel=1e-10)
+
+
+@pytest.fixture(scope="module")
+def column():
+    """Slender clamped neo-Hookean column (width 0.1, length 1) for axial compression: Euler
+    buckling (clamped-clamped) at the axial strain pi^2 w^2 / (3 L^2) = 3.29%."""
+    body = jr.Body.grid((5, 41), 0.025)
+    sets = {"bottom": body.select(lambda X: X[:, 1] < 1e-9), "top": body.select(lambda X: X[:, 1] > 1 - 1e-9)}
+    return body, sets, jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets)
+
+
+def _min_eig(model, sol):
+    K = np.asarray(tangent(model.ops, model.params, model._config(), sol.u, sol.g))
+    return np.linalg.eigvalsh(K)[0], np.linalg.eigvalsh(K)[-1]
+
+
+@pytest.mark.parametrize("solver", ["dense", "sparse"])
+def test_buckling_column_reports_unstable_tangent(column, solver):
+    body, sets, dense = column
+    model = dense if solver == "dense" else jr.Model(body, dense.material, essential=sets, solver="sparse")
+    push = {"top": jnp.array([0.0, -0.1])}                     # 10% axial compression
+    sol = model.solve(push, steps=5, throw=False, max_cuts=6)
+    assert int(sol.status) == jr.Status.UNSTABLE_TANGENT
+    strain = 0.1 * float(sol.t)
+    euler = np.pi**2 * 0.1**2 / 3
+    print(f"{solver}: stopped at {100 * strain:.2f}% strain, Euler {100 * euler:.2f}%")
+    assert strain == pytest.approx(euler, rel=0.05)
+    lo, hi = _min_eig(dense, sol)
+    assert 0 < lo < 1e-3 * hi                                   # last stable state: at the bifurcation
+    if solver == "dense":
+        with pytest.raises(jr.SolveError, match="UNSTABLE_TANGENT: the tangent K_ff is not positive definite"):
+            model.solve(push, steps=5, max_cuts=2)
+        # without the check Newton converges to the symmetric (saddle) branch: really unstable
+        through = model.solve(push, steps=5, check_stability=False)
+        assert _min_eig(dense, through)[0] < 0
+    # below the buckling strain the same column is stable and converges
+    assert int(model.solve({"top": jnp.array([0.0, -0.02])}, steps=2, throw=False).status) == jr.Status.CONVERGED

@@ -1,0 +1,214 @@
+"""Host-side sparse linear algebra of the Newton solver (large systems).
+
+The constrained tangent system is the saddle-point form of the thesis transformation,
+
+    [K  C^T] [dd]   [r]
+    [C   0 ] [l ] = [0],      C dd = 0  <=>  dd = T du_f,
+
+whose free part solves K_ff du_f = T^T K T du_f = r exactly. C = [D^nb D^b] (x) I has sparse
+LU factors (D^b is banded) while T (through (D^b)^-1) is dense per essential set, so the
+saddle-point matrix is factorised instead of K_ff. Everything structural is done once:
+
+* a geometric nested-dissection ordering of the particles (each essential particle's
+  multipliers right after its own coefficients, so the factorisation needs no pivoting:
+  every multiplier pivot is preceded by the coefficient pivot it constrains);
+* the CSC pattern of the permuted saddle-point matrix and the position of every tangent
+  block entry in it: each Newton iteration only writes the data array.
+
+Factorisations are reused: the last positive definite factorisation preconditions a
+conjugate-gradient solve of K_ff x = r (matrix-vector products with the current K and T);
+only when CG stalls or meets negative curvature is the current matrix factorised again.
+The factorisation's pivots give the inertia: the number of negative pivots minus the
+number of constraints is the number of negative eigenvalues of K_ff (Haynsworth).
+"""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+
+def nested_dissection(X: np.ndarray, indptr: np.ndarray, indices: np.ndarray, leaf: int = 64) -> np.ndarray:
+    """Fill-reducing order of n nodes with coordinates X (n, dim) and the symmetric
+    adjacency (indptr, indices) (CSR): recursive median bisection along the longest extent;
+    the nodes of the upper half adjacent to the lower half form the separator, numbered last."""
+    n = X.shape[0]
+    mark = np.zeros(n, bool)
+    parts = []
+
+    def rec(nodes):
+        if len(nodes) <= leaf:
+            parts.append(nodes)
+            return
+        x = X[nodes]
+        ax = int(np.argmax(x.max(0) - x.min(0)))
+        lower = x[:, ax] < np.median(x[:, ax])
+        if lower.all() or not lower.any():
+            parts.append(nodes)
+            return
+        lo, hi = nodes[lower], nodes[~lower]
+        mark[lo] = True
+        starts, stops = indptr[hi], indptr[hi + 1]
+        lens = stops - starts
+        flat = np.repeat(starts - np.cumsum(np.r_[0, lens[:-1]]), lens) + np.arange(lens.sum())
+        owner = np.repeat(np.arange(len(hi)), lens)
+        touch = np.zeros(len(hi), bool)
+        touch[owner[mark[indices[flat]]]] = True
+        mark[lo] = False
+        rec(lo)
+        rec(hi[~touch])
+        parts.append(hi[touch])
+
+    rec(np.arange(n))
+    return np.concatenate(parts)
+
+
+class SaddlePointSystem:
+    """The permuted saddle-point pattern, its data map, and the factorisation cache."""
+
+    cg_rtol = 1e-11     # relative residual of the preconditioned CG solves
+    cg_maxiter = 40     # beyond this the current matrix is factorised instead
+
+    def __init__(self, X: np.ndarray, rows: np.ndarray, cols: np.ndarray, C, free_dofs: np.ndarray,
+                 bnd: np.ndarray, dim: int):
+        N = X.shape[0]
+        d = dim
+        n_dof = N * d
+        C = sp.csr_matrix(C)
+        nc = C.shape[0]
+        self.n_dof, self.nc, self.n = n_dof, nc, n_dof + nc
+        self.free_dofs = np.asarray(free_dofs, np.int64)
+        self.bnd_dofs = (np.asarray(bnd, np.int64)[:, None] * d + np.arange(d)).ravel()
+
+        # particle graph of K (pairs sharing an integration point) -> nested dissection
+        pi, pj = rows[::d * d] // d, cols[::d * d] // d
+        G = sp.csr_matrix((np.ones(len(pi), np.int8), (pi, pj)), shape=(N, N))
+        order = nested_dissection(X, G.indptr, G.indices)
+        # dofs of each particle, then (essential particles) its multipliers
+        is_b = np.zeros(N, bool)
+        is_b[bnd] = True
+        bpos = -np.ones(N, np.int64)
+        bpos[bnd] = np.arange(len(bnd))
+        per = d + d * is_b[order]
+        node = np.repeat(order, per)
+        k = np.arange(per.sum()) - np.repeat(np.cumsum(per) - per, per)
+        perm = np.where(k < d, node * d + k, n_dof + bpos[node] * d + (k - d))   # new -> old
+        self.perm = perm
+        inv = np.empty_like(perm)
+        inv[perm] = np.arange(len(perm))
+        self.inv = inv
+
+        Ccoo = C.tocoo()
+        r_all = np.concatenate([rows, Ccoo.row + n_dof, Ccoo.col])
+        c_all = np.concatenate([cols, Ccoo.col, Ccoo.row + n_dof])
+        v_c = np.concatenate([Ccoo.data, Ccoo.data])
+        rn, cn = inv[r_all], inv[c_all]
+        key = cn.astype(np.int64) * self.n + rn
+        srt = np.argsort(key, kind="stable")
+        if np.any(np.diff(key[srt]) == 0):
+            raise ValueError("duplicate entries in the tangent pattern")
+        pos = np.empty_like(srt)
+        pos[srt] = np.arange(len(srt))
+        self.indices = rn[srt].astype(np.int32)
+        self.indptr = np.searchsorted(cn[srt], np.arange(self.n + 1)).astype(np.int32)
+        nK = len(rows)
+        self.pos_K = pos[:nK]
+        self.template = np.zeros(len(srt))
+        self.template[pos[nK:]] = v_c
+
+        self.Cf = C[:, self.free_dofs].tocsr()
+        self.Cf_T = self.Cf.T.tocsr()
+        self.Cb_lu = spla.splu(C[:, self.bnd_dofs].tocsc()) if nc else None
+        self._lu = None           # last positive definite factorisation (a preconditioner)
+        self._lock = threading.Lock()
+        self.stats = {"factorisations": 0, "cg_solves": 0, "cg_iterations": 0}
+
+    # ----------------------------------------------------------------------- pieces
+    def matrix(self, blocks) -> sp.csc_matrix:
+        data = self.template.copy()
+        data[self.pos_K] = np.asarray(blocks, np.float64).ravel()
+        return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+
+    def _factorise(self, A):
+        lu = spla.splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0,
+                       options=dict(SymmetricMode=True))
+        self.stats["factorisations"] += 1
+        if np.array_equal(lu.perm_r, lu.perm_c):       # symmetric (static) pivoting: inertia
+            neg = int(np.count_nonzero(lu.U.diagonal() < 0)) - self.nc
+        else:                                           # pivoting happened: inertia unknown
+            neg = 0
+        return lu, neg
+
+    def _direct(self, lu, b):
+        B = np.zeros((self.n, b.shape[1]))
+        B[self.inv[self.free_dofs]] = b
+        return lu.solve(B)[self.inv[self.free_dofs]]
+
+    def _matvec(self, A, v):
+        """K_ff v = T^T K T v with the current K (A is symmetric: CSC = CSR of itself)."""
+        dd = np.zeros(self.n)
+        full = np.zeros(self.n_dof)
+        full[self.free_dofs] = v
+        if self.nc:
+            full[self.bnd_dofs] = -self.Cb_lu.solve(self.Cf @ v)
+        dd[self.inv[:self.n_dof]] = full
+        y = (A.T @ dd)[self.inv[:self.n_dof]]   # A.T of a CSC is a CSR view: a fast product
+        out = y[self.free_dofs]
+        if self.nc:
+            out = out - self.Cf_T @ self.Cb_lu.solve(y[self.bnd_dofs], trans="T")
+        return out
+
+    def _pcg(self, A, lu, b):
+        """CG on K_ff x = b preconditioned by a previous factorisation; returns x, or None
+        when it stalls or meets negative curvature."""
+        bn = np.linalg.norm(b)
+        x = np.zeros_like(b)
+        if bn == 0:
+            return x
+        r = b.copy()
+        z = self._direct(lu, r[:, None])[:, 0]
+        p = z.copy()
+        rz = r @ z
+        for it in range(1, self.cg_maxiter + 1):
+            Ap = self._matvec(A, p)
+            pAp = p @ Ap
+            if not pAp > 0:
+                return None
+            a = rz / pAp
+            x += a * p
+            r -= a * Ap
+            if np.linalg.norm(r) <= self.cg_rtol * bn:
+                self.stats["cg_iterations"] += it
+                return x
+            z = self._direct(lu, r[:, None])[:, 0]
+            rz, rz_old = r @ z, rz
+            p = z + (rz / rz_old) * p
+        return None
+
+    # ----------------------------------------------------------------------- solve
+    def solve(self, blocks, rhs):
+        """x (rhs.shape) with K_ff x = rhs, and whether K_ff looked positive definite."""
+        rhs = np.asarray(rhs, np.float64)
+        b = rhs.reshape(len(self.free_dofs), -1)
+        with self._lock:
+            A = self.matrix(blocks)
+            if self._lu is not None:
+                cols = []
+                for j in range(b.shape[1]):
+                    xj = self._pcg(A, self._lu, b[:, j])
+                    if xj is None:
+                        break
+                    cols.append(xj)
+                else:
+                    self.stats["cg_solves"] += 1
+                    return np.stack(cols, 1).reshape(rhs.shape), np.bool_(True)
+            lu, neg = self._factorise(A)
+            x = self._direct(lu, b)
+            self._lu = lu if neg == 0 else None
+            return x.reshape(rhs.shape), np.bool_(neg == 0)
+
+    def reset(self):
+        with self._lock:
+            self._lu = None
