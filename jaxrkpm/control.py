@@ -132,7 +132,7 @@ def _factor(side: _Side, cfg: Config, sol: Solution) -> _Factored:
     ops, params = side.ops, side.params
     K = tangent(ops, params, cfg, sol.u, sol.g)
     L = jnp.linalg.cholesky(K)
-    spd = jnp.all(jnp.isfinite(L))
+    spd = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
     r0, dr = jax.vmap(lambda t: jax.jvp(lambda x: residual(ops, params, cfg.W, sol.u, x, sol.load),
                                         (sol.g,), (t,)), out_axes=(None, 0))(side.G)
     n, m = K.shape[0], side.G.shape[0]

@@ -19,6 +19,7 @@ from .solve import (Config, DenseSolver, Limits, Ops, Params, Solution, SparseSo
                     coefficients, deformation_gradients, energy_full, implicit_jacobian,
                     point_values, solve_path_jit)
 
+_point_values_jit = jax.jit(point_values)   # FD evaluates it per re-solve: one dispatch, not ~10 eager ops
 DENSE_LIMIT = 2500  # free DOFs up to which the dense factorisation is used ("auto")
 
 
@@ -303,9 +304,9 @@ class Model:
 
         def at(g):  # Algorithm 4: solve from the saved state; ``sol`` itself is never modified
             s = self.solve_g(g, initial=sol, params=params, loads=sol.load)
-            return point_values(self.ops, idx, psi, s.u, s.g).ravel()
+            return _point_values_jit(self.ops, idx, psi, s.u, s.g).ravel()
 
-        base = point_values(self.ops, idx, psi, sol.u, sol.g).ravel()
+        base = _point_values_jit(self.ops, idx, psi, sol.u, sol.g).ravel()
         cols = []
         for dg in G:
             if scheme == "forward":

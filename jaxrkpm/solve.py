@@ -469,11 +469,13 @@ solve_path_jit = jax.jit(solve_path_diff, static_argnames=("cfg",))
 
 def response(ops, params, cfg: Config, u, g, load, dG):
     """Implicit sensitivity of the free coefficients to m prescribed directions dG (m, Nb, d):
-    one tangent factorisation, m right-hand sides K_ff du = -K_fg dG. Returns (m, Nf, d)."""
+    one tangent factorisation, m right-hand sides K_ff du = -K_fg dG. Returns (m, Nf, d).
+    Dense: Cholesky (K_ff is positive definite at a stable equilibrium; half the work of LU),
+    LU where it is not."""
     dr = jax.vmap(lambda dg: jax.jvp(lambda x: residual(ops, params, cfg.W, u, x, load),
                                      (g,), (dg,))[1])(dG)                      # (m, Nf, d)
     K = tangent(ops, params, cfg, u, g)
-    du = -cfg.linear.solve(ops, K, jnp.moveaxis(dr, 0, -1))                  # (Nf, d, m)
+    du = -cfg.linear.solve_checked(ops, K, jnp.moveaxis(dr, 0, -1))[0]       # (Nf, d, m)
     return jnp.moveaxis(du, -1, 0)
 
 
