@@ -70,6 +70,8 @@ class SaddlePointSystem:
 
     cg_rtol = 1e-11     # relative residual of the preconditioned CG solves
     cg_maxiter = 40     # beyond this the current matrix is factorised instead
+    cg_maxiter_sparsified = 400  # with the sparsified (3D) preconditioner
+    stencil = 2.0       # 3D preconditioner: pairs within this many spacings are kept
 
     def __init__(self, X: np.ndarray, rows: np.ndarray, cols: np.ndarray, C, free_dofs: np.ndarray,
                  bnd: np.ndarray, dim: int):
@@ -82,41 +84,34 @@ class SaddlePointSystem:
         self.free_dofs = np.asarray(free_dofs, np.int64)
         self.bnd_dofs = (np.asarray(bnd, np.int64)[:, None] * d + np.arange(d)).ravel()
 
-        # particle graph of K (pairs sharing an integration point) -> nested dissection
-        pi, pj = rows[::d * d] // d, cols[::d * d] // d
-        G = sp.csr_matrix((np.ones(len(pi), np.int8), (pi, pj)), shape=(N, N))
-        order = nested_dissection(X, G.indptr, G.indices)
-        # dofs of each particle, then (essential particles) its multipliers
-        is_b = np.zeros(N, bool)
-        is_b[bnd] = True
-        bpos = -np.ones(N, np.int64)
-        bpos[bnd] = np.arange(len(bnd))
-        per = d + d * is_b[order]
-        node = np.repeat(order, per)
-        k = np.arange(per.sum()) - np.repeat(np.cumsum(per) - per, per)
-        perm = np.where(k < d, node * d + k, n_dof + bpos[node] * d + (k - d))   # new -> old
-        self.perm = perm
-        inv = np.empty_like(perm)
-        inv[perm] = np.arange(len(perm))
-        self.inv = inv
-
+        self._X, self._d, self._bnd = X, d, np.asarray(bnd, np.int64)
+        self.inv = self._ordering(rows, cols)
         Ccoo = C.tocoo()
-        r_all = np.concatenate([rows, Ccoo.row + n_dof, Ccoo.col])
-        c_all = np.concatenate([cols, Ccoo.col, Ccoo.row + n_dof])
-        v_c = np.concatenate([Ccoo.data, Ccoo.data])
-        rn, cn = inv[r_all], inv[c_all]
-        key = cn.astype(np.int64) * self.n + rn
-        srt = np.argsort(key, kind="stable")
-        if np.any(np.diff(key[srt]) == 0):
-            raise ValueError("duplicate entries in the tangent pattern")
-        pos = np.empty_like(srt)
-        pos[srt] = np.arange(len(srt))
-        self.indices = rn[srt].astype(np.int32)
-        self.indptr = np.searchsorted(cn[srt], np.arange(self.n + 1)).astype(np.int32)
-        nK = len(rows)
-        self.pos_K = pos[:nK]
-        self.template = np.zeros(len(srt))
-        self.template[pos[nK:]] = v_c
+        self._c_entries = (np.concatenate([Ccoo.row + n_dof, Ccoo.col]),
+                           np.concatenate([Ccoo.col, Ccoo.row + n_dof]),
+                           np.concatenate([Ccoo.data, Ccoo.data]))
+        self.indices, self.indptr, self.pos_K, self.template = self._pattern(rows, cols, self.inv)
+
+        # 3D: the exact factorisation fills too much (a 20^3 grid: ~2.6e8 factor entries,
+        # minutes per factorisation), so CG is preconditioned by the factorisation of a
+        # sparsified tangent instead: pairs beyond ``stencil`` spacings (Chebyshev distance)
+        # are dropped and each dropped entry's magnitude is added to its row's diagonal, so
+        # the preconditioner dominates K (P - K is positive semidefinite: P is positive
+        # definite wherever K is).
+        self.sparsified = dim == 3
+        if self.sparsified:
+            dist = np.abs(X[rows // d] - X[cols // d]).max(1)
+            h = np.min(dist[dist > 0]) if np.any(dist > 0) else 1.0
+            keep = dist <= self.stencil * h * (1 + 1e-9)
+            self.keep, self.drop_rows = np.flatnonzero(keep), rows[~keep]
+            self.drop = np.flatnonzero(~keep)
+            self.p_inv = self.inv   # (ordering the sparsified graph separately fared worse)
+            (self.p_indices, self.p_indptr, self.p_pos_K,
+             self.p_template) = self._pattern(rows[keep], cols[keep], self.p_inv)
+            kr, kc = rows[keep], cols[keep]
+            diag = np.flatnonzero(kr == kc)
+            self.p_diag_pos = self.p_pos_K[diag]
+            self.p_diag_row = kr[diag]
 
         self.Cf = C[:, self.free_dofs].tocsr()
         self.Cf_T = self.Cf.T.tocsr()
@@ -126,12 +121,61 @@ class SaddlePointSystem:
         self.stats = {"factorisations": 0, "cg_solves": 0, "cg_iterations": 0}
 
     # ----------------------------------------------------------------------- pieces
+    def _ordering(self, rows, cols):
+        """old -> new dof positions: nested dissection of the particle graph of the K
+        entries (rows, cols) (block order: d*d entries a pair), each particle's dofs followed
+        (essential particles) by its multipliers."""
+        X, d, bnd = self._X, self._d, self._bnd
+        N, n_dof = X.shape[0], self.n_dof
+        pi, pj = rows[::d * d] // d, cols[::d * d] // d
+        G = sp.csr_matrix((np.ones(len(pi), np.int8), (pi, pj)), shape=(N, N))
+        order = nested_dissection(X, G.indptr, G.indices)
+        is_b = np.zeros(N, bool)
+        is_b[bnd] = True
+        bpos = -np.ones(N, np.int64)
+        bpos[bnd] = np.arange(len(bnd))
+        per = d + d * is_b[order]
+        node = np.repeat(order, per)
+        k = np.arange(per.sum()) - np.repeat(np.cumsum(per) - per, per)
+        perm = np.where(k < d, node * d + k, n_dof + bpos[node] * d + (k - d))   # new -> old
+        inv = np.empty_like(perm)
+        inv[perm] = np.arange(len(perm))
+        return inv
+
+    def _pattern(self, rows, cols, inv):
+        """CSC pattern (permuted by inv) of the saddle-point matrix with K entries (rows, cols):
+        indices, indptr, the data position of each K entry, and the data with C filled in."""
+        cr, cc, cv = self._c_entries
+        rn = inv[np.concatenate([rows, cr])]
+        cn = inv[np.concatenate([cols, cc])]
+        key = cn.astype(np.int64) * self.n + rn
+        srt = np.argsort(key, kind="stable")
+        if np.any(np.diff(key[srt]) == 0):
+            raise ValueError("duplicate entries in the tangent pattern")
+        pos = np.empty_like(srt)
+        pos[srt] = np.arange(len(srt))
+        indices = rn[srt].astype(np.int32)
+        indptr = np.searchsorted(cn[srt], np.arange(self.n + 1)).astype(np.int32)
+        template = np.zeros(len(srt))
+        template[pos[len(rows):]] = cv
+        return indices, indptr, pos[:len(rows)], template
+
+    def preconditioner_matrix(self, blocks) -> sp.csc_matrix:
+        """The sparsified, diagonally compensated saddle-point matrix (3D)."""
+        b = np.asarray(blocks, np.float64).ravel()
+        data = self.p_template.copy()
+        data[self.p_pos_K] = b[self.keep]
+        add = np.bincount(self.drop_rows, np.abs(b[self.drop]), minlength=self.n_dof)
+        data[self.p_diag_pos] += add[self.p_diag_row]
+        return sp.csc_matrix((data, self.p_indices, self.p_indptr), shape=(self.n, self.n))
+
     def matrix(self, blocks) -> sp.csc_matrix:
         data = self.template.copy()
         data[self.pos_K] = np.asarray(blocks, np.float64).ravel()
         return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
 
-    def _factorise(self, A):
+    def _factorise(self, A, inv=None):
+        inv = self.inv if inv is None else inv
         lu = spla.splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0,
                        options=dict(SymmetricMode=True))
         self.stats["factorisations"] += 1
@@ -139,12 +183,13 @@ class SaddlePointSystem:
             neg = int(np.count_nonzero(lu.U.diagonal() < 0)) - self.nc
         else:                                           # pivoting happened: inertia unknown
             neg = 0
-        return lu, neg
+        return (lu, inv), neg
 
     def _direct(self, lu, b):
+        lu, inv = lu
         B = np.zeros((self.n, b.shape[1]))
-        B[self.inv[self.free_dofs]] = b
-        return lu.solve(B)[self.inv[self.free_dofs]]
+        B[inv[self.free_dofs]] = b
+        return lu.solve(B)[inv[self.free_dofs]]
 
     def _matvec(self, A, v):
         """K_ff v = T^T K T v with the current K (A is symmetric: CSC = CSR of itself)."""
@@ -160,9 +205,10 @@ class SaddlePointSystem:
             out = out - self.Cf_T @ self.Cb_lu.solve(y[self.bnd_dofs], trans="T")
         return out
 
-    def _pcg(self, A, lu, b):
+    def _pcg(self, A, lu, b, maxiter=None):
         """CG on K_ff x = b preconditioned by a previous factorisation; returns x, or None
         when it stalls or meets negative curvature."""
+        maxiter = maxiter or self.cg_maxiter
         bn = np.linalg.norm(b)
         x = np.zeros_like(b)
         if bn == 0:
@@ -171,7 +217,7 @@ class SaddlePointSystem:
         z = self._direct(lu, r[:, None])[:, 0]
         p = z.copy()
         rz = r @ z
-        for it in range(1, self.cg_maxiter + 1):
+        for it in range(1, maxiter + 1):
             Ap = self._matvec(A, p)
             pAp = p @ Ap
             if not pAp > 0:
@@ -194,20 +240,38 @@ class SaddlePointSystem:
         b = rhs.reshape(len(self.free_dofs), -1)
         with self._lock:
             A = self.matrix(blocks)
+            maxiter = self.cg_maxiter_sparsified if self.sparsified else self.cg_maxiter
             if self._lu is not None:
-                cols = []
-                for j in range(b.shape[1]):
-                    xj = self._pcg(A, self._lu, b[:, j])
-                    if xj is None:
-                        break
-                    cols.append(xj)
-                else:
+                x = self._pcg_all(A, self._lu, b, maxiter)
+                if x is not None:
                     self.stats["cg_solves"] += 1
-                    return np.stack(cols, 1).reshape(rhs.shape), np.bool_(True)
-            lu, neg = self._factorise(A)
-            x = self._direct(lu, b)
-            self._lu = lu if neg == 0 else None
-            return x.reshape(rhs.shape), np.bool_(neg == 0)
+                    return x.reshape(rhs.shape), np.bool_(True)
+            if not self.sparsified:
+                lu, neg = self._factorise(A)
+                x = self._direct(lu, b)
+                self._lu = lu if neg == 0 else None
+                return x.reshape(rhs.shape), np.bool_(neg == 0)
+            lu, neg = self._factorise(self.preconditioner_matrix(blocks), self.p_inv)
+            self._lu = lu if neg == 0 else None   # P - K >= 0: P indefinite => K_ff indefinite
+            x = self._pcg_all(A, lu, b, maxiter) if neg == 0 else None
+            if x is not None:
+                self.stats["cg_solves"] += 1
+                return x.reshape(rhs.shape), np.bool_(True)
+            # negative curvature (K_ff indefinite) or no convergence: GMRES on the same operator
+            op = spla.LinearOperator((len(self.free_dofs),) * 2, matvec=lambda v: self._matvec(A, v))
+            M = spla.LinearOperator(op.shape, matvec=lambda v: self._direct(lu, v.reshape(-1, 1))[:, 0])
+            cols = [spla.gmres(op, b[:, j], M=M, rtol=self.cg_rtol, restart=200, maxiter=5)[0]
+                    for j in range(b.shape[1])]
+            return np.stack(cols, 1).reshape(rhs.shape), np.bool_(False)
+
+    def _pcg_all(self, A, lu, b, maxiter):
+        cols = []
+        for j in range(b.shape[1]):
+            xj = self._pcg(A, lu, b[:, j], maxiter)
+            if xj is None:
+                return None
+            cols.append(xj)
+        return np.stack(cols, 1)
 
     def reset(self):
         with self._lock:
