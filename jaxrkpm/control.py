@@ -131,7 +131,9 @@ class _Factored(NamedTuple):
 def _factor(side: _Side, cfg: Config, sol: Solution) -> _Factored:
     ops, params = side.ops, side.params
     K = tangent(ops, params, cfg, sol.u, sol.g)
-    L = jnp.linalg.cholesky(K)
+    # K_ff = T^T K T of an energy Hessian is symmetric by construction: Cholesky reads one
+    # triangle, so skip jnp.linalg.cholesky's (K + K^T) / 2
+    L = jax.lax.linalg.cholesky(K, symmetrize_input=False)
     spd = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
     r0, dr = jax.vmap(lambda t: jax.jvp(lambda x: residual(ops, params, cfg.W, sol.u, x, sol.load),
                                         (sol.g,), (t,)), out_axes=(None, 0))(side.G)
