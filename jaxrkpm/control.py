@@ -5,6 +5,11 @@ implicit Jacobian J = d CP / d MP is taken at its converged state, the manipulat
 (a rigidly driven essential set) moves by K J^+ e clamped to ``clamp`` per component, and
 the models re-equilibrate. The plant (whose control point is measured) is the controller
 itself, or a second model (reduced -> refined control, section 5.3.1).
+
+Cost per iteration (dense models): one tangent assembly and one Cholesky factorisation of
+K_ff at the converged state, shared by the Jacobian (m back-substitutions), the Newton
+predictor of the next solve and its chord corrections; the adaptive ``solve_path`` runs only
+if those fail (a non-positive-definite tangent, no residual decrease, det F <= 0).
 """
 from __future__ import annotations
 
