@@ -278,6 +278,19 @@ class Model:
                 G[i * d + a, sl.start + i, a] = 1.0
         return jnp.asarray(G)
 
+    def _jacobian_tables(self, points, driven: str, rigid: bool):
+        """Device arrays (idx, psi, G) for ``jacobian``, cached per point set and driven set
+        (a repeated Jacobian would otherwise re-evaluate the RK shape functions each call)."""
+        X = np.asarray(points, np.float64)
+        key = (X.shape, X.tobytes(), driven, bool(rigid))
+        cache = self.__dict__.setdefault("_jacobian_cache", {})
+        if key not in cache:
+            sf = self.shape_functions(X, gradients=False)
+            if len(cache) >= 64:
+                cache.clear()
+            cache[key] = (jnp.asarray(sf.idx), jnp.asarray(sf.psi), self.directions(driven, rigid))
+        return cache[key]
+
     def jacobian(self, sol: Solution, driven: str, points, method: str = "implicit",
                  eps: float = 1e-6, scheme: str = "central", rigid: bool = True, params=None):
         """J = d(displacement at points)/d(displacement of the driven set): (P*d, m), m = d for
@@ -291,16 +304,14 @@ class Model:
             raise ValueError(f"unknown Jacobian method {method!r}: choose 'implicit' or 'fd'")
         if scheme not in ("forward", "central"):
             raise ValueError(f"unknown difference scheme {scheme!r}: choose 'forward' or 'central'")
-        sf = self.shape_functions(points, gradients=False)
-        G = self.directions(driven, rigid)
-        P = len(sf.idx)
+        idx, psi, G = self._jacobian_tables(points, driven, rigid)
+        P = idx.shape[0]
         if method == "implicit":
             J = implicit_jacobian(self.ops, self.params_with(params), self._config(), sol.u, sol.g,
-                                  sol.load, G, jnp.asarray(sf.idx), jnp.asarray(sf.psi))
+                                  sol.load, G, idx, psi)
             return J.reshape(P * self.dim, -1)
         if not (np.isfinite(eps) and eps > 0):
             raise ValueError(f"eps must be positive, got {eps}")
-        idx, psi = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
 
         def at(g):  # Algorithm 4: solve from the saved state; ``sol`` itself is never modified
             s = self.solve_g(g, initial=sol, params=params, loads=sol.load)
