@@ -110,6 +110,24 @@ class Body:
         vol = polygons.voronoi_areas(X, V)
         return Body(X, vol, float(spacing), lo, hi, V, False, cKDTree(X))
 
+    @staticmethod
+    def points(X, vertices, spacing: float) -> "Body":
+        """2D body from given particle positions (N, 2) in the polygon ``vertices``: for a
+        layout that must match a reference (e.g. the thesis' lattice phantom). Volumes are
+        Voronoi cells clipped to the polygon; every particle must lie in the closed polygon."""
+        X = np.asarray(X, float)
+        if X.ndim != 2 or X.shape[1] != 2:
+            raise ValueError(f"particle positions must have shape (N, 2), got {X.shape}")
+        if not (np.isfinite(spacing) and spacing > 0):
+            raise ValueError(f"spacing must be positive and finite, got {spacing}")
+        V = polygons.as_ccw(np.asarray(vertices, float))
+        outside = ~(polygons.contains(V, X) | (polygons.distance_to_boundary(V, X) <= 1e-9 * spacing))
+        if outside.any():
+            i = int(np.flatnonzero(outside)[0])
+            raise ValueError(f"particle {i} at {X[i].tolist()} is outside the polygon")
+        vol = polygons.voronoi_areas(X, V)
+        return Body(X, vol, float(spacing), V.min(0), V.max(0), V, False, cKDTree(X))
+
     # ------------------------------------------------------------------ queries
     def select(self, predicate: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """Indices of the particles where ``predicate(X) -> (N,) bool`` is true."""
