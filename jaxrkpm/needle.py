@@ -181,7 +181,8 @@ def stack_models(models: Sequence[Model]):
         if not np.ndim(xs[0]):
             return jnp.stack(xs)
         shape = np.max([np.shape(x) for x in xs], axis=0)
-        return jnp.stack([jnp.pad(x, [(0, s - n) for s, n in zip(shape, np.shape(x))]) for x in xs])
+        return jnp.asarray(np.stack([np.pad(np.asarray(x), [(0, s - n) for s, n in zip(shape, np.shape(x))])
+                                     for x in xs]))
 
     ops = jax.tree.map(stack, *[m.ops for m in models])
     params = jax.tree.map(lambda *xs: jnp.stack(xs), *[m.params for m in models])
@@ -234,7 +235,7 @@ def _insert_batch(ops, params, G, dG, lim, idx, psi, *, cfg, with_jacobian):
             sol = solve_path(ops, params, cfg, lim, u, g0, g1, jnp.float64(1.0), jnp.float64(1.0))
             tu = point_values(ops, idx, psi, sol.u, sol.g)[0]
             if with_jacobian:
-                du = response(ops, params, cfg, sol.u, sol.g, sol.load, dG)          # (m, Nf, d)
+                du = response(ops, params, cfg, sol.u, sol.g, sol.load, dG, branchless=True)  # (m, Nf, d)
                 J = jax.vmap(lambda a, b: jax.jvp(lambda x, y: point_values(ops, idx, psi, x, y),
                                                   (sol.u, sol.g), (a, b))[1][0])(du, dG).T
             else:

@@ -271,14 +271,19 @@ class DenseSolver:
         b = rhs.reshape(n, -1)
         return jnp.linalg.solve(K, b).reshape(rhs.shape)
 
-    def solve_checked(self, ops, K, rhs):
-        """(x, K_ff positive definite?): a Cholesky factorisation, LU where it fails."""
+    def solve_checked(self, ops, K, rhs, branchless=False):
+        """(x, K_ff positive definite?): a Cholesky factorisation, LU where it fails.
+        ``branchless`` computes both and selects: XLA:CPU (jax 0.10.2) deadlocks on this
+        lax.cond inside a scan under vmap (the batched needle sweep with Jacobians)."""
         n = K.shape[0]
         b = rhs.reshape(n, -1)
         L = jnp.linalg.cholesky(K)
         pd = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
-        x = jax.lax.cond(pd, lambda: jax.scipy.linalg.cho_solve((L, True), b),
-                         lambda: jnp.linalg.solve(K, b))
+        if branchless:
+            x = jnp.where(pd, jax.scipy.linalg.cho_solve((L, True), b), jnp.linalg.solve(K, b))
+        else:
+            x = jax.lax.cond(pd, lambda: jax.scipy.linalg.cho_solve((L, True), b),
+                             lambda: jnp.linalg.solve(K, b))
         return x.reshape(rhs.shape), pd
 
 
@@ -306,7 +311,7 @@ class SparseSolver:
         return jax.pure_callback(self._host_solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
                                  blocks, rhs, vmap_method="sequential")
 
-    def solve_checked(self, ops, blocks, rhs):
+    def solve_checked(self, ops, blocks, rhs, branchless=False):
         """(x, K_ff positive definite?): the inertia of a fresh factorisation, or no negative
         curvature met by CG preconditioned with an earlier positive definite one."""
         out = (jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), jax.ShapeDtypeStruct((), jnp.bool_))
@@ -467,15 +472,15 @@ def _solve_path_jvp(cfg, primals, tangents):
 solve_path_jit = jax.jit(solve_path_diff, static_argnames=("cfg",))
 
 
-def response(ops, params, cfg: Config, u, g, load, dG):
+def response(ops, params, cfg: Config, u, g, load, dG, branchless=False):
     """Implicit sensitivity of the free coefficients to m prescribed directions dG (m, Nb, d):
     one tangent factorisation, m right-hand sides K_ff du = -K_fg dG. Returns (m, Nf, d).
     Dense: Cholesky (K_ff is positive definite at a stable equilibrium; half the work of LU),
-    LU where it is not."""
+    LU where it is not (``branchless``: see DenseSolver.solve_checked)."""
     dr = jax.vmap(lambda dg: jax.jvp(lambda x: residual(ops, params, cfg.W, u, x, load),
                                      (g,), (dg,))[1])(dG)                      # (m, Nf, d)
     K = tangent(ops, params, cfg, u, g)
-    du = -cfg.linear.solve_checked(ops, K, jnp.moveaxis(dr, 0, -1))[0]       # (Nf, d, m)
+    du = -cfg.linear.solve_checked(ops, K, jnp.moveaxis(dr, 0, -1), branchless)[0]  # (Nf, d, m)
     return jnp.moveaxis(du, -1, 0)
 
 
