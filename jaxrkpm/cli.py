@@ -9,6 +9,7 @@ COMMANDS = {
     "demo": "experiments.demo",
     "track": "experiments.track",
     "compress": "experiments.compress",
+    "needle": "experiments.needle",
     "rig-sim": "experiments.rig_sim",
     "reproduce": "experiments.reproduce",
 }

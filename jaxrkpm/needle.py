@@ -9,7 +9,7 @@ target, the paddle positions of Table 6.2, inclusions as stiffness fields. Each 
 position is its own essential set, so each is its own ``Model``; the models share the
 particle layout and integration table, so their ``Ops`` differ only in the essential
 partition and stack (zero-padded) into one batch: every paddle position x every insertion
-increment runs in one compiled call (``vmap`` over configurations of a ``scan`` over
+increment runs in one compiled call (``lax.map`` over configurations of a ``scan`` over
 increments), optionally sharded over the visible devices.
 """
 from __future__ import annotations
@@ -224,10 +224,15 @@ class Insertion(NamedTuple):
     jacobian: jax.Array
 
 
-@partial(jax.jit, static_argnames=("cfg", "with_jacobian"))
-def _insert_batch(ops, params, G, dG, lim, idx, psi, *, cfg, with_jacobian):
+@partial(jax.jit, static_argnames=("cfg", "with_jacobian", "chunk"))
+def _insert_batch(ops, params, G, dG, lim, idx, psi, *, cfg, with_jacobian, chunk=None):
     """G (B, n+1, Nb, d) prescribed values per increment (G[:, 0] the start); dG (B, m, Nb, d)
-    the paddle directions for the Jacobian; idx, psi (P, K) the target's shape functions."""
+    the paddle directions for the Jacobian; idx, psi (P, K) the target's shape functions.
+
+    The configurations run through ``lax.map``: sequentially, or vmapped ``chunk`` at a time.
+    Sequential is the default on CPU: vmapped members run their Newton while-loops in lock
+    step (every member iterates until the slowest converges), and XLA:CPU in jax 0.10.2
+    deadlocks (all threads idle) on vmapped solves of 5 configurations x 15 increments."""
 
     def one(ops, params, G, dG):
         def step(carry, g1):
@@ -246,14 +251,17 @@ def _insert_batch(ops, params, G, dG, lim, idx, psi, *, cfg, with_jacobian):
         _, out = jax.lax.scan(step, (u0, G[0]), G[1:])
         return out
 
-    return Insertion(*jax.vmap(one)(ops, params, G, dG))
+    return Insertion(*jax.lax.map(lambda a: one(*a), (ops, params, G, dG), batch_size=chunk))
 
 
 def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None = "paddle",
-           n_devices: int | None = 1, max_iter: int = 25, steps: int = 1) -> Insertion:
+           n_devices: int | None = 1, max_iter: int = 25, steps: int = 1,
+           chunk: int | None = None) -> Insertion:
     """Insert the needle of every model through ``depths`` (n,) in one compiled, batched call
     and record the displacement of ``point`` (2,) at every increment; with ``jacobian_set``,
     also the implicit Jacobian of the point w.r.t. a rigid translation of that set.
+    ``chunk``: configurations vmapped together per device (default: one at a time; see
+    ``_insert_batch``). ``n_devices``: shard the configurations over that many devices.
 
     Each model keeps its other sets fixed (zero). Failed solves do not raise: their status
     is recorded and the next increment starts from the last converged state."""
@@ -267,7 +275,7 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
         G.append(jnp.stack(rows))
         dG.append(m.directions(jacobian_set) if jacobian_set else jnp.zeros((1,) + rows[0].shape))
     sf = ref.shape_functions(np.atleast_2d(point), gradients=False)
-    fn = partial(_insert_batch, cfg=ref._config(), with_jacobian=jacobian_set is not None)
+    fn = partial(_insert_batch, cfg=ref._config(), with_jacobian=jacobian_set is not None, chunk=chunk)
     lim = Limits.of(steps, max_iter)
     idx, psi = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
     return run_batched(lambda o, p, g, dg: fn(o, p, g, dg, lim, idx, psi),
@@ -300,9 +308,18 @@ class StaticSweep:
         return self.deviation[:, -1]
 
     @property
+    def converged_paddles(self) -> np.ndarray:
+        """(P,) True where every increment of that paddle's insertion converged."""
+        return np.all(self.status == Status.CONVERGED, axis=1)
+
+    @property
     def best(self) -> int:
-        """1-based paddle index with the smallest |final deviation|."""
-        return int(np.argmin(np.abs(self.final))) + 1
+        """1-based paddle index with the smallest |final deviation| among the paddles whose
+        insertion converged at every increment (a failed one stopped short of full depth)."""
+        dev = np.where(self.converged_paddles, np.abs(self.final), np.inf)
+        if not np.isfinite(dev).any():
+            raise RuntimeError("no paddle position converged at every increment")
+        return int(np.argmin(dev)) + 1
 
     @property
     def controllability(self) -> np.ndarray:
@@ -339,6 +356,7 @@ class DynamicRun:
     iterations: np.ndarray    # (n,) correction solves per increment
     status: str
     message: str
+    solution: object = None   # the last converged Solution (for plots and post-processing)
 
     @property
     def travel(self) -> float:
@@ -399,4 +417,19 @@ def dynamic_paddle(phantom: Phantom, paddle: int, inclusion: str = "none", incre
             break
     n = len(dev)
     return DynamicRun(paddle, depths[:n], np.array(dev), np.array(pre[:n]),
-                      np.array(pu).reshape(n, 2), np.array(its, int), status, message)
+                      np.array(pu).reshape(n, 2), np.array(its, int), status, message, sol)
+
+
+def static_state(phantom: Phantom, inclusion: str = "none", paddle: int | None = None,
+                 increments: int = 15):
+    """The equilibrium of one static configuration at full insertion, reached through the
+    same increments as the sweep (each warm-started from the last): (model, Solution).
+    A failed increment stops there; the last converged state is returned."""
+    model = phantom.model(inclusion, paddle)
+    sol = model.initial()
+    for depth in phantom.depths(increments):
+        new = model.solve({"needle": [0.0, float(depth)]}, initial=sol, throw=False)
+        if int(new.status) != Status.CONVERGED:
+            break
+        sol = new
+    return model, sol

@@ -1,0 +1,241 @@
+"""Needle-insertion target stabilisation (thesis chapter 6, Figs 6.2-6.6, Tables 6.2-6.3).
+
+``--mode static``: the OPTIMAL STATIC PADDLE POSITION procedure. Every paddle position of
+Table 6.2 x every insertion increment in one batched, compiled call (plus the no-paddle run);
+the target's lateral (x) deviation at full insertion per paddle, the best paddle and the
+reduction against no paddle.
+
+``--mode dynamic``: controllability delta x_min = ||J^-1 [1 0]^T|| per paddle from the
+implicit Jacobian after the first increment (Table 6.3), then the closed loop that moves the
+most controllable paddle during insertion to hold the target on the needle line.
+
+The phantom (jaxrkpm.needle.Phantom) holds the bottom edge right of the needle entry; see
+its docstring for why (the other reading of Figure 6.1 does not reproduce the thesis).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxrkpm import needle as nd
+from jaxrkpm import plot
+
+
+def _inclusion_box(inclusion):
+    return nd.INCLUSIONS[inclusion]
+
+
+def draw_phantom(ax, phantom: nd.Phantom, model, sol, inclusion, paddle=None, paddle_u=None,
+                 title=None, vmax=None):
+    """Deformed particles with the needle line, needle particles, paddle, wall, target and
+    inclusion (reference configuration outlines)."""
+    X = model.body.X
+    u = np.asarray(model.particle_displacements(sol))
+    sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=22)
+    x = X + u
+    V = np.vstack([phantom.vertices, phantom.vertices[0]])
+    ax.plot(V[:, 0], V[:, 1], color="0.6", lw=0.8)
+    ax.axvline(phantom.needle_x, color="r", ls="--", lw=0.8)
+    n = model.set_indices("needle")
+    ax.plot(x[n, 0], x[n, 1], "r^", ms=6, label="needle")
+    w = model.set_indices("wall")
+    ax.plot(x[w, 0], x[w, 1], "b_", ms=9, mew=2, label="immobile")
+    if paddle is not None:
+        p = model.set_indices("paddle")
+        ax.plot(x[p, 0], x[p, 1], "gs", ms=8, mfc="none", mew=2, label=f"paddle {paddle}")
+    t = np.asarray(phantom.target) + np.asarray(model.displacement(sol, np.atleast_2d(phantom.target)))[0]
+    ax.plot(*phantom.target, "k+", ms=10, label="target (rest)")
+    ax.plot(*t, "m*", ms=12, label="target")
+    box = _inclusion_box(inclusion)
+    if box is not None:
+        (x0, x1), (y0, y1) = box
+        ax.add_patch(plot.plt.Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="orange", lw=2,
+                                        label="inclusion x100"))
+    ax.set_xlim(-0.1, 1.1)
+    ax.set_ylim(-0.1, 1.1)
+    if title:
+        ax.set_title(title, fontsize=10)
+    return sc
+
+
+def run_static(phantom, inclusion, increments, out: Path, n_devices=1):
+    t0 = time.perf_counter()
+    sw = nd.static_sweep(phantom, inclusion, increments, n_devices=n_devices)
+    wall = time.perf_counter() - t0
+    free = float(sw.no_paddle[-1])
+    summary = {
+        "mode": "static", "inclusion": inclusion, "increments": increments,
+        "insertion": phantom.insertion, "immobile": phantom.immobile, "support": phantom.support,
+        "no_paddle_deviation": free,
+        "deviation": sw.final.tolist(),
+        "best": sw.best,
+        "reduction": [abs(free) / max(abs(d), 1e-300) for d in sw.final],
+        "best_reduction": abs(free) / max(abs(sw.final[sw.best - 1]), 1e-300),
+        "deviation_per_increment": sw.deviation.tolist(),
+        "no_paddle_per_increment": sw.no_paddle.tolist(),
+        "depths": sw.depths.tolist(),
+        "status": [[nd.Status(int(s)).name.lower() for s in row] for row in sw.status],
+        "no_paddle_status": [nd.Status(int(s)).name.lower() for s in sw.no_paddle_status],
+        "converged": sw.converged,
+        "wall_s": wall,
+        "thesis": {"no_paddle_deviation": nd.THESIS["no_paddle_deviation"],
+                   "best": nd.THESIS["best_static"][inclusion]},
+    }
+    static_figures(phantom, sw, summary, out)
+    return summary
+
+
+def static_figures(phantom, sw, summary, out: Path):
+    P = len(sw.final)
+    fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(11, 4.2))
+    idx = np.arange(1, P + 1)
+    ok = [all(s == "converged" for s in row) for row in summary["status"]]
+    a1.bar(idx, np.abs(sw.final), color=["C0" if o else "0.6" for o in ok])
+    a1.axhline(abs(summary["no_paddle_deviation"]), color="r", ls="--", label="no paddle")
+    if sw.inclusion == "none":
+        a1.axhline(nd.THESIS["no_paddle_deviation"], color="k", ls=":", label="no paddle (thesis)")
+    a1.set_yscale("log")
+    a1.set_xticks(idx)
+    a1.set_xlabel("paddle position (Table 6.2)")
+    a1.set_ylabel(f"|target x deviation| at {100 * phantom.insertion:.0f}% insertion")
+    a1.set_title(f"inclusion: {sw.inclusion}; best paddle {sw.best} "
+                 f"({summary['best_reduction']:.0f}x less than no paddle)", fontsize=10)
+    a1.legend(fontsize=8)
+    a2.plot(100 * sw.depths, sw.no_paddle, "k--", label="no paddle")
+    for p in range(P):
+        a2.plot(100 * sw.depths, sw.deviation[p], "o-", ms=3, label=f"paddle {p + 1}"
+                + ("" if ok[p] else " (failed)"))
+    a2.axhline(0, color="0.5", lw=0.6)
+    a2.set_xlabel("needle insertion (% of height)")
+    a2.set_ylabel("target x deviation")
+    a2.legend(fontsize=8)
+    a2.grid(alpha=0.3)
+    plot.save(fig, out / f"deviation_{sw.inclusion}.png")
+
+    increments = len(sw.depths)
+    m0, s0 = nd.static_state(phantom, sw.inclusion, None, increments)
+    m1, s1 = nd.static_state(phantom, sw.inclusion, sw.best, increments)
+    vmax = float(max(np.linalg.norm(m.particle_displacements(s), axis=1).max() for m, s in ((m0, s0), (m1, s1))))
+    fig, axes = plot.plt.subplots(1, 2, figsize=(11, 5), layout="constrained")
+    draw_phantom(axes[0], phantom, m0, s0, sw.inclusion, title="no paddle", vmax=vmax)
+    sc = draw_phantom(axes[1], phantom, m1, s1, sw.inclusion, paddle=sw.best,
+                      title=f"static paddle {sw.best}", vmax=vmax)
+    axes[1].legend(fontsize=7, loc="upper right")
+    fig.colorbar(sc, ax=axes, label="|u|", shrink=0.8)
+    fig.savefig(out / f"phantom_static_{sw.inclusion}.png", dpi=120)
+    plot.plt.close(fig)
+
+
+def run_dynamic(phantom, inclusion, increments, out: Path, paddle=None, n_devices=1):
+    t0 = time.perf_counter()
+    sw = nd.static_sweep(phantom, inclusion, increments, n_devices=n_devices)
+    ctrl = sw.controllability[:, 0]   # after the first increment, as the thesis
+    best = int(np.argmin(ctrl)) + 1
+    chosen = best if paddle is None else paddle
+    run = nd.dynamic_paddle(phantom, chosen, inclusion, increments)
+    wall = time.perf_counter() - t0
+    dev = np.abs(run.deviation)
+    summary = {
+        "mode": "dynamic", "inclusion": inclusion, "increments": increments,
+        "insertion": phantom.insertion, "immobile": phantom.immobile, "support": phantom.support,
+        "controllability": ctrl.tolist(),
+        "best": best, "paddle": chosen,
+        "max_deviation": float(dev.max()) if len(dev) else None,
+        "paddle_travel": run.travel,
+        "deviation": run.deviation.tolist(),
+        "feed_forward_deviation": run.uncorrected.tolist(),
+        "paddle_u": run.paddle_u.tolist(),
+        "corrections": run.iterations.tolist(),
+        "depths": run.depths.tolist(),
+        "static_deviation": sw.deviation[chosen - 1].tolist(),
+        "no_paddle_per_increment": sw.no_paddle.tolist(),
+        "status": run.status, "message": run.message,
+        "wall_s": wall,
+        "thesis": {"controllability": nd.THESIS["controllability"].get(inclusion), "best": 3},
+    }
+    dynamic_figures(phantom, sw, run, summary, out)
+    return summary
+
+
+def dynamic_figures(phantom, sw, run, summary, out: Path):
+    fig, axes = plot.plt.subplots(1, 3, figsize=(15, 4.2))
+    P = len(summary["controllability"])
+    idx = np.arange(1, P + 1)
+    w = 0.38
+    axes[0].bar(idx - w / 2, summary["controllability"], w, label="ours")
+    th = summary["thesis"]["controllability"]
+    if th:
+        axes[0].bar(idx + w / 2, th, w, color="0.6", label="thesis Table 6.3")
+    axes[0].set_xticks(idx)
+    axes[0].set_xlabel("paddle position")
+    axes[0].set_ylabel(r"$\delta x_{min} = \|J^{-1}[1\ 0]^T\|$")
+    axes[0].set_title(f"controllability ({sw.inclusion}); most controllable: {summary['best']}", fontsize=10)
+    axes[0].legend(fontsize=8)
+    d = 100 * np.asarray(summary["depths"])
+    n = len(d)
+    axes[1].plot(100 * sw.depths, sw.no_paddle, "k--", label="no paddle")
+    axes[1].plot(100 * sw.depths, summary["static_deviation"], "s-", ms=3, label=f"static paddle {run.paddle}")
+    axes[1].plot(d, summary["feed_forward_deviation"][:n], "^-", ms=3, label="feed-forward move only")
+    axes[1].plot(d, summary["deviation"], "o-", ms=3, label="closed loop")
+    axes[1].set_yscale("symlog", linthresh=1e-6)
+    axes[1].set_xlabel("needle insertion (%)")
+    axes[1].set_ylabel("target x deviation")
+    axes[1].legend(fontsize=8)
+    axes[1].grid(alpha=0.3)
+    pu = np.vstack([np.zeros(2), np.asarray(run.paddle_u).reshape(-1, 2)])
+    axes[2].plot(pu[:, 0], pu[:, 1], "o-", ms=3)
+    axes[2].set_xlabel("paddle x displacement")
+    axes[2].set_ylabel("paddle y displacement")
+    axes[2].set_title(f"paddle {run.paddle} path, travel {run.travel:.4f}", fontsize=10)
+    axes[2].set_aspect("equal", adjustable="datalim")
+    axes[2].grid(alpha=0.3)
+    plot.save(fig, out / f"dynamic_{sw.inclusion}.png")
+
+    if run.solution is not None:
+        model = phantom.model(sw.inclusion, run.paddle)
+        fig, ax = plot.plt.subplots(figsize=(6, 5.5), layout="constrained")
+        sc = draw_phantom(ax, phantom, model, run.solution, sw.inclusion, paddle=run.paddle,
+                          title=f"dynamic paddle {run.paddle}, insertion {100 * (d[-1] if n else 0):.0f}%")
+        ax.legend(fontsize=7, loc="upper right")
+        fig.colorbar(sc, ax=ax, label="|u|", shrink=0.8)
+        fig.savefig(out / f"phantom_dynamic_{sw.inclusion}.png", dpi=120)
+        plot.plt.close(fig)
+
+
+BRIEF = {"static": ("inclusion", "no_paddle_deviation", "deviation", "best", "best_reduction", "converged", "wall_s"),
+         "dynamic": ("inclusion", "controllability", "best", "paddle", "max_deviation", "paddle_travel", "status",
+                     "wall_s")}
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog="jaxrkpm needle", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--mode", choices=["static", "dynamic"], default="static")
+    p.add_argument("--inclusion", choices=list(nd.INCLUSIONS), default="none")
+    p.add_argument("--increments", type=int, default=15, help="insertion increments up to 15%%")
+    p.add_argument("--paddle", type=int, default=None,
+                   help="dynamic mode: paddle to move (default: the most controllable)")
+    p.add_argument("--devices", type=int, default=None,
+                   help="shard the sweep over this many devices (default: all visible)")
+    p.add_argument("--out", default="results/needle")
+    a = p.parse_args(argv)
+    if a.increments < 1:
+        p.error(f"--increments must be >= 1, got {a.increments}")
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    phantom = nd.Phantom()
+    if a.mode == "static":
+        summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
+    else:
+        summary = run_dynamic(phantom, a.inclusion, a.increments, out, a.paddle, a.devices)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(json.dumps({k: summary[k] for k in BRIEF[a.mode]}, indent=2))
+    return summary
+
+
+if __name__ == "__main__":
+    main()
