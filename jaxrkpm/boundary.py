@@ -144,3 +144,28 @@ def nodal_forces(body: Body, volume: Table, surface: Table | None,
         h = _evaluate_load(h0, s.points, d, f"traction {k}")
         np.add.at(f, s.idx, s.psi[..., None] * (s.weights[:, None] * h)[:, None, :])
     return f
+
+
+@dataclass(frozen=True)
+class Springs:
+    """Zero-length springs holding material points X_s to their reference positions: the
+    energy 1/2 sum_s k_s |u(X_s)|^2 (an elastic support, or a penalty paddle).
+
+    points     (S, d) reference positions
+    stiffness  scalar or (S,) spring constants k_s >= 0 (force per displacement)
+    region     particle indices that the points may reach when moved later
+               (``Model.springs_at``); default: the particles whose windows cover them now
+
+    The points and stiffnesses are parameters of the solve (``params={"springs": ...}``),
+    so a solution is differentiable with respect to where the springs hold the body."""
+
+    points: np.ndarray
+    stiffness: object = 1.0
+    region: object = None
+
+    def stiffnesses(self) -> np.ndarray:
+        P = np.atleast_2d(np.asarray(self.points, float))
+        k = np.broadcast_to(np.asarray(self.stiffness, float), (len(P),)).copy()
+        if not np.all(np.isfinite(k)) or np.any(k < 0):
+            raise ValueError(f"spring stiffness must be finite and >= 0, got {self.stiffness}")
+        return k

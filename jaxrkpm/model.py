@@ -10,10 +10,10 @@ import scipy.sparse as sp
 
 from . import integration as integ
 from . import scni
-from .boundary import EssentialSets, Transformation, nodal_forces
+from .boundary import EssentialSets, Springs, Transformation, nodal_forces
 from .geometry import Body
 from .materials import Material, green_lagrange, pk2
-from .rk import shape_functions
+from .rk import psi_jax, shape_functions
 from .sparse import SaddlePointSystem
 from .solve import (Config, DenseSolver, Limits, Ops, Params, Solution, SparseSolver, Status,
                     coefficients, deformation_gradients, energy_full, implicit_jacobian,
@@ -48,13 +48,15 @@ class Model:
     body_force  (d,) or X -> (Q, d): dead load per unit reference volume
     tractions   [(predicate, h0), ...]: dead load per unit reference area on the boundary
                 points where predicate(X) holds
+    springs     Springs(points, stiffness, region): zero-length springs holding material
+                points (elastic supports, penalty paddles; movable, see ``springs_at``)
     solver      "auto" | "dense" | "sparse"
     """
 
     def __init__(self, body: Body, material: Material, integration: str = "gauss",
                  essential: Mapping | None = None, support: float = 2.01, order: int = 2,
                  cell_size: float | None = None, body_force=None, tractions=(),
-                 solver: str = "auto"):
+                 springs: Springs | None = None, solver: str = "auto"):
         if not isinstance(body, Body):
             raise ValueError(f"body must be a jaxrkpm Body, got {type(body).__name__}")
         if not isinstance(material, Material):
@@ -84,11 +86,15 @@ class Model:
         trans = Transformation.build(body, self.sets, self.a, self.support) if len(self.sets.bnd) else None
         f_ext = nodal_forces(body, self.volume, self.surface, body_force, tractions)
 
-        # particle pairs that share an integration point: the tangent's sparsity pattern
+        sp_idx, sp_params = self._springs(springs)
+        # particle pairs that share an integration point or a spring: the tangent's pattern
         N = body.n
         idx = self.volume.idx.astype(np.int64)
         key = (idx[:, :, None] * N + idx[:, None, :]).ravel()
-        uniq, inverse = np.unique(key, return_inverse=True)
+        sp_key = (sp_idx[:, :, None] * N + sp_idx[:, None, :]).astype(np.int64)
+        uniq, inverse = np.unique(np.concatenate([key, sp_key.ravel()]), return_inverse=True)
+        inverse = inverse.ravel()[:key.size]
+        sp_pair = np.searchsorted(uniq, sp_key)
         pair_i, pair_j = uniq // N, uniq % N
         Q, K = idx.shape
         # points with identical neighbour lists (Gauss points of one cell) form a group
@@ -123,7 +129,8 @@ class Model:
             f_ext=jnp.asarray(f_ext), pair_id=jnp.asarray(pair_id, jnp.int32),
             pair_i=jnp.asarray(pair_i, jnp.int32), pair_j=jnp.asarray(pair_j, jnp.int32),
             near=jnp.asarray(near, jnp.int32), A_near=jnp.asarray(A_near),
-            spacing=jnp.asarray(body.spacing), groups=jnp.asarray(groups, jnp.int32))
+            spacing=jnp.asarray(body.spacing), groups=jnp.asarray(groups, jnp.int32),
+            sp_idx=jnp.asarray(sp_idx, jnp.int32), sp_pair=jnp.asarray(sp_pair, jnp.int32))
 
         n_free = Nf * d
         use_dense = solver == "dense" or (solver == "auto" and n_free <= DENSE_LIMIT)
@@ -133,9 +140,50 @@ class Model:
             self.linear = self._sparse_solver(trans, pair_i, pair_j)
         self.params = Params(
             {k: jnp.asarray(v) for k, v in material.point_params(self.volume.points).items()},
-            {k: jnp.asarray(v) for k, v in material.global_params(d).items()})
+            {k: jnp.asarray(v) for k, v in material.global_params(d).items()}, sp_params)
 
     # ----------------------------------------------------------------------- internals
+    def _springs(self, springs):
+        """(sp_idx (S, Ks), params.springs) for the spring points: every point's candidate
+        list is the whole region (a moved point must find its neighbours there)."""
+        if springs is None:
+            return np.zeros((0, 1), np.int64), {"psi": jnp.zeros((0, 1)), "k": jnp.zeros((0,))}
+        if not isinstance(springs, Springs):
+            raise ValueError(f"springs must be a jaxrkpm Springs, got {type(springs).__name__}")
+        P = self.body.check_inside(springs.points, "spring point")
+        k = springs.stiffnesses()
+        if springs.region is None:
+            near = self.body._tree.query_ball_point(P, r=self.a * (1 - 1e-12), p=np.inf)
+            region = np.unique(np.concatenate([np.asarray(n, np.int64) for n in near]))
+        else:
+            region = np.unique(np.asarray(springs.region, np.int64))
+            if region.size == 0 or region.min() < 0 or region.max() >= self.body.n:
+                raise ValueError(f"spring region must be particle indices in 0..{self.body.n - 1}")
+        self._spring_region = region
+        sp_idx = np.tile(region, (len(P), 1))
+        return sp_idx, {"psi": self._spring_psi(P, sp_idx), "k": jnp.asarray(k)}
+
+    def _spring_psi(self, points, sp_idx):
+        return psi_jax(self.body.X, self.body.volumes, sp_idx, jnp.asarray(points, jnp.float64), self.a)
+
+    def springs_at(self, points, stiffness=None) -> dict:
+        """``params={"springs": ...}`` for the model's springs moved to ``points`` (S, d)
+        (and, optionally, new stiffnesses): JAX, so a solve is differentiable in both. The
+        points must stay where the particles of the spring region cover them."""
+        S = self.ops.sp_idx.shape[0]
+        if S == 0:
+            raise ValueError("this model has no springs (Model(..., springs=Springs(...)))")
+        points = jnp.asarray(points, jnp.float64)
+        if points.shape != (S, self.dim):
+            raise ValueError(f"spring points must have shape ({S}, {self.dim}), got {points.shape}")
+        psi = self._spring_psi(points, np.asarray(self.ops.sp_idx))
+        if _is_concrete(psi) and not np.allclose(np.asarray(psi).sum(1), 1.0, atol=1e-8):
+            raise ValueError("a spring point left its region (its shape functions no longer sum "
+                             "to 1): widen Springs(region=...)")
+        k = self.params.springs["k"] if stiffness is None else jnp.broadcast_to(
+            jnp.asarray(stiffness, jnp.float64), (S,))
+        return {"psi": psi, "k": k}
+
     def _sparse_solver(self, trans, pair_i, pair_j) -> SparseSolver:
         d, N = self.body.dim, self.body.n
         a, b = np.meshgrid(np.arange(d), np.arange(d), indexing="ij")
@@ -197,9 +245,16 @@ class Model:
         if not overrides:
             return self.params
         point, tensors = dict(self.params.point), dict(self.params.tensors)
+        springs = self.params.springs
         Q = self.ops.w.shape[0]
         for k, v in overrides.items():
-            if k in point:
+            if k == "springs":
+                ref = self.params.springs
+                if not (isinstance(v, dict) and set(v) == {"psi", "k"}
+                        and all(jnp.shape(v[n]) == jnp.shape(ref[n]) for n in ref)):
+                    raise ValueError('params["springs"] must come from model.springs_at(points, stiffness)')
+                springs = v
+            elif k in point:
                 if callable(v):
                     v = np.asarray(v(self.volume.points), float)
                 v = jnp.asarray(v, jnp.float64)
@@ -218,7 +273,7 @@ class Model:
             else:
                 raise ValueError(f"unknown material parameter {k!r}; {self.material.name} has "
                                  f"{sorted(point) + sorted(tensors)}")
-        return Params(point, tensors)
+        return Params(point, tensors, springs)
 
     # -------------------------------------------------------------------------- solve
     def initial(self) -> Solution:

@@ -135,3 +135,25 @@ def _check_moment_matrix(M, pts, mask, a, support_factor, offset):
             f"({int(n_real[i])} particles cover it, condition number {cond[i]:.3g}): "
             f"the {hint} is too small for a linear basis (or the point is outside the body); "
             f"use a larger support (e.g. 2.01 x spacing or more)")
+
+
+def psi_jax(X, volumes, idx, points, a):
+    """The same shape function values in JAX, differentiable in ``points`` (P, d), over a
+    fixed candidate list ``idx`` (P, K) of real particles (particles outside a point's window
+    get zero): for points that move inside a differentiated computation (spring supports).
+    Everything else evaluates shape functions once, with NumPy, at build time."""
+    import jax.numpy as jnp
+
+    def k(x):
+        r = jnp.abs(x)
+        return jnp.where(r <= 0.5, 2 / 3 - 4 * r**2 + 4 * r**3,
+                         jnp.where(r < 1.0, 4 / 3 - 4 * r + 4 * r**2 - 4 / 3 * r**3, 0.0))
+
+    X, volumes, idx = jnp.asarray(X), jnp.asarray(volumes), jnp.asarray(idx)
+    d = X.shape[1]
+    R = (points[:, None, :] - X[idx]) / a
+    phi = jnp.prod(k(R), axis=-1) / a**d * volumes[idx]
+    H = jnp.concatenate([jnp.ones(R.shape[:-1] + (1,)), R], axis=-1)
+    M = jnp.einsum("pk,pka,pkb->pab", phi, H, H)
+    b = jnp.linalg.solve(M, jnp.broadcast_to(jnp.eye(d + 1)[0], M.shape[:-1])[..., None])[..., 0]
+    return jnp.einsum("pa,pka->pk", b, H) * phi

@@ -66,11 +66,14 @@ class Ops(NamedTuple):
     A_near: jax.Array   # (Nb, Nc) (D^b)^-1 D^nb restricted to those columns
     spacing: jax.Array  # () particle spacing
     groups: jax.Array   # (G, S) integration points sharing one neighbour list (padded with Q)
+    sp_idx: jax.Array   # (S, Ks) particles whose shape functions may reach each spring point
+    sp_pair: jax.Array  # (S, Ks, Ks) index of the particle pair (sp_idx[s,k], sp_idx[s,m])
 
 
 class Params(NamedTuple):
     point: dict   # name -> (Q,) values at the integration points
     tensors: dict  # name -> global arrays (e.g. Fung's A and C)
+    springs: dict  # "psi" (S, Ks) shape functions at the spring points, "k" (S,) stiffnesses
 
 
 @dataclass(frozen=True)
@@ -165,12 +168,22 @@ def _merged(params: Params):
                                                  **{k: None for k in params.tensors}}
 
 
+def spring_energy(ops: Ops, params: Params, d):
+    """Zero-length springs that hold material points to their reference positions:
+    1/2 sum_s k_s |u(X_s)|^2 with u(X_s) = sum_K Psi_K(X_s) d_K (an elastic support, or a
+    penalty paddle whose points X_s may move: they enter only through params.springs)."""
+    sp = params.springs
+    u = jnp.einsum("sk,ski->si", sp["psi"], d[ops.sp_idx])
+    return 0.5 * jnp.sum(sp["k"][:, None] * u * u)
+
+
 def energy_full(ops: Ops, params: Params, W, d, load):
     """Total potential energy in the full coefficients; aux: min det F."""
     F = deformation_gradients(ops.idx, ops.dpsi, d)
     p, axes = _merged(params)
     Wq = jax.vmap(_point_energy(W), in_axes=(0, axes))(F, p)
-    return jnp.sum(ops.w * Wq) - load * jnp.sum(ops.f_ext * d), jnp.min(jnp.linalg.det(F))
+    return (jnp.sum(ops.w * Wq) + spring_energy(ops, params, d) - load * jnp.sum(ops.f_ext * d),
+            jnp.min(jnp.linalg.det(F)))
 
 
 def energy(ops, params, W, u, g, load):
@@ -222,7 +235,7 @@ def pair_blocks(ops, params, W, d):
 
     chunk = max(1, _BLOCK_BUDGET // (K * K * dim * dim))
     if G <= chunk:
-        return chunk_sum(ops.groups, ops.pair_id)
+        return chunk_sum(ops.groups, ops.pair_id) + spring_blocks(ops, params, n_pairs, dim)
     n_chunks = -(-G // chunk)
     pad = n_chunks * chunk - G
 
@@ -235,7 +248,15 @@ def pair_blocks(ops, params, W, d):
 
     acc, _ = jax.lax.scan(body, jnp.zeros((n_pairs, dim, dim), d.dtype),
                           (split(ops.groups, Q), split(ops.pair_id, 0)))
-    return acc
+    return acc + spring_blocks(ops, params, n_pairs, dim)
+
+
+def spring_blocks(ops, params, n_pairs, dim):
+    """The springs' tangent k_s Psi_K(X_s) Psi_M(X_s) I as (P, d, d) pair blocks."""
+    sp = params.springs
+    kk = jnp.einsum("s,sk,sm->skm", sp["k"], sp["psi"], sp["psi"])
+    scal = jax.ops.segment_sum(kk.ravel(), ops.sp_pair.ravel(), num_segments=n_pairs)
+    return scal[:, None, None] * jnp.eye(dim)
 
 
 def dense_tangent(ops: Ops, blocks):
