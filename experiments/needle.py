@@ -9,6 +9,11 @@ reduction against no paddle.
 implicit Jacobian after the first increment (Table 6.3), then the closed loop that moves the
 most controllable paddle during insertion to hold the target on the needle line.
 
+``--mode optimize`` (beyond the thesis): the paddle as a continuous position q along the
+chain of Table 6.2 particles (two stiff zero-length springs at its ends), q optimised with
+Adam (optax) through the differentiable solve to minimise the squared final deviation,
+compared with the best discrete paddle; a scan of q for the figure.
+
 The phantom (jaxrkpm.needle.Phantom) holds the bottom edge right of the needle entry; see
 its docstring for why (the other reading of Figure 6.1 does not reproduce the thesis).
 """
@@ -30,9 +35,10 @@ def _inclusion_box(inclusion):
 
 
 def draw_phantom(ax, phantom: nd.Phantom, model, sol, inclusion, paddle=None, paddle_u=None,
-                 title=None, vmax=None):
+                 title=None, vmax=None, paddle_points=None):
     """Deformed particles with the needle line, needle particles, paddle, wall, target and
-    inclusion (reference configuration outlines)."""
+    inclusion (reference configuration outlines). ``paddle_points``: the ends of a
+    continuous (spring) paddle instead of the essential set "paddle"."""
     X = model.body.X
     u = np.asarray(model.particle_displacements(sol))
     sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=22)
@@ -44,7 +50,10 @@ def draw_phantom(ax, phantom: nd.Phantom, model, sol, inclusion, paddle=None, pa
     ax.plot(x[n, 0], x[n, 1], "r^", ms=6, label="needle")
     w = model.set_indices("wall")
     ax.plot(x[w, 0], x[w, 1], "b_", ms=9, mew=2, label="immobile")
-    if paddle is not None:
+    if paddle_points is not None:
+        pp = np.asarray(paddle_points) + np.asarray(model.displacement(sol, paddle_points))
+        ax.plot(pp[:, 0], pp[:, 1], "g-", lw=4, alpha=0.7, label=f"paddle q = {paddle:.2f}")
+    elif paddle is not None:
         p = model.set_indices("paddle")
         ax.plot(x[p, 0], x[p, 1], "gs", ms=8, mfc="none", mew=2, label=f"paddle {paddle}")
     t = np.asarray(phantom.target) + np.asarray(model.displacement(sol, np.atleast_2d(phantom.target)))[0]
@@ -206,19 +215,93 @@ def dynamic_figures(phantom, sw, run, summary, out: Path):
         plot.plt.close(fig)
 
 
+def run_optimize(phantom, inclusion, increments, out: Path, n_devices=1, start=None, iterations=30):
+    """The paddle position as a continuous variable q along the Table 6.2 chain (a stiff
+    spring paddle), optimised with Adam through the differentiable solve, against the best
+    discrete (essential) paddle of the static sweep; plus a scan of q for the figure."""
+    t0 = time.perf_counter()
+    sw = nd.static_sweep(phantom, inclusion, increments, n_devices=n_devices)
+    model = phantom.spring_model(inclusion)
+    depths = phantom.depths(increments)
+    scan_q = np.linspace(1.0, len(phantom.paddles), 17)
+    scan = []
+    for q in scan_q:
+        _, dev, st = nd.spring_insertion(model, phantom, q, depths)
+        scan.append(dev[-1] if st == nd.Status.CONVERGED else None)
+    start = float(sw.best) if start is None else float(start)
+    opt = nd.optimize_paddle(phantom, inclusion, start=start, increments=increments, iterations=iterations)
+    wall = time.perf_counter() - t0
+    best_dev = float(sw.final[sw.best - 1])
+    summary = {
+        "mode": "optimize", "inclusion": inclusion, "increments": increments,
+        "optimum": {"q": opt.q, "arc_length": opt.arc_length, "deviation": opt.deviation},
+        "best_discrete": sw.best, "best_discrete_deviation": best_dev,
+        "no_paddle_deviation": float(sw.no_paddle[-1]),
+        "improvement_over_discrete": abs(best_dev) / max(abs(opt.deviation), 1e-300),
+        "start": start, "status": opt.status, "message": opt.message,
+        "rejected_steps": opt.rejected,
+        "history": {"q": opt.history[:, 0].tolist(), "deviation": opt.history[:, 1].tolist(),
+                    "gradient": opt.history[:, 2].tolist()},
+        "scan": {"q": scan_q.tolist(), "deviation": scan},
+        "discrete_deviation": sw.final.tolist(),
+        "discrete_converged": sw.converged_paddles.tolist(),
+        "paddle_stiffness": float(model.params.springs["k"][0]),
+        "wall_s": wall,
+    }
+    optimize_figures(phantom, model, sw, summary, out)
+    return summary
+
+
+def optimize_figures(phantom, model, sw, summary, out: Path):
+    fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(12, 4.6), layout="constrained")
+    sq = np.array(summary["scan"]["q"])
+    sd = np.array([np.nan if d is None else abs(d) for d in summary["scan"]["deviation"]])
+    a1.semilogy(sq, sd, "-", color="0.5", label="spring paddle, scan")
+    failed = np.isnan(sd)
+    if failed.any():
+        a1.plot(sq[failed], np.full(failed.sum(), np.nanmin(sd)), "rx", label="insertion fails (det F <= 0)")
+    idx = np.arange(1, len(sw.final) + 1)
+    ok = np.asarray(summary["discrete_converged"])
+    a1.plot(idx[ok], np.abs(sw.final[ok]), "s", ms=8, mfc="none", label="essential paddle (Table 6.2)")
+    h = summary["history"]
+    a1.plot(h["q"], np.abs(h["deviation"]), "o-", ms=3, color="C1", label="Adam iterates")
+    o = summary["optimum"]
+    a1.plot(o["q"], abs(o["deviation"]), "*", ms=14, color="C3", label=f"optimum q = {o['q']:.3f}")
+    a1.axhline(abs(summary["no_paddle_deviation"]), color="r", ls="--", label="no paddle")
+    a1.set_xlabel("paddle position q (Table 6.2 chain, continuous)")
+    a1.set_ylabel("|target x deviation| at full insertion")
+    a1.set_title(f"inclusion: {sw.inclusion}; optimum {summary['improvement_over_discrete']:.1f}x below "
+                 f"the best discrete paddle {summary['best_discrete']}", fontsize=10)
+    a1.legend(fontsize=7)
+    a1.grid(alpha=0.3, which="both")
+    sol, _, _ = nd.spring_insertion(model, phantom, o["q"], sw.depths)
+    pts = np.asarray(phantom.paddle_points(o["q"]))
+    sc = draw_phantom(a2, phantom, model, sol, sw.inclusion, paddle=o["q"], paddle_points=pts,
+                      title=f"optimised paddle q = {o['q']:.3f} (arc length {o['arc_length']:.3f})")
+    a2.legend(fontsize=7, loc="upper right")
+    fig.colorbar(sc, ax=a2, label="|u|", shrink=0.8)
+    fig.savefig(out / f"optimize_{sw.inclusion}.png", dpi=120)
+    plot.plt.close(fig)
+
+
 BRIEF = {"static": ("inclusion", "no_paddle_deviation", "deviation", "best", "best_reduction", "converged", "wall_s"),
          "dynamic": ("inclusion", "controllability", "best", "paddle", "max_deviation", "paddle_travel", "status",
-                     "wall_s")}
+                     "wall_s"),
+         "optimize": ("inclusion", "optimum", "best_discrete", "best_discrete_deviation",
+                      "improvement_over_discrete", "status", "rejected_steps", "wall_s")}
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(prog="jaxrkpm needle", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--mode", choices=["static", "dynamic"], default="static")
+    p.add_argument("--mode", choices=["static", "dynamic", "optimize"], default="static")
     p.add_argument("--inclusion", choices=list(nd.INCLUSIONS), default="none")
     p.add_argument("--increments", type=int, default=15, help="insertion increments up to 15%%")
     p.add_argument("--paddle", type=int, default=None,
                    help="dynamic mode: paddle to move (default: the most controllable)")
+    p.add_argument("--start", type=float, default=None,
+                   help="optimize mode: starting position q (default: the best discrete paddle)")
+    p.add_argument("--iterations", type=int, default=30, help="optimize mode: Adam iterations")
     p.add_argument("--devices", type=int, default=None,
                    help="shard the sweep over this many devices (default: all visible)")
     p.add_argument("--out", default="results/needle")
@@ -230,8 +313,10 @@ def main(argv=None):
     phantom = nd.Phantom()
     if a.mode == "static":
         summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
-    else:
+    elif a.mode == "dynamic":
         summary = run_dynamic(phantom, a.inclusion, a.increments, out, a.paddle, a.devices)
+    else:
+        summary = run_optimize(phantom, a.inclusion, a.increments, out, a.devices, a.start, a.iterations)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps({k: summary[k] for k in BRIEF[a.mode]}, indent=2))
     return summary

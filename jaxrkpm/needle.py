@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
+from .boundary import Springs
 from .geometry import Body
 from .materials import Fung
 from .model import Model
@@ -142,6 +143,55 @@ class Phantom:
         if key not in self._cache:
             self._cache[key] = Model(self.body, self.material(inclusion), self.integration,
                                      essential=self.sets(paddle), support=self.support)
+        return self._cache[key]
+
+    # ------------------------------------------------ continuous paddle (beyond the thesis)
+    @property
+    def paddle_chain(self) -> np.ndarray:
+        """(P+1, 2) the boundary particles the Table 6.2 paddles span, in order: paddle p
+        covers chain[p-1] and chain[p]."""
+        chain = [self.paddles[0][0]] + [pair[1] for pair in self.paddles]
+        for p, (a, b) in enumerate(self.paddles):
+            if not (np.allclose(a, chain[p]) and np.allclose(b, chain[p + 1])):
+                raise ValueError("the paddle positions must form a chain along the boundary "
+                                 "(each starts where the previous ends) for a continuous paddle")
+        return np.asarray(chain, float)
+
+    def paddle_points(self, q):
+        """(2, 2) the ends of a paddle at continuous position q in [1, P]: at an integer q
+        the two particles of Table 6.2's paddle q; in between it slides along the boundary
+        (its ends at chain coordinates q - 1 and q, linear between chain particles)."""
+        chain = jnp.asarray(self.paddle_chain)
+        n = chain.shape[0] - 1
+
+        def at(x):
+            i = jnp.clip(jnp.floor(x), 0, n - 1).astype(int)
+            return chain[i] + (x - i) * (chain[i + 1] - chain[i])
+        q = jnp.asarray(q, jnp.float64)
+        return jnp.stack([at(q - 1.0), at(q)])
+
+    def arc_length(self, q) -> float:
+        """Distance along the boundary from the chain's first particle to the paddle centre."""
+        chain = self.paddle_chain
+        seg = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(chain, axis=0), axis=1))]
+        return float(np.interp(q - 0.5, np.arange(len(chain)), seg))
+
+    def spring_model(self, inclusion: str = "none", stiffness: float = 1e6) -> Model:
+        """Wall and needle as essential sets; the paddle as two stiff zero-length springs at
+        its ends (``paddle_points``), movable through ``model.springs_at``. With stiffness
+        1e6 a paddle at an integer position holds its particles to ~1e-5 of the essential
+        paddle's result (penalty error O(1/k))."""
+        key = ("spring_model", inclusion, float(stiffness))
+        if key not in self._cache:
+            chain = self.paddle_chain
+            t = np.linspace(0.0, 1.0, 41)[:, None]
+            path = np.concatenate([a + t * (b - a) for a, b in zip(chain[:-1], chain[1:])])
+            a = self.support * self.spacing
+            near = self.body._tree.query_ball_point(path, r=a * (1 - 1e-12), p=np.inf)
+            region = np.unique(np.concatenate([np.asarray(n, int) for n in near]))
+            springs = Springs(np.asarray(self.paddle_points(1.0)), stiffness, region)
+            self._cache[key] = Model(self.body, self.material(inclusion), self.integration,
+                                     essential=self.sets(None), support=self.support, springs=springs)
         return self._cache[key]
 
     def depths(self, increments: int) -> np.ndarray:
@@ -433,3 +483,101 @@ def static_state(phantom: Phantom, inclusion: str = "none", paddle: int | None =
             break
         sol = new
     return model, sol
+
+
+# ------------------------------------------------- optimised placement (beyond the thesis)
+@dataclass
+class PaddleOptimum:
+    """The paddle position q (continuous, 1..P along the Table 6.2 chain) minimising the
+    squared final lateral target deviation, found by optax (Adam) through the solve."""
+
+    inclusion: str
+    q: float                    # optimum
+    arc_length: float           # of the optimum's centre along the boundary
+    deviation: float            # final x deviation there
+    history: np.ndarray         # (iterations, 3): q, deviation, d(deviation^2)/dq per iteration
+    rejected: int               # steps whose insertion failed (det F <= 0 ...), undone and shortened
+    status: str
+    message: str
+
+
+def spring_insertion(model: Model, phantom: Phantom, q, depths, *, traced_last: bool = False):
+    """Insert the needle through ``depths`` with the spring paddle at position q, each
+    increment warm-started from the last: (last Solution, target x deviation per increment,
+    status). A failed increment stops there (the last converged state is returned)."""
+    springs = {"springs": model.springs_at(phantom.paddle_points(q))}
+    target = np.atleast_2d(phantom.target)
+    sol, dev = model.initial(), []
+    for depth in depths:
+        new = model.solve({"needle": [0.0, float(depth)]}, params=springs, initial=sol, throw=False)
+        if int(new.status) != Status.CONVERGED:
+            return sol, np.array(dev), Status(int(new.status))
+        sol = new
+        dev.append(float(model.displacement(sol, target)[0, 0]))
+    return sol, np.array(dev), Status.CONVERGED
+
+
+def final_deviation_and_gradient(model: Model, phantom: Phantom, q: float, depths):
+    """(x deviation at full insertion, d(deviation)/dq, status): the insertion path selects
+    the equilibrium; the derivative is the implicit one at the final state (the solve is
+    differentiable in the spring points)."""
+    sol, dev, status = spring_insertion(model, phantom, q, depths[:-1])
+    if status != Status.CONVERGED:
+        return np.nan, np.nan, status
+    sf = model.shape_functions(np.atleast_2d(phantom.target), gradients=False)
+    idx, psi = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
+
+    def final(q):
+        s = model.solve({"needle": [0.0, float(depths[-1])]}, initial=sol, throw=False,
+                        params={"springs": model.springs_at(phantom.paddle_points(q))})
+        return point_values(model.ops, idx, psi, s.u, s.g)[0, 0], s.status
+
+    (d, st), g = jax.value_and_grad(final, has_aux=True)(jnp.float64(q))
+    return float(d), float(g), Status(int(st))
+
+
+def optimize_paddle(phantom: Phantom, inclusion: str = "none", start: float = 4.0,
+                    increments: int = 15, iterations: int = 30, learning_rate: float = 0.1,
+                    decay: float = 0.9, stiffness: float = 1e6, tol: float = 1e-7,
+                    step_tol: float = 1e-4) -> PaddleOptimum:
+    """Adam on q in [1, P] for min deviation(q)^2 at full insertion, the learning rate
+    decaying by ``decay`` per iteration (plain Adam circles a minimum at a fixed step). A
+    step into a position whose insertion fails (the material inverts near the needle tip)
+    is undone and the steps halved: the optimum may sit on that feasibility edge. Stops
+    when |deviation| < tol, a step is below ``step_tol``, or after ``iterations``; returns
+    the best iterate."""
+    import optax
+    model = phantom.spring_model(inclusion, stiffness)
+    depths = phantom.depths(increments)
+    P = len(phantom.paddles)
+    opt = optax.adam(optax.exponential_decay(learning_rate, transition_steps=1, decay_rate=decay))
+    q = float(start)
+    state = opt.init(jnp.float64(q))
+    d, g, st = final_deviation_and_gradient(model, phantom, q, depths)
+    if st != Status.CONVERGED:
+        return PaddleOptimum(inclusion, q, phantom.arc_length(q), np.nan, np.zeros((0, 3)), 0,
+                             st.name.lower(), f"the insertion fails at the start position q = {q}")
+    hist, rejected, scale = [(q, d, 2 * d * g)], 0, 1.0
+    status, message = "max_iterations", f"{iterations} iterations"
+    for _ in range(iterations):
+        if abs(d) < tol:
+            status, message = "converged", f"|deviation| < {tol:g}"
+            break
+        upd, new_state = opt.update(jnp.float64(2 * d * g), state)
+        q_new = float(np.clip(q + scale * float(upd), 1.0, P))
+        if abs(q_new - q) < step_tol:
+            status, message = "converged", f"step below {step_tol:g}"
+            break
+        d_new, g_new, st = final_deviation_and_gradient(model, phantom, q_new, depths)
+        if st != Status.CONVERGED:
+            rejected += 1
+            scale *= 0.5          # stay on the feasible side: undo, shorten the steps
+            continue
+        q, d, g, state = q_new, d_new, g_new, new_state
+        hist.append((q, d, 2 * d * g))
+    hist = np.array(hist)
+    best = int(np.argmin(np.abs(hist[:, 1])))
+    if rejected:
+        message += f"; {rejected} steps into infeasible positions (insertion fails) undone"
+    return PaddleOptimum(inclusion, float(hist[best, 0]), phantom.arc_length(hist[best, 0]),
+                         float(hist[best, 1]), hist, rejected, status, message)

@@ -126,3 +126,24 @@ def test_bad_input(phantom):
         phantom.material("middle")
     with pytest.raises(ValueError, match="no particle"):
         nd.Phantom(paddles=(((0.05, 0.45), (0.0, 0.5)),)).sets(1)
+
+
+def test_continuous_paddle_and_optimised_placement(phantom, sweeps):
+    """The spring paddle at an integer position reproduces the essential paddle; the final
+    deviation is differentiable in the position (implicit == central differences); a few
+    Adam steps from the best discrete paddle find a smaller deviation (left inclusion)."""
+    model = phantom.spring_model("none")
+    depths = phantom.depths(INCREMENTS)
+    _, dev, st = nd.spring_insertion(model, phantom, 4.0, depths)
+    assert st == Status.CONVERGED
+    assert abs(dev[-1] - sweeps["none"].final[3]) < 2e-5           # penalty error O(1/k)
+    d, g, st = nd.final_deviation_and_gradient(model, phantom, 3.5, depths)
+    e = 1e-4
+    dp = nd.final_deviation_and_gradient(model, phantom, 3.5 + e, depths)[0]
+    dm = nd.final_deviation_and_gradient(model, phantom, 3.5 - e, depths)[0]
+    assert g != 0.0 and abs(g - (dp - dm) / (2 * e)) < 1e-6 * abs(g)
+    sw = sweeps["left"]
+    opt = nd.optimize_paddle(phantom, "left", start=float(sw.best), iterations=6)
+    print("optimised paddle (left):", opt.q, opt.deviation, "discrete", sw.final[sw.best - 1])
+    assert abs(opt.deviation) < 0.5 * abs(sw.final[sw.best - 1])
+    assert 1.0 <= opt.q <= len(phantom.paddles)
