@@ -80,12 +80,13 @@ def _diagnostics(model):
 
 
 def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_compression: float = 0.9,
-        step: float = 0.01, through: bool = False, material: str = "fung", keep_states: bool = True):
+        step: float = 0.01, through: bool = False, material: str = "fung", keep_states: bool = True,
+        half_width: float = 0.125):
     """Step the paddle until failure. Returns (summary dict, model, states) where states maps
     compression -> particle displacements (N, d)."""
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}: choose one of {list(MODES)}")
-    model = setup(n, integration, material)
+    model = setup(n, integration, material, half_width)
     direction = np.array(MODES[mode])
     diag = _diagnostics(model)
     sol = model.initial()
@@ -147,6 +148,7 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
     summary = {
         "mode": mode, "direction_per_unit": direction.tolist(), "integration": integration,
         "particles": [n, n], "paddle_particles": int(len(model.set_indices("paddle"))),
+        "paddle_half_width": half_width,
         "material": model.material.describe(), "step": step,
         "integration_points": int(model.ops.w.shape[0]),
         "max_compression": ok[-1]["compression"] if ok else 0.0,
@@ -168,6 +170,38 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
         "steps": rows,
     }
     return summary, model, states
+
+
+def uniaxial_limits(material: str = "fung", step: float = 0.005) -> dict:
+    """The material's own limits in homogeneous 2D uniaxial-stress compression (F = diag(l, m)
+    with P_22 = 0): the compression where the force P_11 peaks (a limit point of any body
+    compressed homogeneously) and where strong ellipticity is first lost (the smallest
+    acoustic-tensor eigenvalue over directions <= 0). No discretisation involved: the bound
+    no mesh or integration scheme can pass in homogeneous compression."""
+    from scipy.optimize import brentq
+    mat = MATERIALS[material]()
+    X0 = np.zeros((1, 2))
+    prm = {k: jnp.asarray(np.asarray(v).ravel()[0]) for k, v in mat.point_params(X0).items()}
+    prm.update({k: jnp.asarray(v) for k, v in mat.global_params(2).items()})
+    P = jax.jit(jax.grad(lambda F: mat.W(jr.green_lagrange(F), prm)))
+    C = jax.jit(jax.hessian(lambda F: mat.W(jr.green_lagrange(F), prm)))
+    t = np.linspace(0.0, np.pi, 181)
+    normals = jnp.stack([np.cos(t), np.sin(t)], 1)
+    peak, elliptic_loss, best = None, None, 0.0
+    for c in np.arange(step, 0.9, step):
+        lam = 1.0 - c
+        mu = brentq(lambda m: float(P(jnp.diag(jnp.array([lam, m])))[1, 1]), 0.2, 5.0)
+        F = jnp.diag(jnp.array([lam, mu]))
+        f = -float(P(F)[0, 0])
+        A = jnp.einsum("ijkl,nj,nl->nik", C(F), normals, normals)
+        if elliptic_loss is None and float(jnp.linalg.eigvalsh(A).min()) <= 0:
+            elliptic_loss = float(c)
+        if f < best and peak is None:
+            peak = float(c - step)
+        best = max(best, f)
+        if peak is not None and elliptic_loss is not None:
+            break
+    return {"force_peak": peak, "ellipticity_loss": elliptic_loss}
 
 
 def fold_estimate(summary):
@@ -256,14 +290,23 @@ def main(argv=None):
     p.add_argument("--max", type=float, default=0.9, help="largest compression tried (fraction)")
     p.add_argument("--step", type=float, default=0.01)
     p.add_argument("--material", choices=list(MATERIALS), default="fung")
+    p.add_argument("--paddle-half-width", type=float, default=0.125,
+                   help="paddle = right-edge particles with |y - 0.5| <= this (0.5: the whole edge, "
+                        "a homogeneous compression without punch corners)")
     p.add_argument("--through", action="store_true",
                    help="continue past the loss of positive definiteness until the solve fails")
     a = p.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    summary, model, states = run(a.mode, a.integration, a.n, a.max, a.step, a.through, a.material)
+    if not 0 < a.paddle_half_width <= 0.5:
+        p.error(f"--paddle-half-width must be in (0, 0.5], got {a.paddle_half_width}")
+    summary, model, states = run(a.mode, a.integration, a.n, a.max, a.step, a.through, a.material,
+                                 half_width=a.paddle_half_width)
     summary["fold_estimate"] = fold_estimate(summary)
-    tag = f"{a.mode}_{a.integration}_{a.n}" + ("" if a.material == "fung" else f"_{a.material}")
+    summary["material_uniaxial_limits"] = uniaxial_limits(a.material)
+    tag = (f"{a.mode}_{a.integration}_{a.n}" + ("" if a.material == "fung" else f"_{a.material}")
+           + ("" if a.paddle_half_width == 0.125 else "_edge" if a.paddle_half_width >= 0.5
+              else f"_hw{a.paddle_half_width:g}"))
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     figures(out, summary, model, states, tag)
     brief = {k: summary[k] for k in ("mode", "integration", "particles", "max_compression", "reason",

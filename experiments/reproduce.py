@@ -109,7 +109,12 @@ def _fmt_compress(s):
         txt += f"; limit point (tangent eigenvalue -> 0) extrapolated at {100 * s['fold_estimate']:.1f}%"
     if s.get("first_loss_of_ellipticity") is not None:
         txt += f"; material loses strong ellipticity from {100 * s['first_loss_of_ellipticity']:.0f}%"
-    return txt + f" ({s.get('reason', '?').split(';')[0]})"
+    txt += f" ({s.get('reason', '?').split(';')[0]})"
+    lim = s.get("material_uniaxial_limits")
+    if lim and lim.get("force_peak") is not None:
+        txt += (f"; the material's own homogeneous uniaxial limit: force peak at {100 * lim['force_peak']:.1f}%, "
+                f"ellipticity lost at {100 * lim['ellipticity_loss']:.1f}%")
+    return txt
 
 
 def _fmt_track(s):

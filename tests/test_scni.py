@@ -150,6 +150,16 @@ def test_short_compression_converges(short_runs):
     assert s["integration_points"] == 81 and g["integration_points"] == 256
 
 
+def test_fung_has_a_homogeneous_compression_limit():
+    """The compression study's ceiling is the material's: in homogeneous uniaxial-stress
+    compression the Fung force peaks (a limit point) near 42% and strong ellipticity is lost
+    just before (the thesis' Gauss run broke down at 43%); neo-Hookean has neither."""
+    fung = compress.uniaxial_limits("fung")
+    print("Fung uniaxial limits:", fung)
+    assert 0.38 <= fung["ellipticity_loss"] <= fung["force_peak"] <= 0.46
+    assert compress.uniaxial_limits("neohookean") == {"force_peak": None, "ellipticity_loss": None}
+
+
 def test_unknown_integration_is_rejected():
     with pytest.raises(ValueError, match="scni"):
         jr.Model(jr.Body.grid((3, 3), 0.5), jr.Quadratic(1.0), integration="collocated")
