@@ -159,7 +159,6 @@ class Model:
             region = np.unique(np.asarray(springs.region, np.int64))
             if region.size == 0 or region.min() < 0 or region.max() >= self.body.n:
                 raise ValueError(f"spring region must be particle indices in 0..{self.body.n - 1}")
-        self._spring_region = region
         sp_idx = np.tile(region, (len(P), 1))
         return sp_idx, {"psi": self._spring_psi(P, sp_idx), "k": jnp.asarray(k)}
 
