@@ -87,15 +87,8 @@ class Model:
         f_ext = nodal_forces(body, self.volume, self.surface, body_force, tractions)
 
         sp_idx, sp_params = self._springs(springs)
-        # particle pairs that share an integration point or a spring: the tangent's pattern
         N = body.n
         idx = self.volume.idx.astype(np.int64)
-        key = (idx[:, :, None] * N + idx[:, None, :]).ravel()
-        sp_key = (sp_idx[:, :, None] * N + sp_idx[:, None, :]).astype(np.int64)
-        uniq, inverse = np.unique(np.concatenate([key, sp_key.ravel()]), return_inverse=True)
-        inverse = inverse.ravel()[:key.size]
-        sp_pair = np.searchsorted(uniq, sp_key)
-        pair_i, pair_j = uniq // N, uniq % N
         Q, K = idx.shape
         # points with identical neighbour lists (Gauss points of one cell) form a group
         # whose tangent contributions are summed before the scatter (see pair_blocks)
@@ -110,7 +103,15 @@ class Model:
             groups[grp_of[srt], slot] = srt
         else:
             groups = np.arange(Q)[:, None]
-        pair_id = inverse.reshape(Q, K, K)[groups[:, 0]]
+        # particle pairs that share an integration point or a spring: the tangent's pattern,
+        # from one neighbour list per group (per point it would be Q K^2 keys: GBs in 3D)
+        rep = idx[groups[:, 0]]
+        key = (rep[:, :, None] * N + rep[:, None, :]).ravel()
+        sp_key = (sp_idx[:, :, None] * N + sp_idx[:, None, :]).astype(np.int64)
+        uniq, inverse = np.unique(np.concatenate([key, sp_key.ravel()]), return_inverse=True)
+        pair_id = inverse.ravel()[:key.size].reshape(rep.shape[0], K, K)
+        sp_pair = np.searchsorted(uniq, sp_key)
+        pair_i, pair_j = uniq // N, uniq % N
 
         Nb, Nf = len(self.sets.bnd), len(self.sets.free)
         if trans is not None:
