@@ -13,7 +13,7 @@ from . import scni
 from .boundary import EssentialSets, Springs, Transformation, nodal_forces
 from .geometry import Body
 from .materials import Material, green_lagrange, pk2
-from .rk import psi_jax, shape_functions
+from .rk import neighbours, psi_jax, shape_functions
 from .sparse import SaddlePointSystem
 from .solve import (Config, DenseSolver, Limits, Ops, Params, Solution, SparseSolver, Status,
                     coefficients, deformation_gradients, energy_full, implicit_jacobian,
@@ -154,8 +154,8 @@ class Model:
         P = self.body.check_inside(springs.points, "spring point")
         k = springs.stiffnesses()
         if springs.region is None:
-            near = self.body._tree.query_ball_point(P, r=self.a * (1 - 1e-12), p=np.inf)
-            region = np.unique(np.concatenate([np.asarray(n, np.int64) for n in near]))
+            nb = neighbours(self.body._tree, P, self.a)
+            region = np.unique(nb.idx[nb.mask]).astype(np.int64)
         else:
             region = np.unique(np.asarray(springs.region, np.int64))
             if region.size == 0 or region.min() < 0 or region.max() >= self.body.n:

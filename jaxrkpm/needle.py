@@ -27,6 +27,7 @@ from .boundary import Springs
 from .geometry import Body
 from .materials import Fung
 from .model import Model
+from .rk import neighbours
 from .solve import Limits, Ops, Params, Status, point_values, response, solve_path
 
 # Table 6.2: paddle position index -> the two boundary particles it covers
@@ -186,9 +187,8 @@ class Phantom:
             chain = self.paddle_chain
             t = np.linspace(0.0, 1.0, 41)[:, None]
             path = np.concatenate([a + t * (b - a) for a, b in zip(chain[:-1], chain[1:])])
-            a = self.support * self.spacing
-            near = self.body._tree.query_ball_point(path, r=a * (1 - 1e-12), p=np.inf)
-            region = np.unique(np.concatenate([np.asarray(n, int) for n in near]))
+            nb = neighbours(self.body._tree, path, self.support * self.spacing)
+            region = np.unique(nb.idx[nb.mask])
             springs = Springs(np.asarray(self.paddle_points(1.0)), stiffness, region)
             self._cache[key] = Model(self.body, self.material(inclusion), self.integration,
                                      essential=self.sets(None), support=self.support, springs=springs)
@@ -501,7 +501,7 @@ class PaddleOptimum:
     message: str
 
 
-def spring_insertion(model: Model, phantom: Phantom, q, depths, *, traced_last: bool = False):
+def spring_insertion(model: Model, phantom: Phantom, q, depths):
     """Insert the needle through ``depths`` with the spring paddle at position q, each
     increment warm-started from the last: (last Solution, target x deviation per increment,
     status). A failed increment stops there (the last converged state is returned)."""

@@ -14,11 +14,11 @@ from scipy.spatial import cKDTree
 _CHUNK = 8192  # evaluation points per block; bounds the (P, K, d, d+1) temporaries
 
 
-def kernel(x: np.ndarray) -> np.ndarray:
-    """Cubic spline of eq 3.21 (support |x| <= 1)."""
-    r = np.abs(x)
-    return np.where(r <= 0.5, 2 / 3 - 4 * r**2 + 4 * r**3,
-                    np.where(r < 1.0, 4 / 3 - 4 * r + 4 * r**2 - 4 / 3 * r**3, 0.0))
+def kernel(x: np.ndarray, xp=np) -> np.ndarray:
+    """Cubic spline of eq 3.21 (support |x| <= 1); ``xp``: numpy or jax.numpy."""
+    r = xp.abs(x)
+    return xp.where(r <= 0.5, 2 / 3 - 4 * r**2 + 4 * r**3,
+                    xp.where(r < 1.0, 4 / 3 - 4 * r + 4 * r**2 - 4 / 3 * r**3, 0.0))
 
 
 def kernel_derivative(x: np.ndarray) -> np.ndarray:
@@ -144,15 +144,10 @@ def psi_jax(X, volumes, idx, points, a):
     Everything else evaluates shape functions once, with NumPy, at build time."""
     import jax.numpy as jnp
 
-    def k(x):
-        r = jnp.abs(x)
-        return jnp.where(r <= 0.5, 2 / 3 - 4 * r**2 + 4 * r**3,
-                         jnp.where(r < 1.0, 4 / 3 - 4 * r + 4 * r**2 - 4 / 3 * r**3, 0.0))
-
     X, volumes, idx = jnp.asarray(X), jnp.asarray(volumes), jnp.asarray(idx)
     d = X.shape[1]
     R = (points[:, None, :] - X[idx]) / a
-    phi = jnp.prod(k(R), axis=-1) / a**d * volumes[idx]
+    phi = jnp.prod(kernel(R, jnp), axis=-1) / a**d * volumes[idx]
     H = jnp.concatenate([jnp.ones(R.shape[:-1] + (1,)), R], axis=-1)
     M = jnp.einsum("pk,pka,pkb->pab", phi, H, H)
     b = jnp.linalg.solve(M, jnp.broadcast_to(jnp.eye(d + 1)[0], M.shape[:-1])[..., None])[..., 0]
