@@ -107,10 +107,10 @@ class SaddlePointSystem:
             self.drop = np.flatnonzero(~keep)
             # its own ordering: separators of the sparser graph are thinner (a 14^3 grid:
             # 26.5 -> 16.7 million factor entries, factorisation 8.7 -> 6.1 s)
-            self.p_inv = self._ordering(rows[keep], cols[keep])
-            (self.p_indices, self.p_indptr, self.p_pos_K,
-             self.p_template) = self._pattern(rows[keep], cols[keep], self.p_inv)
             kr, kc = rows[keep], cols[keep]
+            self.p_inv = self._ordering(kr, kc)
+            (self.p_indices, self.p_indptr, self.p_pos_K,
+             self.p_template) = self._pattern(kr, kc, self.p_inv)
             diag = np.flatnonzero(kr == kc)
             self.p_diag_pos = self.p_pos_K[diag]
             self.p_diag_row = kr[diag]
