@@ -23,20 +23,33 @@ def reset_factorisation(model):
         system.reset()
 
 
+COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration",
+                  "/jax/core/compile/jaxpr_to_mlir_module_duration",
+                  "/jax/core/compile/backend_compile_duration")
+
+
 def run_case(shape, repeats):
+    import jax
     import jax.numpy as jnp
 
     import jaxrkpm as jr
+    # compile time as JAX reports it (tracing, lowering, XLA compile), not first - warm: that
+    # difference drowns in the solve time's spread when a solve takes minutes
+    compiling = []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, secs, **kw: compiling.append(secs) if event in COMPILE_EVENTS else None)
     t0 = time.perf_counter()
     body = jr.Body.grid(shape, 1.0 / (shape[0] - 1))
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
     model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets)
     build = time.perf_counter() - t0
     g = jnp.zeros(len(shape)).at[0].set(-0.3)
+    compiling.clear()               # the model's build compiles a few helpers of its own
     t0 = time.perf_counter()
     sol = model.solve({"right": g}, steps=10)
     sol.u.block_until_ready()
     first = time.perf_counter() - t0
+    compile_s = sum(compiling)
     times = []
     for _ in range(repeats):
         reset_factorisation(model)
@@ -45,7 +58,8 @@ def run_case(shape, repeats):
         sol.u.block_until_ready()
         times.append(time.perf_counter() - t0)
     warm = statistics.median(times)
-    iterations, linear = int(sol.iterations), dict(getattr(getattr(model.linear, "system", None), "stats", {}))
+    system = getattr(model.linear, "system", None)
+    iterations, linear = int(sol.iterations), dict(getattr(system, "stats", {}))
     # inexact Newton (loose early linear solves) is on only without the stability check; one
     # solve, its own compile included (a different static configuration)
     reset_factorisation(model)
@@ -54,7 +68,8 @@ def run_case(shape, repeats):
     loose.u.block_until_ready()
     loose_s = time.perf_counter() - t0
     return {"shape": list(shape), "dof": int(len(model.sets.free) * len(shape)),
-            "solver": model.linear.name, "build_s": build, "compile_s": first - warm,
+            "solver": model.linear.name, "factorisation": getattr(system, "factorisation", None),
+            "build_s": build, "compile_s": compile_s,
             "first_solve_s": first, "warm_solve_s_median": warm, "warm_solve_s_all": times,
             "newton_iterations": iterations, "linear": linear,
             "no_stability_check_solve_s": loose_s, "no_stability_check_newton_iterations": int(loose.iterations),

@@ -14,7 +14,7 @@ from .boundary import EssentialSets, Springs, Transformation, nodal_forces
 from .geometry import Body
 from .materials import Material, green_lagrange, pk2
 from .rk import neighbours, psi_jax, shape_functions
-from .sparse import SaddlePointSystem
+from .sparse import FACTORISATIONS, SaddlePointSystem, default_factorisation
 from .solve import (Config, DenseSolver, Limits, Ops, Params, Solution, SparseSolver, Status,
                     coefficients, deformation_gradients, energy_full, implicit_jacobian,
                     point_values, solve_path_jit)
@@ -51,12 +51,15 @@ class Model:
     springs     Springs(points, stiffness, region): zero-length springs holding material
                 points (elastic supports, penalty paddles; movable, see ``springs_at``)
     solver      "auto" | "dense" | "sparse"
+    factorisation  of the sparse path: "auto" (PARDISO where Intel MKL is installed, else
+                SuperLU) | "pardiso" | "superlu"; see jaxrkpm.sparse
     """
 
     def __init__(self, body: Body, material: Material, integration: str = "gauss",
                  essential: Mapping | None = None, support: float = 2.01, order: int = 2,
                  cell_size: float | None = None, body_force=None, tractions=(),
-                 springs: Springs | None = None, solver: str = "auto"):
+                 springs: Springs | None = None, solver: str = "auto",
+                 factorisation: str = "auto"):
         if not isinstance(body, Body):
             raise ValueError(f"body must be a jaxrkpm Body, got {type(body).__name__}")
         if not isinstance(material, Material):
@@ -68,6 +71,12 @@ class Model:
                              + ", ".join(repr(k) for k in scni.SCHEMES))
         if solver not in ("auto", "dense", "sparse"):
             raise ValueError(f"unknown solver {solver!r}: choose 'auto', 'dense' or 'sparse'")
+        if factorisation not in ("auto", *FACTORISATIONS):
+            raise ValueError(f"unknown factorisation {factorisation!r}: choose 'auto', "
+                             + ", ".join(repr(k) for k in FACTORISATIONS))
+        if factorisation == "pardiso" and default_factorisation() != "pardiso":
+            raise ValueError("factorisation='pardiso' needs Intel MKL (pip install mkl; x86-64 "
+                             "only): use 'superlu'")
         self.body, self.material, self.integration = body, material, integration
         self.support = float(support)
         self.a = self.support * body.spacing
@@ -138,7 +147,7 @@ class Model:
         if use_dense:
             self.linear = DenseSolver()
         else:
-            self.linear = self._sparse_solver(trans, pair_i, pair_j)
+            self.linear = self._sparse_solver(trans, pair_i, pair_j, factorisation)
         self.params = Params(
             {k: jnp.asarray(v) for k, v in material.point_params(self.volume.points).items()},
             {k: jnp.asarray(v) for k, v in material.global_params(d).items()}, sp_params)
@@ -184,7 +193,7 @@ class Model:
             jnp.asarray(stiffness, jnp.float64), (S,))
         return {"psi": psi, "k": k}
 
-    def _sparse_solver(self, trans, pair_i, pair_j) -> SparseSolver:
+    def _sparse_solver(self, trans, pair_i, pair_j, factorisation) -> SparseSolver:
         d, N = self.body.dim, self.body.n
         a, b = np.meshgrid(np.arange(d), np.arange(d), indexing="ij")
         rows = (pair_i[:, None, None] * d + a[None]).ravel()
@@ -199,7 +208,8 @@ class Model:
         else:
             C = sp.csr_matrix((0, N * d))
         free_dofs = (self.sets.free[:, None] * d + np.arange(d)[None]).ravel()
-        return SparseSolver(SaddlePointSystem(self.body.X, rows, cols, C, free_dofs, self.sets.bnd, d))
+        return SparseSolver(SaddlePointSystem(self.body.X, rows, cols, C, free_dofs, self.sets.bnd, d,
+                                              factorisation))
 
     def _config(self, **kw) -> Config:
         return Config(W=self.material.W, linear=self.linear, **kw)

@@ -324,8 +324,9 @@ class SparseSolver:
         [C   0 ] [l ] = [0],   C dd = 0  <=>  dd = T du_f,
 
     whose free part solves T^T K T du_f = r exactly, on the host (a jax.pure_callback, so it
-    runs inside jit and while-loops): nested-dissection ordered SuperLU factorisations,
-    reused as conjugate-gradient preconditioners while they work (see jaxrkpm.sparse)."""
+    runs inside jit and while-loops): symmetric indefinite factorisations (PARDISO or
+    SuperLU), reused as conjugate-gradient preconditioners while they work (see
+    jaxrkpm.sparse)."""
 
     system: Any           # jaxrkpm.sparse.SaddlePointSystem
     name: str = "sparse"

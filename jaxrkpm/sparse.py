@@ -5,25 +5,35 @@ The constrained tangent system is the saddle-point form of the thesis transforma
     [K  C^T] [dd]   [r]
     [C   0 ] [l ] = [0],      C dd = 0  <=>  dd = T du_f,
 
-whose free part solves K_ff du_f = T^T K T du_f = r exactly. C = [D^nb D^b] (x) I has sparse
-LU factors (D^b is banded) while T (through (D^b)^-1) is dense per essential set, so the
-saddle-point matrix is factorised instead of K_ff. Everything structural is done once:
+whose free part solves K_ff du_f = T^T K T du_f = r exactly. C = [D^nb D^b] (x) I is sparse
+while T (through (D^b)^-1) is dense per essential set, so the saddle-point matrix is
+factorised instead of K_ff. Its pattern, and the position of every tangent block entry in
+it, are built once: each Newton iteration only writes the data array.
 
-* a geometric nested-dissection ordering of the particles (each essential particle's
-  multipliers right after its own coefficients, so the factorisation needs no pivoting:
-  every multiplier pivot is preceded by the coefficient pivot it constrains);
-* the CSC pattern of the permuted saddle-point matrix and the position of every tangent
-  block entry in it: each Newton iteration only writes the data array.
+Two factorisations of the symmetric indefinite saddle-point matrix:
 
-Factorisations are reused: the last positive definite factorisation preconditions a
-conjugate-gradient solve of K_ff x = r (matrix-vector products with the current K and T);
-only when CG stalls or meets negative curvature is the current matrix factorised again.
-The factorisation's pivots give the inertia: the number of negative pivots minus the
-number of constraints is the number of negative eigenvalues of K_ff (Haynsworth).
+* ``pardiso`` (default where Intel MKL is installed: x86-64): PARDISO's supernodal LDL^T
+  with Bunch-Kaufman pivoting, weighted matching and scaling (the zero multiplier block needs
+  2x2 pivots), METIS ordering, multithreaded. A 20^3 grid in 3D: 7e7 factor entries, about 6 s.
+* ``superlu``: SciPy's SuperLU with static pivoting on a geometric nested-dissection order
+  in which each essential particle's multipliers follow its own coefficients (every
+  multiplier pivot is preceded by the coefficient pivot it constrains). Portable, but it
+  fills several times more in 3D.
+
+Factorisations are reused: the last positive definite one preconditions a conjugate-gradient
+solve of K_ff x = r (matrix-vector products with the current K and T); only when CG stalls or
+meets negative curvature is the current matrix factorised again. The factorisation's inertia
+gives stability: its negative eigenvalues minus the number of constraints is the number of
+negative eigenvalues of K_ff (Haynsworth).
 """
 from __future__ import annotations
 
+import ctypes
+import glob
+import os
+import sys
 import threading
+import weakref
 
 import numpy as np
 import scipy.sparse as sp
@@ -65,16 +75,156 @@ def nested_dissection(X: np.ndarray, indptr: np.ndarray, indices: np.ndarray, le
     return np.concatenate(parts)
 
 
+def _mkl_runtime():
+    """Intel MKL's single dynamic library (the ``mkl`` wheel puts it under sys.prefix/lib),
+    or None."""
+    names = sorted(glob.glob(os.path.join(sys.prefix, "lib", "libmkl_rt.so*")), key=len)
+    for path in names + ["libmkl_rt.so.2", "libmkl_rt.so"]:
+        try:
+            return ctypes.CDLL(path)
+        except OSError:
+            continue
+    return None
+
+
+_MKL = _mkl_runtime()
+PARDISO_ERRORS = {-1: "input inconsistent", -2: "not enough memory", -3: "reordering problem",
+                  -4: "zero pivot, numerical factorization or iterative refinement problem",
+                  -5: "unclassified (internal) error", -6: "reordering failed",
+                  -7: "diagonal matrix is singular", -8: "32-bit integer overflow problem",
+                  -9: "not enough memory for OOC", -10: "error opening OOC files",
+                  -11: "read/write error with OOC files"}
+
+
+class FactorisationError(RuntimeError):
+    pass
+
+
+class PardisoLDL:
+    """MKL PARDISO, real symmetric indefinite (mtype -2), on the lower triangle in CSC (= the
+    upper triangle in CSR, as PARDISO wants it), zero-based. The ordering and symbolic
+    analysis are done on the first factorisation and reused (the pattern never changes)."""
+
+    name = "pardiso"
+    lower = True        # stores the lower triangle only
+    reorders = True     # needs no ordering of ours
+
+    def __init__(self, n, indptr, indices):
+        if _MKL is None:
+            raise ValueError("the 'pardiso' factorisation needs Intel MKL (pip install mkl; "
+                             "x86-64 only): use factorisation='superlu'")
+        self.n = n
+        self.indptr = np.ascontiguousarray(indptr, np.int32)
+        self.indices = np.ascontiguousarray(indices, np.int32)
+        self.pt = np.zeros(64, np.int64)            # PARDISO's opaque handle
+        self.iparm = np.zeros(64, np.int32)
+        for i, v in {1: 1, 2: 2, 10: 8, 11: 1, 13: 1, 18: -1, 21: 1, 35: 1}.items():
+            self.iparm[i - 1] = v   # (1-based as in the manual) non-default; METIS; pivot
+            # perturbation 1e-8; scaling and weighted matching; report fill; Bunch-Kaufman;
+            # zero-based indices
+        self.analysed = False
+        self._data = None
+        # free PARDISO's memory with this object (phase -1)
+        weakref.finalize(self, PardisoLDL._release, self.pt, self.iparm, n)
+
+    @staticmethod
+    def _call(pt, iparm, n, phase, data, indptr, indices, b, x):
+        err = ctypes.c_int32(0)
+        i32 = ctypes.POINTER(ctypes.c_int32)
+        nrhs = 1 if b is None else b.shape[1]
+        ptr = lambda a: None if a is None else a.ctypes.data_as(ctypes.c_void_p)
+        _MKL.pardiso(pt.ctypes.data_as(ctypes.c_void_p), ctypes.byref(ctypes.c_int32(1)),
+                     ctypes.byref(ctypes.c_int32(1)), ctypes.byref(ctypes.c_int32(-2)),
+                     ctypes.byref(ctypes.c_int32(phase)), ctypes.byref(ctypes.c_int32(n)),
+                     ptr(data), ptr(indptr), ptr(indices), None, ctypes.byref(ctypes.c_int32(nrhs)),
+                     iparm.ctypes.data_as(i32), ctypes.byref(ctypes.c_int32(0)), ptr(b), ptr(x),
+                     ctypes.byref(err))
+        return err.value
+
+    @staticmethod
+    def _release(pt, iparm, n):
+        if pt.any():
+            PardisoLDL._call(pt, iparm, n, -1, None, None, None, None, None)
+            pt[:] = 0
+
+    def _run(self, phase, b=None, x=None):
+        err = self._call(self.pt, self.iparm, self.n, phase, self._data, self.indptr, self.indices, b, x)
+        if err:
+            raise FactorisationError(f"PARDISO phase {phase}: error {err} "
+                                     f"({PARDISO_ERRORS.get(err, 'unknown')})")
+
+    def factor(self, data):
+        """Factorise; returns the number of negative eigenvalues (None: unknown, when pivots
+        had to be perturbed)."""
+        self._data = np.ascontiguousarray(data, np.float64)
+        if not self.analysed:
+            self._run(11)
+            self.analysed = True
+        self._run(22)
+        return None if self.iparm[13] > 0 else int(self.iparm[22])
+
+    def solve(self, B):
+        B = np.asfortranarray(B, np.float64)
+        X = np.zeros_like(B)
+        self._run(33, B, X)
+        return X
+
+    def release(self):
+        self._release(self.pt, self.iparm, self.n)
+        self.analysed = False
+
+
+class SuperLU:
+    """SciPy's SuperLU with static (diagonal) pivoting on our nested-dissection order (full
+    matrix in CSC; SymmetricMode)."""
+
+    name = "superlu"
+    lower = False
+    reorders = False
+
+    def __init__(self, n, indptr, indices):
+        self.n, self.indptr, self.indices = n, indptr, indices
+        self.lu = None
+
+    def factor(self, data):
+        A = sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+        try:
+            self.lu = spla.splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0,
+                                options=dict(SymmetricMode=True))
+        except RuntimeError as e:
+            raise FactorisationError(f"SuperLU: {e}") from None
+        if not np.array_equal(self.lu.perm_r, self.lu.perm_c):
+            return None                                 # pivoting happened: inertia unknown
+        return int(np.count_nonzero(self.lu.U.diagonal() < 0))
+
+    def solve(self, B):
+        return self.lu.solve(np.asarray(B, np.float64))
+
+    def release(self):
+        self.lu = None
+
+
+FACTORISATIONS = {"pardiso": PardisoLDL, "superlu": SuperLU}
+
+
+def default_factorisation() -> str:
+    return "pardiso" if _MKL is not None else "superlu"
+
+
 class SaddlePointSystem:
-    """The permuted saddle-point pattern, its data map, and the factorisation cache."""
+    """The saddle-point pattern, its data map, and the factorisation cache."""
 
     cg_rtol = 1e-11     # relative residual of the preconditioned CG solves
     cg_maxiter = 40     # beyond this the current matrix is factorised instead
-    cg_maxiter_sparsified = 400  # with the sparsified (3D) preconditioner
-    stencil = 2.0       # 3D preconditioner: pairs within this many spacings are kept
 
     def __init__(self, X: np.ndarray, rows: np.ndarray, cols: np.ndarray, C, free_dofs: np.ndarray,
-                 bnd: np.ndarray, dim: int):
+                 bnd: np.ndarray, dim: int, factorisation: str = "auto"):
+        if factorisation == "auto":
+            factorisation = default_factorisation()
+        if factorisation not in FACTORISATIONS:
+            raise ValueError(f"unknown factorisation {factorisation!r}: choose 'auto', "
+                             f"{', '.join(repr(k) for k in FACTORISATIONS)}")
+        Backend = FACTORISATIONS[factorisation]
         N = X.shape[0]
         d = dim
         n_dof = N * d
@@ -85,42 +235,26 @@ class SaddlePointSystem:
         self.bnd_dofs = (np.asarray(bnd, np.int64)[:, None] * d + np.arange(d)).ravel()
 
         self._X, self._d, self._bnd = X, d, np.asarray(bnd, np.int64)
-        self.inv = self._ordering(rows, cols)
+        self.inv = np.arange(self.n) if Backend.reorders else self._ordering(rows, cols)
         Ccoo = C.tocoo()
         self._c_entries = (np.concatenate([Ccoo.row + n_dof, Ccoo.col]),
                            np.concatenate([Ccoo.col, Ccoo.row + n_dof]),
                            np.concatenate([Ccoo.data, Ccoo.data]))
-        self.indices, self.indptr, self.pos_K, self.template = self._pattern(rows, cols, self.inv)
-
-        # 3D: the exact factorisation fills too much (a 20^3 grid: ~2.6e8 factor entries,
-        # minutes per factorisation), so CG is preconditioned by the factorisation of a
-        # sparsified tangent instead: pairs beyond ``stencil`` spacings (Chebyshev distance)
-        # are dropped and each dropped entry's magnitude is added to its row's diagonal, so
-        # the preconditioner dominates K (P - K is positive semidefinite: P is positive
-        # definite wherever K is).
-        self.sparsified = dim == 3
-        if self.sparsified:
-            dist = np.abs(X[rows // d] - X[cols // d]).max(1)
-            h = np.min(dist[dist > 0]) if np.any(dist > 0) else 1.0
-            keep = dist <= self.stencil * h * (1 + 1e-9)
-            self.keep, self.drop_rows = np.flatnonzero(keep), rows[~keep]
-            self.drop = np.flatnonzero(~keep)
-            # its own ordering: separators of the sparser graph are thinner (a 14^3 grid:
-            # 26.5 -> 16.7 million factor entries, factorisation 8.7 -> 6.1 s)
-            kr, kc = rows[keep], cols[keep]
-            self.p_inv = self._ordering(kr, kc)
-            (self.p_indices, self.p_indptr, self.p_pos_K,
-             self.p_template) = self._pattern(kr, kc, self.p_inv)
-            diag = np.flatnonzero(kr == kc)
-            self.p_diag_pos = self.p_pos_K[diag]
-            self.p_diag_row = kr[diag]
+        self.lower = Backend.lower
+        (self.indices, self.indptr, self.pos_K, self.take_K,
+         self.template) = self._pattern(rows, cols, self.inv, self.lower)
+        self.factoriser = Backend(self.n, self.indptr, self.indices)
 
         self.Cf = C[:, self.free_dofs].tocsr()
         self.Cf_T = self.Cf.T.tocsr()
         self.Cb_lu = spla.splu(C[:, self.bnd_dofs].tocsc()) if nc else None
-        self._lu = None           # last positive definite factorisation (a preconditioner)
+        self._pd = False          # the factoriser holds a positive definite factorisation
         self._lock = threading.Lock()
         self.stats = {"factorisations": 0, "cg_solves": 0, "cg_iterations": 0}
+
+    @property
+    def factorisation(self) -> str:
+        return self.factoriser.name
 
     # ----------------------------------------------------------------------- pieces
     def _ordering(self, rows, cols):
@@ -144,82 +278,86 @@ class SaddlePointSystem:
         inv[perm] = np.arange(len(perm))
         return inv
 
-    def _pattern(self, rows, cols, inv):
-        """CSC pattern (permuted by inv) of the saddle-point matrix with K entries (rows, cols):
-        indices, indptr, the data position of each K entry, and the data with C filled in."""
+    def _pattern(self, rows, cols, inv, lower):
+        """CSC pattern (permuted by inv; its lower triangle only if ``lower``, with the zero
+        diagonal of the multiplier block stored) of the saddle-point matrix with K entries
+        (rows, cols): indices, indptr, the data positions pos_K of the K entries take_K, and
+        the data with C filled in."""
         cr, cc, cv = self._c_entries
-        rn = inv[np.concatenate([rows, cr])]
-        cn = inv[np.concatenate([cols, cc])]
+        mult = np.arange(self.n_dof, self.n) if lower else np.arange(0)
+        rn = inv[np.concatenate([rows, cr, mult])]
+        cn = inv[np.concatenate([cols, cc, mult])]
+        val = np.concatenate([np.zeros(len(rows)), cv, np.zeros(len(mult))])
+        src = np.concatenate([np.arange(len(rows)), np.full(len(cr) + len(mult), -1)])
+        if lower:
+            keep = rn >= cn
+            rn, cn, val, src = rn[keep], cn[keep], val[keep], src[keep]
         key = cn.astype(np.int64) * self.n + rn
         srt = np.argsort(key, kind="stable")
         if np.any(np.diff(key[srt]) == 0):
             raise ValueError("duplicate entries in the tangent pattern")
-        pos = np.empty_like(srt)
-        pos[srt] = np.arange(len(srt))
         indices = rn[srt].astype(np.int32)
         indptr = np.searchsorted(cn[srt], np.arange(self.n + 1)).astype(np.int32)
-        template = np.zeros(len(srt))
-        template[pos[len(rows):]] = cv
-        return indices, indptr, pos[:len(rows)], template
-
-    def preconditioner_matrix(self, blocks) -> sp.csc_matrix:
-        """The sparsified, diagonally compensated saddle-point matrix (3D)."""
-        b = np.asarray(blocks, np.float64).ravel()
-        data = self.p_template.copy()
-        data[self.p_pos_K] = b[self.keep]
-        add = np.bincount(self.drop_rows, np.abs(b[self.drop]), minlength=self.n_dof)
-        data[self.p_diag_pos] += add[self.p_diag_row]
-        return sp.csc_matrix((data, self.p_indices, self.p_indptr), shape=(self.n, self.n))
+        template = val[srt]
+        pos_K = np.flatnonzero(src[srt] >= 0)
+        return indices, indptr, pos_K, src[srt][pos_K], template
 
     def matrix(self, blocks) -> sp.csc_matrix:
+        """The stored saddle-point matrix (the lower triangle for PARDISO)."""
         data = self.template.copy()
-        data[self.pos_K] = np.asarray(blocks, np.float64).ravel()
+        data[self.pos_K] = np.asarray(blocks, np.float64).ravel()[self.take_K]
         return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
 
-    def _factorise(self, A, inv=None):
-        inv = self.inv if inv is None else inv
-        lu = spla.splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                       options=dict(SymmetricMode=True))
+    def _factorise(self, A):
+        """Factorise A; the number of negative eigenvalues of K_ff (0 when the inertia is
+        unknown), or None when the factorisation failed (a singular matrix)."""
+        self._pd = False
+        try:
+            neg = self.factoriser.factor(A.data)
+        except FactorisationError:
+            return None
         self.stats["factorisations"] += 1
-        if np.array_equal(lu.perm_r, lu.perm_c):       # symmetric (static) pivoting: inertia
-            neg = int(np.count_nonzero(lu.U.diagonal() < 0)) - self.nc
-        else:                                           # pivoting happened: inertia unknown
-            neg = 0
-        return (lu, inv), neg
+        return 0 if neg is None else neg - self.nc
 
-    def _direct(self, lu, b):
-        lu, inv = lu
+    def _direct(self, b):
         B = np.zeros((self.n, b.shape[1]))
-        B[inv[self.free_dofs]] = b
-        return lu.solve(B)[inv[self.free_dofs]]
+        B[self.inv[self.free_dofs]] = b
+        return self.factoriser.solve(B)[self.inv[self.free_dofs]]
 
-    def _matvec(self, A, v):
-        """K_ff v = T^T K T v with the current K (A is symmetric: CSC = CSR of itself)."""
+    def _product(self, A):
+        """x -> A x for the stored matrix (symmetric: its CSC is the CSR of itself)."""
+        if not self.lower:
+            return lambda x: A.T @ x            # A.T of a CSC is a CSR view: a fast product
+        diag = A.diagonal()
+        return lambda x: A.T @ x + A @ x - diag * x
+
+    def _matvec(self, product, v):
+        """K_ff v = T^T K T v with the current K (``product``: x -> A x)."""
         dd = np.zeros(self.n)
         full = np.zeros(self.n_dof)
         full[self.free_dofs] = v
         if self.nc:
             full[self.bnd_dofs] = -self.Cb_lu.solve(self.Cf @ v)
         dd[self.inv[:self.n_dof]] = full
-        y = (A.T @ dd)[self.inv[:self.n_dof]]   # A.T of a CSC is a CSR view: a fast product
+        y = product(dd)[self.inv[:self.n_dof]]
         out = y[self.free_dofs]
         if self.nc:
             out = out - self.Cf_T @ self.Cb_lu.solve(y[self.bnd_dofs], trans="T")
         return out
 
-    def _pcg(self, A, lu, b, maxiter, rtol):
-        """CG on K_ff x = b preconditioned by a previous factorisation, to the relative
+    def _pcg(self, product, b, maxiter, rtol):
+        """CG on K_ff x = b preconditioned by the held factorisation, to the relative
         residual rtol; returns x, or None when it stalls or meets negative curvature."""
         bn = np.linalg.norm(b)
         x = np.zeros_like(b)
         if bn == 0:
             return x
         r = b.copy()
-        z = self._direct(lu, r[:, None])[:, 0]
+        z = self._direct(r[:, None])[:, 0]
         p = z.copy()
         rz = r @ z
         for it in range(1, maxiter + 1):
-            Ap = self._matvec(A, p)
+            Ap = self._matvec(product, p)
             pAp = p @ Ap
             if not pAp > 0:
                 return None
@@ -229,55 +367,45 @@ class SaddlePointSystem:
             if np.linalg.norm(r) <= rtol * bn:
                 self.stats["cg_iterations"] += it
                 return x
-            z = self._direct(lu, r[:, None])[:, 0]
+            z = self._direct(r[:, None])[:, 0]
             rz, rz_old = r @ z, rz
             p = z + (rz / rz_old) * p
         return None
 
-    # ----------------------------------------------------------------------- solve
-    def solve(self, blocks, rhs, rtol=None):
-        """x (rhs.shape) with K_ff x = rhs (iterative solves to the relative residual rtol,
-        default cg_rtol), and whether K_ff looked positive definite."""
-        rtol = self.cg_rtol if rtol is None else float(rtol)
-        rhs = np.asarray(rhs, np.float64)
-        b = rhs.reshape(len(self.free_dofs), -1)
-        with self._lock:
-            A = self.matrix(blocks)
-            maxiter = self.cg_maxiter_sparsified if self.sparsified else self.cg_maxiter
-            if self._lu is not None:
-                x = self._pcg_all(A, self._lu, b, maxiter, rtol)
-                if x is not None:
-                    self.stats["cg_solves"] += 1
-                    return x.reshape(rhs.shape), np.bool_(True)
-            if not self.sparsified:
-                lu, neg = self._factorise(A)
-                x = self._direct(lu, b)
-                self._lu = lu if neg == 0 else None
-                return x.reshape(rhs.shape), np.bool_(neg == 0)
-            lu, neg = self._factorise(self.preconditioner_matrix(blocks), self.p_inv)
-            self._lu = lu if neg == 0 else None   # P - K >= 0: P indefinite => K_ff indefinite
-            x = self._pcg_all(A, lu, b, maxiter, rtol) if neg == 0 else None
-            if x is not None:
-                self.stats["cg_solves"] += 1
-                return x.reshape(rhs.shape), np.bool_(True)
-            # negative curvature (K_ff indefinite) or no convergence: GMRES on the same operator
-            op = spla.LinearOperator((len(self.free_dofs),) * 2, matvec=lambda v: self._matvec(A, v))
-            M = spla.LinearOperator(op.shape, matvec=lambda v: self._direct(lu, v.reshape(-1, 1))[:, 0])
-            cols = [spla.gmres(op, b[:, j], M=M, rtol=rtol, restart=200, maxiter=5)[0]
-                    for j in range(b.shape[1])]
-            return np.stack(cols, 1).reshape(rhs.shape), np.bool_(False)
-
-    def _pcg_all(self, A, lu, b, maxiter, rtol):
+    def _pcg_all(self, A, b, rtol):
         cols = []
+        product = self._product(A)
         for j in range(b.shape[1]):
-            xj = self._pcg(A, lu, b[:, j], maxiter, rtol)
+            xj = self._pcg(product, b[:, j], self.cg_maxiter, rtol)
             if xj is None:
                 return None
             cols.append(xj)
         return np.stack(cols, 1)
 
+    # ----------------------------------------------------------------------- solve
+    def solve(self, blocks, rhs, rtol=None):
+        """x (rhs.shape) with K_ff x = rhs (iterative solves to the relative residual rtol,
+        default cg_rtol), and whether K_ff looked positive definite. A singular K_ff gives
+        a non-finite x (the Newton solve then reports it)."""
+        rtol = self.cg_rtol if rtol is None else float(rtol)
+        rhs = np.asarray(rhs, np.float64)
+        b = rhs.reshape(len(self.free_dofs), -1)
+        with self._lock:
+            A = self.matrix(blocks)
+            if self._pd:
+                x = self._pcg_all(A, b, rtol)
+                if x is not None:
+                    self.stats["cg_solves"] += 1
+                    return x.reshape(rhs.shape), np.bool_(True)
+            neg = self._factorise(A)
+            if neg is None:
+                return np.full(rhs.shape, np.nan), np.bool_(False)
+            self._pd = neg == 0
+            return self._direct(b).reshape(rhs.shape), np.bool_(neg == 0)
+
     def reset(self):
         """Forget the cached factorisation and zero the statistics."""
         with self._lock:
-            self._lu = None
+            self._pd = False
+            self.factoriser.release()
             self.stats = dict.fromkeys(self.stats, 0)

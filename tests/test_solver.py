@@ -212,9 +212,12 @@ def test_warm_start_continues_the_path(block9):
     assert int(warm.steps) == 1
 
 
-def test_sparse_path_matches_dense(block9):
+@pytest.mark.parametrize("factorisation", ["pardiso", "superlu"])
+def test_sparse_path_matches_dense(block9, factorisation):
     body, sets, dense = block9
-    sparse = jr.Model(body, MATERIALS["NeoHookean"], essential=sets, solver="sparse")
+    sparse = jr.Model(body, MATERIALS["NeoHookean"], essential=sets, solver="sparse",
+                      factorisation=factorisation)
+    assert sparse.linear.system.factorisation == factorisation
     a = dense.solve({"right": jnp.array([-0.2, 0.1])}, steps=2)
     b = sparse.solve({"right": jnp.array([-0.2, 0.1])}, steps=2)
     assert np.abs(np.asarray(a.u) - np.asarray(b.u)).max() < 1e-10
@@ -223,17 +226,28 @@ def test_sparse_path_matches_dense(block9):
     assert stats["factorisations"] == 1 and stats["cg_solves"] == int(b.iterations) - 1
 
 
-def test_sparse_path_matches_dense_3d():
-    """3D sparse path: CG preconditioned by the sparsified, diagonally compensated tangent."""
+@pytest.mark.parametrize("factorisation", ["pardiso", "superlu"])
+def test_sparse_path_matches_dense_3d(factorisation):
     body = jr.Body.grid((5, 4, 4), 0.25)
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
     dense = jr.Model(body, MATERIALS["NeoHookean"], essential=sets)
-    sparse = jr.Model(body, MATERIALS["NeoHookean"], essential=sets, solver="sparse")
-    assert sparse.linear.system.sparsified
+    sparse = jr.Model(body, MATERIALS["NeoHookean"], essential=sets, solver="sparse",
+                      factorisation=factorisation)
     push = {"right": jnp.array([-0.15, 0.05, -0.05])}
     a, b = dense.solve(push, steps=2), sparse.solve(push, steps=2)
     assert np.abs(np.asarray(a.u) - np.asarray(b.u)).max() < 1e-10
     assert int(a.iterations) == int(b.iterations)
+    # the factorisation's inertia: K_ff has as many positive eigenvalues as free dofs
+    system = sparse.linear.system
+    system.reset()
+    blocks = tangent(sparse.ops, sparse.params, sparse._config(), b.u, b.g)
+    assert system._factorise(system.matrix(np.asarray(blocks))) == 0
+
+
+def test_unknown_factorisation_is_named(block9):
+    body, sets, _ = block9
+    with pytest.raises(ValueError, match="unknown factorisation 'cholmod'"):
+        jr.Model(body, MATERIALS["NeoHookean"], essential=sets, factorisation="cholmod")
 
 
 def test_failed_solve_reports_status_and_keeps_last_state(block9):
@@ -305,10 +319,11 @@ def _min_eig(model, sol):
     return np.linalg.eigvalsh(K)[0], np.linalg.eigvalsh(K)[-1]
 
 
-@pytest.mark.parametrize("solver", ["dense", "sparse"])
+@pytest.mark.parametrize("solver", ["dense", "pardiso", "superlu"])
 def test_buckling_column_reports_unstable_tangent(column, solver):
     body, sets, dense = column
-    model = dense if solver == "dense" else jr.Model(body, dense.material, essential=sets, solver="sparse")
+    model = dense if solver == "dense" else jr.Model(body, dense.material, essential=sets,
+                                                     solver="sparse", factorisation=solver)
     push = {"top": jnp.array([0.0, -0.1])}                     # 10% axial compression
     sol = model.solve(push, steps=5, throw=False, max_cuts=6)
     assert int(sol.status) == jr.Status.UNSTABLE_TANGENT
