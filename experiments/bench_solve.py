@@ -28,7 +28,7 @@ COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration",
                   "/jax/core/compile/backend_compile_duration")
 
 
-def run_case(shape, repeats):
+def run_case(shape, repeats, factorisation="auto"):
     import jax
     import jax.numpy as jnp
 
@@ -41,7 +41,7 @@ def run_case(shape, repeats):
     t0 = time.perf_counter()
     body = jr.Body.grid(shape, 1.0 / (shape[0] - 1))
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
-    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets)
+    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets, factorisation=factorisation)
     build = time.perf_counter() - t0
     g = jnp.zeros(len(shape)).at[0].set(-0.3)
     compiling.clear()               # the model's build compiles a few helpers of its own
@@ -82,16 +82,19 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--cases", nargs="*", default=list(CASES))
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--factorisation", default="auto", choices=["auto", "pardiso", "superlu"],
+                   help="of the sparse path (the large cases)")
     p.add_argument("--case", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.case:
-        print(json.dumps(run_case(CASES[a.case], a.repeats)))
+        print(json.dumps(run_case(CASES[a.case], a.repeats, a.factorisation)))
         return
     out = {}
     for name in a.cases:
         reps = a.repeats if name == "2d_9" else max(1, min(a.repeats, 2))
         r = subprocess.run([sys.executable, "-m", "experiments.bench_solve", "--case", name,
-                            "--repeats", str(reps)], capture_output=True, text=True)
+                            "--repeats", str(reps), "--factorisation", a.factorisation],
+                           capture_output=True, text=True)
         out[name] = json.loads(r.stdout.strip().splitlines()[-1]) if r.returncode == 0 else \
             {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}
         print(name, json.dumps(out[name]), file=sys.stderr)
