@@ -81,9 +81,11 @@ def _mkl_runtime():
     names = sorted(glob.glob(os.path.join(sys.prefix, "lib", "libmkl_rt.so*")), key=len)
     for path in names + ["libmkl_rt.so.2", "libmkl_rt.so"]:
         try:
-            return ctypes.CDLL(path)
+            lib = ctypes.CDLL(path)
         except OSError:
             continue
+        lib.MKL_Set_Interface_Layer(0)  # LP64: 32-bit integers, whatever MKL_INTERFACE_LAYER says
+        return lib
     return None
 
 
@@ -154,8 +156,8 @@ class PardisoLDL:
                                      f"({PARDISO_ERRORS.get(err, 'unknown')})")
 
     def factor(self, data):
-        """Factorise; returns the number of negative eigenvalues (None: unknown, when pivots
-        had to be perturbed)."""
+        """Factorise; returns the number of negative eigenvalues of the saddle-point matrix
+        (None: unknown, when pivots had to be perturbed)."""
         self._data = np.ascontiguousarray(data, np.float64)
         if not self.analysed:
             self._run(11)
