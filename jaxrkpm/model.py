@@ -14,7 +14,7 @@ from .boundary import EssentialSets, Springs, Transformation, nodal_forces
 from .geometry import Body
 from .materials import Material, green_lagrange, pk2
 from .rk import neighbours, psi_jax, shape_functions
-from .sparse import FACTORISATIONS, SaddlePointSystem, default_factorisation
+from .sparse import SaddlePointSystem, factoriser
 from .solve import (Config, DenseSolver, Limits, Ops, Params, Solution, SparseSolver, Status,
                     coefficients, deformation_gradients, energy_full, implicit_jacobian,
                     point_values, solve_path_jit)
@@ -71,12 +71,7 @@ class Model:
                              + ", ".join(repr(k) for k in scni.SCHEMES))
         if solver not in ("auto", "dense", "sparse"):
             raise ValueError(f"unknown solver {solver!r}: choose 'auto', 'dense' or 'sparse'")
-        if factorisation not in ("auto", *FACTORISATIONS):
-            raise ValueError(f"unknown factorisation {factorisation!r}: choose 'auto', "
-                             + ", ".join(repr(k) for k in FACTORISATIONS))
-        if factorisation == "pardiso" and default_factorisation() != "pardiso":
-            raise ValueError("factorisation='pardiso' needs Intel MKL (pip install mkl; x86-64 "
-                             "only): use 'superlu'")
+        factoriser(factorisation)   # a clear error now, even where the dense path is chosen
         self.body, self.material, self.integration = body, material, integration
         self.support = float(support)
         self.a = self.support * body.spacing

@@ -112,9 +112,6 @@ class PardisoLDL:
     reorders = True     # needs no ordering of ours
 
     def __init__(self, n, indptr, indices):
-        if _MKL is None:
-            raise ValueError("the 'pardiso' factorisation needs Intel MKL (pip install mkl; "
-                             "x86-64 only): use factorisation='superlu'")
         self.n = n
         self.indptr = np.ascontiguousarray(indptr, np.int32)
         self.indices = np.ascontiguousarray(indices, np.int32)
@@ -209,8 +206,18 @@ class SuperLU:
 FACTORISATIONS = {"pardiso": PardisoLDL, "superlu": SuperLU}
 
 
-def default_factorisation() -> str:
-    return "pardiso" if _MKL is not None else "superlu"
+def factoriser(name: str):
+    """The factorisation class for ``name`` ("auto": PARDISO where Intel MKL loads, else
+    SuperLU); a ValueError naming an unknown or unavailable one."""
+    if name == "auto":
+        name = "pardiso" if _MKL is not None else "superlu"
+    if name not in FACTORISATIONS:
+        raise ValueError(f"unknown factorisation {name!r}: choose 'auto', "
+                         + ", ".join(repr(k) for k in FACTORISATIONS))
+    if name == "pardiso" and _MKL is None:
+        raise ValueError("factorisation='pardiso' needs Intel MKL (pip install mkl; x86-64 "
+                         "only): use 'superlu'")
+    return FACTORISATIONS[name]
 
 
 class SaddlePointSystem:
@@ -221,12 +228,7 @@ class SaddlePointSystem:
 
     def __init__(self, X: np.ndarray, rows: np.ndarray, cols: np.ndarray, C, free_dofs: np.ndarray,
                  bnd: np.ndarray, dim: int, factorisation: str = "auto"):
-        if factorisation == "auto":
-            factorisation = default_factorisation()
-        if factorisation not in FACTORISATIONS:
-            raise ValueError(f"unknown factorisation {factorisation!r}: choose 'auto', "
-                             f"{', '.join(repr(k) for k in FACTORISATIONS)}")
-        Backend = FACTORISATIONS[factorisation]
+        Backend = factoriser(factorisation)
         N = X.shape[0]
         d = dim
         n_dof = N * d
