@@ -19,7 +19,6 @@ import jax
 import jax.numpy as jnp
 
 from experiments.compress import setup
-from jaxrkpm import solve as jsolve
 
 SCHEMES = ("gauss", "scni", "mscni")
 
@@ -43,11 +42,10 @@ class Case:
         sol.u.block_until_ready()
         self.first_s = time.perf_counter() - t0
         self.iters = int(sol.iterations)
-        cfg, W = model._config(), model.material.W
-        self._asm = jax.jit(lambda ops, params, u, g: (jsolve.residual(ops, params, W, u, g, 1.0),
-                                                         jsolve.tangent(ops, params, cfg, u, g)))
+        self._prob = model.problem()
+        self._asm = jax.jit(lambda prob, u, g: (prob.residual(u, g), prob.tangent(u, g)))
         self.sol = sol
-        jax.block_until_ready(self._asm(model.ops, model.params, sol.u, sol.g))
+        jax.block_until_ready(self._asm(self._prob, sol.u, sol.g))
         self.t_solve, self.t_asm = [], []
 
     def time_once(self):
@@ -57,7 +55,7 @@ class Case:
         self.t_solve.append(time.perf_counter() - t0)
         assert int(s.iterations) == self.iters
         t0 = time.perf_counter()
-        jax.block_until_ready(self._asm(self.model.ops, self.model.params, self.sol.u, self.sol.g))
+        jax.block_until_ready(self._asm(self._prob, self.sol.u, self.sol.g))
         self.t_asm.append(time.perf_counter() - t0)
 
     def result(self):

@@ -29,8 +29,8 @@ BODIES = {
 def stiffness(body, integration, support, order=2):
     model = jr.Model(body, jr.Fung(alpha=1.0, beta=1.0), integration=integration, essential={},
                      support=support, order=order)
-    K = jax.jit(solve.tangent, static_argnums=2)(model.ops, model.params, model._config(),
-                                                 jnp.zeros((body.n, body.dim)), jnp.zeros((0, body.dim)))
+    K = jax.jit(lambda prob, u, g: prob.tangent(u, g))(model.problem(), jnp.zeros((body.n, body.dim)),
+                                                        jnp.zeros((0, body.dim)))
     return np.asarray(K)
 
 

@@ -6,16 +6,16 @@ implicit Jacobian J = d CP / d MP is taken at its converged state, the manipulat
 the models re-equilibrate. The plant (whose control point is measured) is the controller
 itself, or a second model (reduced -> refined control, section 5.3.1).
 
-Cost per iteration (dense models): one tangent assembly and one Cholesky factorisation of
-K_ff at the converged state, shared by the Jacobian (m back-substitutions), the Newton
-predictor of the next solve and its chord corrections; the adaptive ``solve_path`` runs only
-if those fail (a non-positive-definite tangent, no residual decrease, det F <= 0).
+Cost per iteration: one tangent assembly and one factorisation of K_ff at the converged
+state (the linear solver's explicit state, dense or sparse alike), shared by the Jacobian
+(m solves), the Newton predictor of the next solve and its chord corrections
+(``jaxrkpm.solve.newton(chord=True)``); the adaptive ``solve_path`` runs only if those fail
+(a tangent that is not positive definite, no residual decrease, det F <= 0).
 """
 from __future__ import annotations
 
-import enum
-from dataclasses import dataclass
 from functools import partial
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax
@@ -23,27 +23,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from .model import Model
-from .solve import (Config, DenseSolver, Limits, Ops, Params, Solution, Status, coefficients, energy,
-                    implicit_jacobian, internal_force_scale, point_values, residual, solve_path, tangent)
+from .outcome import Outcome
+from .problem import Problem
+from .solve import Limits, Solution, Status, reached_equilibrium, solve_path
 
 
-class TrackStatus(enum.IntEnum):
-    DONE = 0            # every waypoint reached within tol
-    SOLVE_FAILED = 1    # a model solve failed (see solve_status)
-    ITERATION_CAP = 2   # a waypoint took more than max_iter iterations
-    NO_PROGRESS = 3     # the error stopped falling (a physically unreachable waypoint?)
-    HISTORY_FULL = 4    # max_steps iterations in all
-
-    @property
-    def message(self):
-        return {
-            TrackStatus.DONE: "every waypoint reached",
-            TrackStatus.SOLVE_FAILED: "a model solve failed; the history up to it is kept",
-            TrackStatus.ITERATION_CAP: "the waypoint was not reached within the iteration cap",
-            TrackStatus.NO_PROGRESS: "the control point error stopped decreasing: the waypoint "
-                                     "looks unreachable with this manipulation",
-            TrackStatus.HISTORY_FULL: "the total iteration budget (max_steps) ran out",
-        }[self]
+class TrackStatus(Outcome):
+    DONE = 0, "every waypoint reached"
+    SOLVE_FAILED = 1, "a model solve failed; the history up to it is kept"
+    ITERATION_CAP = 2, "the waypoint was not reached within the iteration cap"
+    NO_PROGRESS = 3, ("the control point error stopped decreasing: the waypoint looks "
+                      "unreachable with this manipulation")
+    HISTORY_FULL = 4, "the total iteration budget (max_steps) ran out"
 
 
 def control_increment(J, e, gain, clamp, damping=0.0):
@@ -63,15 +54,47 @@ def control_increment(J, e, gain, clamp, damping=0.0):
     return jnp.where(biggest > clamp, step * (clamp / biggest), step)
 
 
-class _Side(NamedTuple):
-    """One model inside the loop: its arrays, the driven set's directions and the control
-    point shape functions."""
+class ControlledModel(NamedTuple):
+    """One model inside the tracking loop (a pytree): its problem, the rigid directions of
+    the driven set and the control points' shape functions."""
 
-    ops: Ops
-    params: Params
+    problem: Problem
     G: jax.Array     # (d_mp, Nb, d) rigid directions of the driven set
     idx: jax.Array   # (C, K) control point neighbours
     psi: jax.Array   # (C, K)
+
+    @staticmethod
+    def of(model: Model, driven: str, control_points, params=None) -> "ControlledModel":
+        sf = model.shape_functions(np.atleast_2d(np.asarray(control_points, float)), gradients=False)
+        return ControlledModel(model.problem(params), model.directions(driven),
+                               jnp.asarray(sf.idx), jnp.asarray(sf.psi))
+
+    def measure(self, sol: Solution):
+        """Control point displacements, flattened (C*d,)."""
+        return self.problem.point_values(self.idx, self.psi, sol.u, sol.g).ravel()
+
+    def jacobian(self, sol: Solution, state):
+        """J = d CP / d MP (C*d, d_mp) at ``sol`` from its factorisation ``state``."""
+        J = self.problem.jacobian(sol, self.G, self.idx, self.psi, state)
+        return J.reshape(-1, self.G.shape[0])
+
+    def settle(self, sol: Solution, state, g1, lim: Limits, max_corr: int) -> Solution:
+        """Equilibrium at the prescribed values g1 from the converged ``sol``: the Newton
+        predictor and up to ``max_corr`` chord corrections with the factorisation ``state``
+        of ``sol`` (no assembly), else (a tangent that is not positive definite, no residual
+        decrease, det F <= 0) the full adaptive Newton path."""
+        prob = self.problem
+        u, st, its, rn, _ = prob.newton(sol.u, sol.g, g1, sol.load, sol.load, max_iter=max_corr + 1,
+                                        state=state, chord=True)
+        quick = Solution(u, g1, sol.load, jnp.zeros_like(sol.status), jnp.ones_like(sol.t),
+                         its.astype(sol.iterations.dtype), jnp.ones_like(sol.steps),
+                         jnp.zeros_like(sol.cuts), rn.astype(sol.residual_norm.dtype))
+
+        def full():
+            new = solve_path(prob.ops, prob.params, prob.config, lim, sol.u, sol.g, g1, sol.load, sol.load)
+            return jax.tree.map(lambda a, b: a.astype(b.dtype), new, sol)   # the carry's dtypes
+
+        return jax.lax.cond(st == Status.CONVERGED, lambda: quick, full)
 
 
 @dataclass(frozen=True)
@@ -113,104 +136,17 @@ class TrackResult:
                f"{len(self.error) - 1} iterations)"
 
 
-def _side(model: Model, driven: str, control_points, params=None) -> _Side:
-    sf = model.shape_functions(control_points, gradients=False)
-    return _Side(model.ops, model.params_with(params), model.directions(driven),
-                 jnp.asarray(sf.idx), jnp.asarray(sf.psi))
-
-
-# ------------------------------------------------------- one factorisation per iteration
-class _Factored(NamedTuple):
-    """The controller's tangent at its converged state, factorised once and used three
-    times: the implicit Jacobian, the predictor of the next solve and its corrections."""
-
-    K: jax.Array      # (n, n) dense K_ff
-    L: jax.Array      # (n, n) its Cholesky factor (NaN where K_ff is not positive definite)
-    spd: jax.Array    # () K_ff positive definite (a stable equilibrium): L is usable
-    du: jax.Array     # (m, Nf, d) responses to the driven directions: K_ff du = -K_fg G
-    z: jax.Array      # (Nf, d) K_ff^-1 r0
-    r0: jax.Array     # (Nf, d) the residual left at the converged state
-    dr: jax.Array     # (m, Nf, d) K_fg G
-
-
-def _factor(side: _Side, cfg: Config, sol: Solution) -> _Factored:
-    ops, params = side.ops, side.params
-    K = tangent(ops, params, cfg, sol.u, sol.g)
-    # K_ff = T^T K T of an energy Hessian is symmetric by construction: Cholesky reads one
-    # triangle, so skip jnp.linalg.cholesky's (K + K^T) / 2
-    L = jax.lax.linalg.cholesky(K, symmetrize_input=False)
-    spd = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
-    r0, dr = jax.vmap(lambda t: jax.jvp(lambda x: residual(ops, params, cfg.W, sol.u, x, sol.load),
-                                        (sol.g,), (t,)), out_axes=(None, 0))(side.G)
-    n, m = K.shape[0], side.G.shape[0]
-    B = jnp.concatenate([dr.reshape(m, n).T, r0.reshape(n, 1)], axis=1)   # (n, m+1)
-    # a non-positive-definite tangent (loss of stability) falls back to LU on the same matrix
-    X = jax.lax.cond(spd, lambda b: jax.scipy.linalg.cho_solve((L, True), b),
-                     lambda b: jnp.linalg.solve(K, b), B)
-    du = -X[:, :m].T.reshape(dr.shape)
-    return _Factored(K, L, spd, du, X[:, m].reshape(r0.shape), r0, dr)
-
-
-def _jacobian(side: _Side, f: _Factored):
-    """J = d CP / d MP (C*d, m) from the responses (the control point is linear in (u, g))."""
-    cols = jax.vmap(lambda du, dg: point_values(side.ops, side.idx, side.psi, du, dg).ravel())(f.du, side.G)
-    return cols.T
-
-
-def _chord_solve(side: _Side, cfg: Config, f: _Factored, sol: Solution, dmp, max_corr: int):
-    """Equilibrium at g1 = g + G^T dmp from the converged ``sol`` with the factorised
-    tangent of ``sol``: the Newton predictor K du = -(r + K_fg dg) (the same first step as
-    ``solve_path``, at no extra assembly), then chord corrections K dv = -r(v) with the same
-    factor. Converged by ``solve_path``'s test |r| <= rtol max(|rhs0|, internal force scale);
-    every correction must lower |r| and keep det F > 0, else (or after ``max_corr``
-    corrections, or for a tangent that is not positive definite) ``ok`` is False and the
-    caller re-solves with the full Newton path. Returns (u, g1, iterations, |r|, ok)."""
-    ops, params, W = side.ops, side.params, cfg.W
-    g1 = sol.g + jnp.einsum("a,abi->bi", dmp, side.G)
-    r_ref = jnp.linalg.norm(f.r0 + jnp.einsum("a,aid->id", dmp, f.dr))   # |r + K_fg dg|, as solve_path
-    v = sol.u - f.z + jnp.einsum("a,aid->id", dmp, f.du)
-
-    def evaluate(x):
-        r, det = jax.grad(lambda y: energy(ops, params, W, y, g1, sol.load), has_aux=True)(x)
-        return r, jnp.linalg.norm(r), jnp.all(jnp.isfinite(r)) & (det > 0)
-
-    r, rn, valid = evaluate(v)
-    tol = cfg.rtol * jnp.maximum(r_ref, internal_force_scale(ops, params, W, coefficients(ops, v, g1)))
-    # status: -1 running, 0 converged, 1 failed
-    st0 = jnp.where(~valid | ~f.spd, 1, jnp.where(rn <= tol, 0, -1))
-
-    def cond(c):
-        return c[4] < 0
-
-    def body(c):
-        it, v, r, rn, _ = c
-        v2 = v - jax.scipy.linalg.cho_solve((f.L, True), r.reshape(-1)).reshape(v.shape)
-        r2, rn2, valid = evaluate(v2)
-        ok = valid & (rn2 < rn)
-        st = jnp.where(~ok, 1, jnp.where(rn2 <= tol, 0, jnp.where(it >= max_corr, 1, -1)))
-        return it + 1, v2, r2, rn2, st
-
-    it, v, r, rn, st = jax.lax.while_loop(cond, body, (jnp.array(1), v, r, rn, st0))
-    return v, g1, it, rn, st == 0
-
-
-@partial(jax.jit, static_argnames=("ccfg", "pcfg", "same", "max_iter", "max_steps", "window", "max_corr"))
-def _track_loop(ctrl: _Side, plant: _Side, ccfg: Config, pcfg: Config, same: bool,
-                lim: Limits, c0: Solution, p0: Solution, desired, gain, clamp, tol, damping,
-                max_iter: int, max_steps: int, window: int, max_corr: int = 6):
-    """Algorithm 3 as one while-loop. Per iteration with a dense controller: one tangent
-    assembly and one Cholesky factorisation at the converged state serve the Jacobian, the
-    predictor and the chord corrections of the next solve (``_chord_solve``); the full
-    ``solve_path`` (adaptive Newton) runs only where that shortcut fails. A separate dense
-    plant is re-solved the same way with its own factorisation; sparse models use
-    ``solve_path``."""
+@partial(jax.jit, static_argnames=("same", "max_iter", "max_steps", "window", "max_corr"))
+def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: Limits, c0: Solution,
+               p0: Solution, desired, gain, clamp, tol, damping, max_iter: int, max_steps: int,
+               window: int, max_corr: int = 6):
+    """Algorithm 3 as one while-loop (see ``track`` for the arguments). Per iteration: one
+    factorisation of the controller at its converged state serves the Jacobian and the
+    settling of the next state (``ControlledModel.settle``); a separate plant is settled
+    the same way with its own factorisation. Returns (iterations, TrackStatus code, history
+    dict, reached, achieved, controller Solution, plant Solution)."""
     dim_mp = ctrl.G.shape[0]
     n_wp, n_cp = desired.shape
-    fast = isinstance(ccfg.linear, DenseSolver)
-    fast_p = isinstance(pcfg.linear, DenseSolver)
-
-    def measure(side, sol):
-        return point_values(side.ops, side.idx, side.psi, sol.u, sol.g).ravel()
 
     def g_of(side, g_base, mp):
         return g_base + jnp.einsum("a,abi->bi", mp, side.G)
@@ -220,7 +156,7 @@ def _track_loop(ctrl: _Side, plant: _Side, ccfg: Config, pcfg: Config, same: boo
     hist = dict(mp=jnp.zeros((H, dim_mp)), cp=jnp.zeros((H, n_cp)), error=jnp.zeros(H),
                 waypoint=jnp.zeros(H, jnp.int32), newton=jnp.zeros(H, jnp.int32),
                 solve_status=jnp.zeros(H, jnp.int32))
-    cp0 = measure(plant, p0)
+    cp0 = plant.measure(p0)
     hist["cp"] = hist["cp"].at[0].set(cp0)
     hist["error"] = hist["error"].at[0].set(jnp.linalg.norm(desired[0] - cp0))
 
@@ -250,33 +186,16 @@ def _track_loop(ctrl: _Side, plant: _Side, ccfg: Config, pcfg: Config, same: boo
     def cond(s):
         return (s.status < 0) & (s.wp < n_wp)
 
-    def quick_or_full(side, cfg, f, sol, dmp, full):
-        u, g1, its, rn, ok = _chord_solve(side, cfg, f, sol, dmp, max_corr)
-        quick = Solution(u, g1, sol.load, jnp.zeros_like(sol.status), jnp.ones_like(sol.t),
-                         its.astype(sol.iterations.dtype), jnp.ones_like(sol.steps),
-                         jnp.zeros_like(sol.cuts), rn.astype(sol.residual_norm.dtype))
-        return jax.lax.cond(ok, lambda: quick, full)
-
     def step(s, e):
-        if fast:
-            f = _factor(ctrl, ccfg, s.c)
-            J = _jacobian(ctrl, f)
-        else:
-            J = implicit_jacobian(ctrl.ops, ctrl.params, ccfg, s.c.u, s.c.g, s.c.load, ctrl.G,
-                                  ctrl.idx, ctrl.psi).reshape(n_cp, dim_mp)
-        dmp = control_increment(J, e, gain, clamp, damping)
+        state = ctrl.problem.factorise(s.c.u, s.c.g)
+        dmp = control_increment(ctrl.jacobian(s.c, state), e, gain, clamp, damping)
         mp = s.mp + dmp
-        like = lambda new, old: jax.tree.map(lambda a, b: a.astype(b.dtype), new, old)   # the carry's dtypes
-        full = lambda: like(solve_path(ctrl.ops, ctrl.params, ccfg, lim, s.c.u, s.c.g, g_of(ctrl, cg_base, mp),
-                                       s.c.load, s.c.load), s.c)
-        c = quick_or_full(ctrl, ccfg, f, s.c, dmp, full) if fast else full()
+        c = ctrl.settle(s.c, state, g_of(ctrl, cg_base, mp), lim, max_corr)
         if same:
             p = c
         else:
-            full_p = lambda: like(solve_path(plant.ops, plant.params, pcfg, lim, s.p.u, s.p.g,
-                                             g_of(plant, pg_base, mp), s.p.load, s.p.load), s.p)
-            p = quick_or_full(plant, pcfg, _factor(plant, pcfg, s.p), s.p, dmp, full_p) if fast_p else full_p()
-        return Step(mp, c, p, measure(plant, p), c.iterations + (0 if same else p.iterations),
+            p = plant.settle(s.p, plant.problem.factorise(s.p.u, s.p.g), g_of(plant, pg_base, mp), lim, max_corr)
+        return Step(mp, c, p, plant.measure(p), c.iterations + (0 if same else p.iterations),
                     jnp.maximum(c.status, p.status))
 
     def body(s):
@@ -287,7 +206,7 @@ def _track_loop(ctrl: _Side, plant: _Side, ccfg: Config, pcfg: Config, same: boo
         # than a lax.cond around it on every iteration
         st = jax.tree.map(lambda a, b: jnp.where(hit, a, b), keep, step(s, e))
         moved = ~hit
-        ok = (st.c.status == Status.CONVERGED) & (st.p.status == Status.CONVERGED)
+        ok = reached_equilibrium(st.c.status) & reached_equilibrium(st.p.status)
         k = s.k + moved
         e_new = jnp.linalg.norm(desired[s.wp] - st.cp)
         improved = e_new < 0.99 * s.best
@@ -341,21 +260,21 @@ def track(model: Model, path, driven: str, control_points, *, plant: Model | Non
     for name, v in (("gain", gain), ("clamp", clamp), ("tol", tol)):
         if not (np.isfinite(v) and v > 0):
             raise ValueError(f"{name} must be positive, got {v}")
-    ctrl = _side(model, driven, cps, params)
+    ctrl = ControlledModel.of(model, driven, cps, params)
     same = plant is None
     plant_model = model if same else plant
-    pside = ctrl if same else _side(plant_model, plant_driven or driven, cps, plant_params)
+    pside = ctrl if same else ControlledModel.of(plant_model, plant_driven or driven, cps, plant_params)
     if pside.G.shape[0] != ctrl.G.shape[0]:
         raise ValueError("controller and plant must drive the same number of coordinates")
     c0 = model.initial() if initial is None else initial
     p0 = c0 if same else (plant_model.initial() if plant_initial is None else plant_initial)
-    k, status, hist, reached, achieved, c, p = _track_loop(
-        ctrl, pside, model._config(), plant_model._config(), same, Limits.of(steps=1), c0, p0, jnp.asarray(path),
+    k, status, hist, reached, achieved, c, p = track_loop(
+        ctrl, pside, same, Limits.of(steps=1), c0, p0, jnp.asarray(path),
         gain, clamp, tol, damping, int(max_iter), int(max_steps), int(window))
     n = int(k) + 1
     h = {key: np.asarray(v)[:n] for key, v in hist.items()}
     return TrackResult(h["mp"], h["cp"], h["error"], h["waypoint"], h["newton"], h["solve_status"],
-                       np.asarray(reached), np.asarray(achieved), path, TrackStatus(int(status)), c, p)
+                       np.asarray(reached), np.asarray(achieved), path, TrackStatus.of(status), c, p)
 
 
 # ----------------------------------------------------------------- the thesis' paths

@@ -14,10 +14,12 @@ from .boundary import EssentialSets, Springs, Transformation, nodal_forces
 from .geometry import Body
 from .materials import Material, green_lagrange, pk2
 from .rk import neighbours, psi_jax, shape_functions
+from .linear import DenseSolver, SparseSolver
+from .problem import Problem
 from .sparse import SaddlePointSystem, factoriser
-from .solve import (Config, DenseSolver, Limits, Ops, Params, Solution, SparseSolver, Status,
-                    coefficients, deformation_gradients, energy_full, implicit_jacobian,
-                    point_values, solve_path_jit)
+from .solve import (Config, Limits, Ops, Params, Solution, Status, coefficients,
+                    deformation_gradients, energy_full, implicit_jacobian, point_values,
+                    solve_path_jit)
 
 _point_values_jit = jax.jit(point_values)   # FD evaluates it per re-solve: one dispatch, not ~10 eager ops
 DENSE_LIMIT = 2500  # free DOFs up to which the dense factorisation is used ("auto")
@@ -206,8 +208,18 @@ class Model:
         return SparseSolver(SaddlePointSystem(self.body.X, rows, cols, C, free_dofs, self.sets.bnd, d,
                                               factorisation))
 
-    def _config(self, **kw) -> Config:
-        return Config(W=self.material.W, linear=self.linear, **kw)
+    def config(self, **settings) -> Config:
+        """The static solver settings of this model (``Config`` fields may be overridden)."""
+        unknown = set(settings) - set(Config.__dataclass_fields__) - {"W", "linear"}
+        if unknown:
+            raise ValueError(f"unknown solver setting(s) {sorted(unknown)}; Config has "
+                             f"{sorted(set(Config.__dataclass_fields__) - {'W', 'linear'})}")
+        return Config(W=self.material.W, linear=self.linear, **settings)
+
+    def problem(self, params=None, **settings) -> Problem:
+        """The discrete problem with parameter overrides ``params`` (see ``params_with``)
+        and solver settings: a jit-friendly pytree (see jaxrkpm.problem)."""
+        return Problem(self.ops, self.params_with(params), self.config(**settings))
 
     @property
     def dim(self) -> int:
@@ -313,10 +325,10 @@ class Model:
         start = self.initial() if initial is None else initial
         if _is_concrete(loads) and not np.isfinite(loads):
             raise ValueError(f"loads must be finite, got {loads}")
-        sol = solve_path_jit(self.ops, self.params_with(params), self._config(**options),
+        sol = solve_path_jit(self.ops, self.params_with(params), self.config(**options),
                              Limits.of(steps, max_iter, max_cuts), start.u, start.g, jnp.asarray(g, jnp.float64),
                              jnp.asarray(start.load, jnp.float64), jnp.asarray(loads, jnp.float64))
-        if throw and _is_concrete(sol.status) and int(sol.status) != Status.CONVERGED:
+        if throw and _is_concrete(sol.status) and not Status.of(sol.status).equilibrium:
             raise SolveError(sol)
         return sol
 
@@ -367,7 +379,7 @@ class Model:
         idx, psi, G = self._jacobian_tables(points, driven, rigid)
         P = idx.shape[0]
         if method == "implicit":
-            J = implicit_jacobian(self.ops, self.params_with(params), self._config(), sol.u, sol.g,
+            J = implicit_jacobian(self.ops, self.params_with(params), self.config(), sol.u, sol.g,
                                   sol.load, G, idx, psi)
             return J.reshape(P * self.dim, -1)
         if not (np.isfinite(eps) and eps > 0):

@@ -28,7 +28,8 @@ from .geometry import Body
 from .materials import Fung
 from .model import Model
 from .rk import neighbours
-from .solve import Limits, Ops, Params, Status, point_values, response, solve_path
+from .problem import Problem
+from .solve import Limits, Status, point_values
 
 # Table 6.2: paddle position index -> the two boundary particles it covers
 TABLE_6_2 = (((0.4, 0.1), (0.3, 0.2)),
@@ -213,10 +214,10 @@ def inclusion_field(box, ratio: float):
 
 
 # ----------------------------------------------------------------------- batching
-def stack_models(models: Sequence[Model]):
-    """Stack the Ops and Params of models that share a body and integration table into one
-    batch (leading axis), zero-padding ragged tables: padded neighbours carry zero shape
-    function values and padded coupling columns are zero, so they contribute nothing."""
+def stack_models(models: Sequence[Model]) -> Problem:
+    """The problems of models that share a body and integration table stacked into one batch
+    (leading axis of every array), zero-padding ragged tables: padded neighbours carry zero
+    shape function values and padded coupling columns are zero, so they contribute nothing."""
     ref = models[0]
     for m in models[1:]:
         if m.body is not ref.body or m.ops.idx.shape != ref.ops.idx.shape:
@@ -224,7 +225,7 @@ def stack_models(models: Sequence[Model]):
         if m.ops.free.shape != ref.ops.free.shape:
             raise ValueError("batched models must have essential sets of equal sizes "
                              f"({m.ops.bnd.shape[0]} vs {ref.ops.bnd.shape[0]} essential particles)")
-        if type(m.linear) is not type(ref.linear) or m.material.W is not ref.material.W:
+        if m.config() != ref.config():
             raise ValueError("batched models must share one material law and linear solver")
 
     def stack(*xs):
@@ -236,7 +237,7 @@ def stack_models(models: Sequence[Model]):
 
     ops = jax.tree.map(stack, *[m.ops for m in models])
     params = jax.tree.map(lambda *xs: jnp.stack(xs), *[m.params for m in models])
-    return ops, params
+    return Problem(ops, params, ref.config())
 
 
 def _device_mesh(n_devices: int | None):
@@ -274,34 +275,33 @@ class Insertion(NamedTuple):
     jacobian: jax.Array
 
 
-@partial(jax.jit, static_argnames=("cfg", "with_jacobian", "chunk"))
-def _insert_batch(ops, params, G, dG, lim, idx, psi, *, cfg, with_jacobian, chunk=None):
-    """G (B, n+1, Nb, d) prescribed values per increment (G[:, 0] the start); dG (B, m, Nb, d)
-    the paddle directions for the Jacobian; idx, psi (P, K) the target's shape functions.
+@partial(jax.jit, static_argnames=("with_jacobian", "chunk"))
+def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, with_jacobian, chunk=None):
+    """prob: the batched problems; G (B, n+1, Nb, d) prescribed values per increment (G[:, 0]
+    the start); dG (B, m, Nb, d) the paddle directions for the Jacobian; idx, psi (P, K) the
+    target's shape functions.
 
     The configurations run through ``lax.map``: sequentially, or vmapped ``chunk`` at a time.
     Sequential is the default on CPU: vmapped members run their Newton while-loops in lock
     step (every member iterates until the slowest converges), and XLA:CPU in jax 0.10.2
     deadlocks (all threads idle) on vmapped solves of 5 configurations x 15 increments."""
 
-    def one(ops, params, G, dG):
+    def one(prob, G, dG):
         def step(carry, g1):
             u, g0 = carry
-            sol = solve_path(ops, params, cfg, lim, u, g0, g1, jnp.float64(1.0), jnp.float64(1.0))
-            tu = point_values(ops, idx, psi, sol.u, sol.g)[0]
+            sol = prob.solve(lim, u, g0, g1, jnp.float64(1.0), jnp.float64(1.0))
+            tu = prob.point_values(idx, psi, sol.u, sol.g)[0]
             if with_jacobian:
-                du = response(ops, params, cfg, sol.u, sol.g, sol.load, dG, branchless=True)  # (m, Nf, d)
-                J = jax.vmap(lambda a, b: jax.jvp(lambda x, y: point_values(ops, idx, psi, x, y),
-                                                  (sol.u, sol.g), (a, b))[1][0])(du, dG).T
+                J = prob.jacobian(sol, dG, idx, psi)[0]                    # (d, m)
             else:
                 J = jnp.zeros((tu.shape[0], dG.shape[0]))
             return (sol.u, sol.g), (tu, sol.status, sol.iterations, J)
 
-        u0 = jnp.zeros((ops.free.shape[0], G.shape[-1]))
+        u0 = jnp.zeros((prob.ops.free.shape[0], G.shape[-1]))
         _, out = jax.lax.scan(step, (u0, G[0]), G[1:])
         return out
 
-    return Insertion(*jax.lax.map(lambda a: one(*a), (ops, params, G, dG), batch_size=chunk))
+    return Insertion(*jax.lax.map(lambda a: one(*a), (prob, G, dG), batch_size=chunk))
 
 
 def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None = "paddle",
@@ -316,7 +316,8 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
     Each model keeps its other sets fixed (zero). Failed solves do not raise: their status
     is recorded and the next increment starts from the last converged state."""
     ref = models[0]
-    ops, params = stack_models(models)
+    prob = stack_models(models)
+    prob = prob.with_config(linear=prob.config.linear.batched())
     depths = np.asarray(depths, float)
     G, dG = [], []
     for m in models:
@@ -325,11 +326,11 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
         G.append(jnp.stack(rows))
         dG.append(m.directions(jacobian_set) if jacobian_set else jnp.zeros((1,) + rows[0].shape))
     sf = ref.shape_functions(np.atleast_2d(point), gradients=False)
-    fn = partial(_insert_batch, cfg=ref._config(), with_jacobian=jacobian_set is not None, chunk=chunk)
+    fn = partial(_insert_batch, with_jacobian=jacobian_set is not None, chunk=chunk)
     lim = Limits.of(steps, max_iter)
     idx, psi = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
-    return run_batched(lambda o, p, g, dg: fn(o, p, g, dg, lim, idx, psi),
-                       (ops, params, jnp.stack(G), jnp.stack(dG)), n_devices)
+    return run_batched(lambda pr, g, dg: fn(pr, g, dg, lim, idx, psi),
+                       (prob, jnp.stack(G), jnp.stack(dG)), n_devices)
 
 
 def controllability(J) -> np.ndarray:

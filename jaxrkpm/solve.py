@@ -6,7 +6,6 @@ prescribed values g (Nb, d) and the load scale are explicit, differentiable inpu
 """
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass
 from functools import partial
 from typing import Any, Callable, NamedTuple
@@ -15,36 +14,39 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .linear import Stability
 from .materials import green_lagrange
+from .outcome import Outcome
 
 
-class Status(enum.IntEnum):
-    CONVERGED = 0
-    MAX_ITERATIONS = 1
-    NONFINITE = 2
-    INVERTED = 3
-    LINE_SEARCH = 4
-    UNSTABLE_TANGENT = 5
+class Status(Outcome):
+    """Outcome of a solve (an int code inside jit; ``Status.of(sol.status)`` outside)."""
+
+    CONVERGED = 0, "converged"
+    MAX_ITERATIONS = 1, "Newton reached its iteration cap on the smallest load step allowed"
+    NONFINITE = 2, "non-finite residual or energy (NaN/inf) on the smallest load step allowed"
+    INVERTED = 3, ("a step would invert the material (det F <= 0 at an integration point) "
+                   "even on the smallest load step allowed")
+    LINE_SEARCH = 4, ("the line search found no decrease of energy or residual "
+                      "on the smallest load step allowed")
+    UNSTABLE_TANGENT = 5, ("the tangent K_ff is not positive definite at the equilibrium "
+                           "reached (loss of stability: a limit or bifurcation point, buckling "
+                           "or loss of ellipticity passed), even on the smallest load step "
+                           "allowed; the path is stopped at the last stable state (solve with "
+                           "check_stability=False to follow the unstable branch)")
+    STABILITY_UNKNOWN = 6, ("converged, but the factorisation could not tell whether K_ff is "
+                            "positive definite (perturbed or permuted pivots): the state may lie "
+                            "past a critical point")
 
     @property
-    def message(self) -> str:
-        return _MESSAGES[self]
+    def equilibrium(self) -> bool:
+        """An equilibrium was reached (converged, whatever the stability check said)."""
+        return self in (Status.CONVERGED, Status.STABILITY_UNKNOWN)
 
 
-_MESSAGES = {
-    Status.CONVERGED: "converged",
-    Status.MAX_ITERATIONS: "Newton reached its iteration cap on the smallest load step allowed",
-    Status.NONFINITE: "non-finite residual or energy (NaN/inf) on the smallest load step allowed",
-    Status.INVERTED: "a step would invert the material (det F <= 0 at an integration point) "
-                     "even on the smallest load step allowed",
-    Status.LINE_SEARCH: "the line search found no decrease of energy or residual "
-                        "on the smallest load step allowed",
-    Status.UNSTABLE_TANGENT: "the tangent K_ff is not positive definite at the equilibrium "
-                             "reached (loss of stability: a limit or bifurcation point, buckling "
-                             "or loss of ellipticity passed), even on the smallest load step "
-                             "allowed; the path is stopped at the last stable state (solve with "
-                             "check_stability=False to follow the unstable branch)",
-}
+def reached_equilibrium(status):
+    """Inside jit: the status code(s) of an equilibrium (CONVERGED or STABILITY_UNKNOWN)."""
+    return (status == Status.CONVERGED) | (status == Status.STABILITY_UNKNOWN)
 
 
 class Ops(NamedTuple):
@@ -78,15 +80,30 @@ class Params(NamedTuple):
 
 @dataclass(frozen=True)
 class Config:
-    """Static solver settings (hashable: part of the jit cache key)."""
+    """Static solver settings (immutable and hashable: part of the jit cache key).
 
-    W: Callable
-    linear: Any            # DenseSolver() or a SparseSolver instance
-    rtol: float = 1e-10    # residual tolerance relative to the internal force scale
-    line_search: int = 8   # step halvings in the line search
-    easy: int = 4          # a step converging within this many iterations lets dt grow
+    ``Model.config(**overrides)`` gives a model's; every field may be overridden per solve
+    (``model.solve(..., rtol=1e-12)``)."""
+
+    W: Callable                   # strain energy W(E, params)
+    linear: Any                   # jaxrkpm.linear.DenseSolver() or SparseSolver(system)
+    rtol: float = 1e-10           # residual tolerance relative to the internal force scale
+    line_search: int = 8          # step halvings in the line search
+    armijo: float = 1e-4          # sufficient-decrease constant of the energy line search
+    easy: int = 4                 # a load step converging within this many iterations lets dt grow
+    growth: float = 1.5           # ... by this factor (never above the initial step)
     check_stability: bool = True  # an equilibrium with K_ff not positive definite -> UNSTABLE_TANGENT
     #                               (False also lets iterative linear solves stop early)
+
+    def __post_init__(self):
+        if not callable(self.W):
+            raise ValueError("Config.W must be the material's strain energy W(E, params)")
+        for name in ("rtol", "armijo", "growth"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive number, got {v!r}")
+        if int(self.line_search) < 0 or int(self.easy) < 0:
+            raise ValueError("line_search and easy must be >= 0")
 
 
 class Limits(NamedTuple):
@@ -125,7 +142,14 @@ class Solution(NamedTuple):
 
     @property
     def converged(self) -> bool:
-        return bool(np.all(np.asarray(self.status) == Status.CONVERGED))
+        """Every solve reached an equilibrium (CONVERGED, or STABILITY_UNKNOWN)."""
+        st = np.asarray(self.status)
+        return bool(np.all((st == Status.CONVERGED) | (st == Status.STABILITY_UNKNOWN)))
+
+    @property
+    def outcome(self) -> Status:
+        """The status as a Status member (prints as its name); one solve only."""
+        return Status.of(self.status)
 
     @property
     def message(self) -> str:
@@ -134,11 +158,15 @@ class Solution(NamedTuple):
             bad = np.flatnonzero(st != 0)
             if not len(bad):
                 return f"all {st.size} solves converged"
-            return f"{len(bad)} of {st.size} solves failed; first (#{bad[0]}): " + Status(int(st.flat[bad[0]])).message
-        s = Status(int(st))
+            return (f"{len(bad)} of {st.size} solves did not converge; first (#{bad[0]}): "
+                    + Status.of(st.flat[bad[0]]).message)
+        s = Status.of(st)
         if s == Status.CONVERGED:
             return (f"converged in {int(self.steps)} load steps, {int(self.iterations)} Newton "
                     f"iterations (|r| = {float(self.residual_norm):.2e})")
+        if s == Status.STABILITY_UNKNOWN:
+            return (f"{s.name}: {s.message} (after {int(self.steps)} load steps, "
+                    f"{int(self.iterations)} Newton iterations)")
         return (f"{s.name}: {s.message}; stopped at {100 * float(self.t):.1f}% of the increment "
                 f"after {int(self.steps)} steps and {int(self.cuts)} step cuts; the last converged "
                 f"state is kept")
@@ -266,120 +294,49 @@ def spring_blocks(ops, params, n_pairs, dim):
     return scal[:, None, None] * jnp.eye(dim)
 
 
-def dense_tangent(ops: Ops, blocks):
-    """K_ff = T^T K T with T = [I; -A] (the thesis transformation), dense (Nf*d, Nf*d)."""
-    N, dim = ops.f_ext.shape
-    K = jnp.zeros((N, N, dim, dim), blocks.dtype).at[ops.pair_i, ops.pair_j].add(blocks)
-    K = K.transpose(0, 2, 1, 3)                                   # (N, d, N, d)
-    Kff = K[ops.free][:, :, ops.free]
-    if ops.bnd.shape[0]:
-        Kfb = K[ops.free][:, :, ops.bnd]                          # (Nf, d, Nb, d)
-        Kbb = K[ops.bnd][:, :, ops.bnd]
-        X = jnp.einsum("faBb,Bc->facb", Kfb, ops.A_near)         # (Nf, d, Nc, d)
-        Kff = Kff.at[:, :, ops.near].add(-X)
-        Kff = Kff.at[ops.near].add(-X.transpose(2, 3, 0, 1))
-        corr = jnp.einsum("Bc,BaDb,De->caeb", ops.A_near, Kbb, ops.A_near)
-        Kff = Kff.at[ops.near[:, None], :, ops.near[None, :], :].add(corr.transpose(0, 2, 1, 3))
-    n = Kff.shape[0] * dim
-    return Kff.reshape(n, n)
-
-
-@dataclass(frozen=True)
-class DenseSolver:
-    """Dense LU of the transformed tangent (small systems)."""
-
-    name: str = "dense"
-
-    def matrix(self, ops, blocks):
-        return dense_tangent(ops, blocks)
-
-    def solve(self, ops, K, rhs):
-        """Solve K_ff x = rhs for rhs (Nf, d) or (Nf, d, m)."""
-        n = K.shape[0]
-        b = rhs.reshape(n, -1)
-        return jnp.linalg.solve(K, b).reshape(rhs.shape)
-
-    def solve_checked(self, ops, K, rhs, branchless=False, rtol=None):
-        """(x, K_ff positive definite?): a Cholesky factorisation, LU where it fails (exact:
-        ``rtol``, the tolerance an iterative solver may stop at, is not needed).
-        ``branchless`` computes both and selects: XLA:CPU (jax 0.10.2) deadlocks on this
-        lax.cond inside a scan under vmap (the batched needle sweep with Jacobians)."""
-        n = K.shape[0]
-        b = rhs.reshape(n, -1)
-        L = jnp.linalg.cholesky(K)
-        pd = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
-        if branchless:
-            x = jnp.where(pd, jax.scipy.linalg.cho_solve((L, True), b), jnp.linalg.solve(K, b))
-        else:
-            x = jax.lax.cond(pd, lambda: jax.scipy.linalg.cho_solve((L, True), b),
-                             lambda: jnp.linalg.solve(K, b))
-        return x.reshape(rhs.shape), pd
-
-
-@dataclass(frozen=True, eq=False)
-class SparseSolver:
-    """Sparse path for large systems: the saddle-point form of the same transformation,
-
-        [K  C^T] [dd]   [r]
-        [C   0 ] [l ] = [0],   C dd = 0  <=>  dd = T du_f,
-
-    whose free part solves T^T K T du_f = r exactly, on the host (a jax.pure_callback, so it
-    runs inside jit and while-loops): symmetric indefinite factorisations (PARDISO or
-    SuperLU), reused as conjugate-gradient preconditioners while they work (see
-    jaxrkpm.sparse)."""
-
-    system: Any           # jaxrkpm.sparse.SaddlePointSystem
-    name: str = "sparse"
-
-    def matrix(self, ops, blocks):
-        return blocks  # the factorisation happens on the host
-
-    def _host_solve(self, blocks, rhs):
-        return self.system.solve(blocks, rhs)[0]
-
-    def solve(self, ops, blocks, rhs):
-        return jax.pure_callback(self._host_solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
-                                 blocks, rhs, vmap_method="sequential")
-
-    def solve_checked(self, ops, blocks, rhs, branchless=False, rtol=None):
-        """(x, K_ff positive definite?): the inertia of a fresh factorisation, or no negative
-        curvature met by CG preconditioned with an earlier positive definite one. CG stops at
-        the relative residual ``rtol`` (default: the system's tight cg_rtol)."""
-        out = (jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), jax.ShapeDtypeStruct((), jnp.bool_))
-        rtol = jnp.asarray(self.system.cg_rtol if rtol is None else rtol, rhs.dtype)
-        return jax.pure_callback(self.system.solve, out, blocks, rhs, rtol, vmap_method="sequential")
-
-
 def tangent(ops, params, cfg: Config, u, g):
-    d = coefficients(ops, u, g)
-    return cfg.linear.matrix(ops, pair_blocks(ops, params, cfg.W, d))
+    """The tangent as the linear solver takes it: dense K_ff, or (P, d, d) pair blocks."""
+    return cfg.linear.matrix(ops, pair_blocks(ops, params, cfg.W, coefficients(ops, u, g)))
+
+
+def linear_state(ops, params, cfg: Config, u, g):
+    """The linear solver's factorisation of K_ff at (u, g) (see jaxrkpm.linear)."""
+    return cfg.linear.init(ops, pair_blocks(ops, params, cfg.W, coefficients(ops, u, g)))
 
 
 # ---------------------------------------------------------------------------- Newton
-def _newton_step(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1):
-    """Newton from the equilibrium at (g0, l0) to (g1, l1).
+def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: bool = False):
+    """Newton from the equilibrium at (g0, l0) to (g1, l1); returns (u, status, iterations,
+    |r|, linear state).
 
     The first linear solve is the predictor: it carries the prescribed increment,
-    K_ff(u, g0) du = -(r(u, g0, l1) + K_fg (g1 - g0)); later ones are plain Newton at g1.
-    (One tangent site in the loop body keeps the compiled graph small.)
-    Returns (u, status, iterations, |r|)."""
+    K_ff(u, g0) du = -(r(u, g0, l1) + K_fg (g1 - g0)); later ones are Newton steps at g1.
+    Converged when |r| <= rtol max(|r + K_fg dg|, internal force scale).
+
+    ``chord=False``: every iteration assembles the tangent and solves through
+    ``cfg.linear.newton_solve`` (which may reuse ``state``, e.g. as a preconditioner), then a
+    backtracking line search (energy decrease or residual decrease).
+    ``chord=True``: every solve uses the factorisation ``state`` as it is (no assembly: the
+    chord, or modified Newton, iteration of a kept tangent); no line search, each correction
+    must lower |r|; a ``state`` that is not stable gives UNSTABLE_TANGENT at once."""
     W = cfg.W
     res = partial(residual, ops, params, W)
     r_pred, kfg_dg = jax.jvp(lambda g: res(u, g, l1), (g0,), (g1 - g0,))
     rhs0 = r_pred + kfg_dg
     r_ref = jnp.linalg.norm(rhs0)
+    halvings = 0 if chord else cfg.line_search
 
     def evaluate(v):
         (Pi, detmin), r = jax.value_and_grad(lambda x: energy(ops, params, W, x, g1, l1), has_aux=True)(v)
         return Pi, detmin, r
 
-    def line_search(u, Pi, r, du):
+    def line_search(u, Pi, r, du, first):
         slope = jnp.sum(du * r)
         rn = jnp.linalg.norm(r)
         start_ok = jnp.isfinite(Pi) & jnp.all(jnp.isfinite(r))
 
         def cond(c):
-            return (~c[1]) & (c[0] <= cfg.line_search)
+            return (~c[1]) & (c[0] <= halvings)
 
         def body(c):
             k, _, _, _, _, any_finite, _ = c
@@ -388,7 +345,11 @@ def _newton_step(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1):
             Pi_v, det_v, r_v = evaluate(v)
             finite = jnp.isfinite(Pi_v) & jnp.all(jnp.isfinite(r_v))
             valid = finite & (det_v > 0)
-            decrease = (Pi_v <= Pi + 1e-4 * alpha * slope) | (jnp.linalg.norm(r_v) < rn) | ~start_ok
+            lower_r = jnp.linalg.norm(r_v) < rn
+            if chord:   # the predictor need only be admissible; corrections must lower |r|
+                decrease = first | lower_r
+            else:
+                decrease = (Pi_v <= Pi + cfg.armijo * alpha * slope) | lower_r | ~start_ok
             return (k + 1, valid & decrease, v, Pi_v, r_v, any_finite | finite, det_v > 0)
 
         init = (jnp.array(0), jnp.array(False), u, Pi, r, jnp.array(False), jnp.array(True))
@@ -401,43 +362,53 @@ def _newton_step(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1):
         return c[4] < 0
 
     def body(c):
-        it, u, Pi, r, _ = c
+        it, u, Pi, r, _, state = c
         first = it == 0
-        K = tangent(ops, params, cfg, u, jnp.where(first, g0, g1))
         rhs = jnp.where(first, rhs0, r)
-        # inexact Newton (only without the stability check): far from equilibrium the linear
-        # solve need only be as accurate as the step is good (a forcing term proportional to
-        # the residual keeps the convergence quadratic), near it solves are tight. With the
-        # check, every solve is tight: an iterative solver finds negative curvature only in a
-        # rich Krylov space (loose solves let a buckling column pass its bifurcation unseen)
-        forcing = None
-        if not cfg.check_stability:
-            rel = jnp.linalg.norm(rhs) / jnp.maximum(r_ref, 1e-300)
-            forcing = jnp.where(rel > 1e-4, jnp.minimum(1e-2 * rel, 1e-4), 1e-11)
-        dx, pd = cfg.linear.solve_checked(ops, K, rhs, rtol=forcing)
-        du = -dx
-        ok, v, Pi_v, r_v, why = line_search(u, Pi, r, du)
+        if chord:
+            dx, stab = cfg.linear.solve(state, rhs), cfg.linear.stability(state)
+        else:
+            blocks = pair_blocks(ops, params, W, coefficients(ops, u, jnp.where(first, g0, g1)))
+            # inexact Newton (only without the stability check): far from equilibrium the
+            # linear solve need only be as accurate as the step is good (a forcing term
+            # proportional to the residual keeps the convergence quadratic), near it solves
+            # are tight. With the check, every solve is tight: an iterative solver finds
+            # negative curvature only in a rich Krylov space
+            forcing = None
+            if not cfg.check_stability:
+                rel = jnp.linalg.norm(rhs) / jnp.maximum(r_ref, 1e-300)
+                forcing = jnp.where(rel > 1e-4, jnp.minimum(1e-2 * rel, 1e-4), 1e-11)
+            dx, state, stab = cfg.linear.newton_solve(state, ops, blocks, rhs, forcing)
+        ok, v, Pi_v, r_v, why = line_search(u, Pi, r, -dx, first)
         rn = jnp.linalg.norm(r_v)
         scale = internal_force_scale(ops, params, W, coefficients(ops, v, g1))
         converged = ok & (rn <= cfg.rtol * jnp.maximum(r_ref, scale))
         # stability from the last factorised tangent (at the iterate before the converged one)
-        stable = pd | (not cfg.check_stability)
-        status = jnp.where(~ok, why, jnp.where(converged, jnp.where(stable, Status.CONVERGED,
-                                                                    Status.UNSTABLE_TANGENT),
+        if cfg.check_stability:
+            done = jnp.where(stab == Stability.STABLE, Status.CONVERGED,
+                             jnp.where(stab == Stability.UNSTABLE, Status.UNSTABLE_TANGENT,
+                                       Status.STABILITY_UNKNOWN))
+        else:
+            done = Status.CONVERGED
+        status = jnp.where(~ok, why, jnp.where(converged, done,
                                                jnp.where(it + 1 >= max_iter, Status.MAX_ITERATIONS, -1)))
-        return (it + 1, jnp.where(ok, v, u), jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), status)
+        return (it + 1, jnp.where(ok, v, u), jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), status, state)
 
     Pi0, _, r0 = evaluate(u)
-    it, u_new, _, r, status = jax.lax.while_loop(cond, body, (jnp.array(0), u, Pi0, r0, jnp.array(-1)))
-    return u_new, status, it, jnp.linalg.norm(r)
+    status0 = jnp.array(-1)
+    if chord:
+        status0 = jnp.where(cfg.linear.stability(state) == Stability.STABLE, -1, Status.UNSTABLE_TANGENT)
+    it, u_new, _, r, status, state = jax.lax.while_loop(cond, body, (jnp.array(0), u, Pi0, r0, status0, state))
+    return u_new, status, it, jnp.linalg.norm(r), state
 
 
 def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l0, l1) -> Solution:
     """Adaptive load stepping from the equilibrium (u0, g0, l0) to (g1, l1).
 
     Halves the step on failure (up to lim.max_cuts times below the initial step), grows it
-    by 1.5x after easy steps (never above the initial step). On failure the last converged
-    state is returned with the failing status."""
+    by ``cfg.growth`` after easy steps (never above the initial step). On failure the last
+    converged state is returned with the failing status. The linear solver's state runs
+    through every step (a sparse factorisation keeps preconditioning later steps)."""
     dt0 = 1.0 / lim.steps
     dt_min = dt0 * 0.5 ** lim.max_cuts
 
@@ -449,22 +420,25 @@ def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l
         return (t < 1.0) & (status <= 0)
 
     def body(c):
-        t, dt, u, status, iters, steps, cuts, rn = c
+        t, dt, u, status, iters, steps, cuts, rn, unknown, state = c
         t1 = jnp.minimum(t + dt, 1.0)
         t1 = jnp.where(1.0 - t1 < 1e-12, 1.0, t1)
         ga, la = at(t)
         gb, lb = at(t1)
-        v, st, it, rn_v = _newton_step(ops, params, cfg, lim.max_iter, u, ga, gb, la, lb)
-        ok = st == Status.CONVERGED
-        grow = jnp.where(it <= cfg.easy, 1.5, 1.0)
+        v, st, it, rn_v, state = newton(ops, params, cfg, lim.max_iter, u, ga, gb, la, lb, state)
+        ok = (st == Status.CONVERGED) | (st == Status.STABILITY_UNKNOWN)
+        grow = jnp.where(it <= cfg.easy, cfg.growth, 1.0)
         dt_next = jnp.where(ok, jnp.minimum(dt * grow, dt0), dt / 2)
         give_up = (~ok) & (dt / 2 < dt_min * (1 - 1e-9))
         return (jnp.where(ok, t1, t), dt_next, jnp.where(ok, v, u),
-                jnp.where(give_up, st, 0), iters + it, steps + ok, cuts + (~ok), jnp.where(ok, rn_v, rn))
+                jnp.where(give_up, st, 0), iters + it, steps + ok, cuts + (~ok), jnp.where(ok, rn_v, rn),
+                unknown | (st == Status.STABILITY_UNKNOWN), state)
 
     zero = jnp.array(0)
-    init = (jnp.array(0.0), jnp.array(dt0), u0, zero, zero, zero, zero, jnp.array(0.0))
-    t, _, u, status, iters, steps, cuts, rn = jax.lax.while_loop(cond, body, init)
+    init = (jnp.array(0.0), jnp.array(dt0), u0, zero, zero, zero, zero, jnp.array(0.0), jnp.array(False),
+            cfg.linear.empty(ops, u0.dtype))
+    t, _, u, status, iters, steps, cuts, rn, unknown, _ = jax.lax.while_loop(cond, body, init)
+    status = jnp.where((status == 0) & unknown, Status.STABILITY_UNKNOWN, status)
     g, load = at(t)
     return Solution(u, g, load, status, t, iters, steps, cuts, rn)
 
@@ -477,16 +451,23 @@ def _zero_tangent(x):
     return jnp.zeros_like(x)
 
 
-def _solve_linearized(ops, params, cfg: Config, u, g, load, rhs):
-    """x = K_ff^-1 rhs at the state (u, g) as a custom linear solve: the matrix-vector
-    product is the exact Hessian-vector product of the energy, the solve uses the assembled
-    tangent, and symmetry makes it transposable (so reverse mode works too)."""
-    K = tangent(ops, params, cfg, u, g)
+def sensitivity(ops, params, cfg: Config, u, g, load, rhs, state=None):
+    """x = K_ff^-1 rhs at the equilibrium (u, g, load), rhs (Nf, d) or (Nf, d, m): the one
+    linearised solve behind every implicit derivative (solve's JVP, ``response``, Jacobians).
+    ``state``: a factorisation of K_ff there to reuse (default: factorise now).
 
-    def matvec(v):
+    A custom linear solve: the matrix-vector product is the exact Hessian-vector product of
+    the energy, the solve uses the factorisation, and symmetry makes it transposable (so
+    reverse mode works too)."""
+    if state is None:
+        state = linear_state(ops, params, cfg, u, g)
+
+    def hvp(v):
         return jax.jvp(lambda x: residual(ops, params, cfg.W, x, g, load), (u,), (v,))[1]
 
-    return jax.lax.custom_linear_solve(matvec, rhs, solve=lambda _, b: cfg.linear.solve(ops, K, b),
+    # several right-hand sides (Nf, d, m) are one block: the product column by column
+    matvec = hvp if rhs.ndim == u.ndim else jax.vmap(hvp, in_axes=-1, out_axes=-1)
+    return jax.lax.custom_linear_solve(matvec, rhs, solve=lambda _, b: cfg.linear.solve(state, b),
                                        symmetric=True)
 
 
@@ -506,7 +487,7 @@ def _solve_path_jvp(cfg, primals, tangents):
     dg, dl = sol.t * dg1, sol.t * dl1
     _, dr = jax.jvp(lambda g, l, p: residual(ops, p, cfg.W, sol.u, g, l),
                     (sol.g, sol.load, params), (dg, dl, dparams))
-    du = -_solve_linearized(ops, params, cfg, sol.u, sol.g, sol.load, dr)
+    du = -sensitivity(ops, params, cfg, sol.u, sol.g, sol.load, dr)
     dsol = Solution(du, dg, dl, *(_zero_tangent(x) for x in sol[3:]))
     return sol, dsol
 
@@ -514,15 +495,12 @@ def _solve_path_jvp(cfg, primals, tangents):
 solve_path_jit = jax.jit(solve_path_diff, static_argnames=("cfg",))
 
 
-def response(ops, params, cfg: Config, u, g, load, dG, branchless=False):
+def response(ops, params, cfg: Config, u, g, load, dG, state=None):
     """Implicit sensitivity of the free coefficients to m prescribed directions dG (m, Nb, d):
-    one tangent factorisation, m right-hand sides K_ff du = -K_fg dG. Returns (m, Nf, d).
-    Dense: Cholesky (K_ff is positive definite at a stable equilibrium; half the work of LU),
-    LU where it is not (``branchless``: see DenseSolver.solve_checked)."""
+    K_ff du = -K_fg dG with one factorisation (``state``, or a new one). Returns (m, Nf, d)."""
     dr = jax.vmap(lambda dg: jax.jvp(lambda x: residual(ops, params, cfg.W, u, x, load),
                                      (g,), (dg,))[1])(dG)                      # (m, Nf, d)
-    K = tangent(ops, params, cfg, u, g)
-    du = -cfg.linear.solve_checked(ops, K, jnp.moveaxis(dr, 0, -1), branchless)[0]  # (Nf, d, m)
+    du = -sensitivity(ops, params, cfg, u, g, load, jnp.moveaxis(dr, 0, -1), state)   # (Nf, d, m)
     return jnp.moveaxis(du, -1, 0)
 
 
@@ -532,9 +510,15 @@ def point_values(ops, idx, psi, u, g):
     return jnp.einsum("pk,pki->pi", psi, d[idx])
 
 
-@partial(jax.jit, static_argnames=("cfg",))
-def implicit_jacobian(ops, params, cfg: Config, u, g, load, dG, idx, psi):
-    """d(displacement at points)/d(direction) for the m directions dG: (P, d, m)."""
-    du = response(ops, params, cfg, u, g, load, dG)
+def point_jacobian(ops, idx, psi, u, g, du, dG):
+    """d(displacement at points)/d(direction) from the responses du (m, Nf, d) to the
+    directions dG (m, Nb, d): (P, d, m) (the point values are linear in (u, g))."""
     dU = jax.vmap(lambda a, b: jax.jvp(lambda x, y: point_values(ops, idx, psi, x, y), (u, g), (a, b))[1])(du, dG)
     return jnp.moveaxis(dU, 0, -1)
+
+
+@partial(jax.jit, static_argnames=("cfg",))
+def implicit_jacobian(ops, params, cfg: Config, u, g, load, dG, idx, psi, state=None):
+    """d(displacement at points)/d(direction) for the m directions dG: (P, d, m)."""
+    du = response(ops, params, cfg, u, g, load, dG, state)
+    return point_jacobian(ops, idx, psi, u, g, du, dG)

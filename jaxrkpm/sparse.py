@@ -24,7 +24,12 @@ Factorisations are reused: the last positive definite one preconditions a conjug
 solve of K_ff x = r (matrix-vector products with the current K and T); only when CG stalls or
 meets negative curvature is the current matrix factorised again. The factorisation's inertia
 gives stability: its negative eigenvalues minus the number of constraints is the number of
-negative eigenvalues of K_ff (Haynsworth).
+negative eigenvalues of K_ff (Haynsworth); where pivots were perturbed or permuted the
+inertia is reported unknown, never as positive definite.
+
+Which factorisation a Newton step uses is explicit solver state (``jaxrkpm.linear``): a
+handle into a ``FactorPool`` together with the tangent it factorises. The system itself is
+immutable, so it can sit in the static configuration of jitted functions.
 """
 from __future__ import annotations
 
@@ -221,14 +226,16 @@ def factoriser(name: str):
 
 
 class SaddlePointSystem:
-    """The saddle-point pattern, its data map, and the factorisation cache."""
+    """The saddle-point pattern and its data map: immutable once built (it is part of the
+    static solver configuration of jitted functions). Factorisations are not kept here but
+    in a ``FactorPool`` (see ``pool``), addressed by the handles in the solver state."""
 
     cg_rtol = 1e-11     # relative residual of the preconditioned CG solves
     cg_maxiter = 40     # beyond this the current matrix is factorised instead
 
     def __init__(self, X: np.ndarray, rows: np.ndarray, cols: np.ndarray, C, free_dofs: np.ndarray,
                  bnd: np.ndarray, dim: int, factorisation: str = "auto"):
-        Backend = factoriser(factorisation)
+        self.Backend = factoriser(factorisation)
         N = X.shape[0]
         d = dim
         n_dof = N * d
@@ -239,26 +246,24 @@ class SaddlePointSystem:
         self.bnd_dofs = (np.asarray(bnd, np.int64)[:, None] * d + np.arange(d)).ravel()
 
         self._X, self._d, self._bnd = X, d, np.asarray(bnd, np.int64)
-        self.inv = np.arange(self.n) if Backend.reorders else self._ordering(rows, cols)
+        self.inv = np.arange(self.n) if self.Backend.reorders else self._ordering(rows, cols)
         Ccoo = C.tocoo()
         self._c_entries = (np.concatenate([Ccoo.row + n_dof, Ccoo.col]),
                            np.concatenate([Ccoo.col, Ccoo.row + n_dof]),
                            np.concatenate([Ccoo.data, Ccoo.data]))
-        self.lower = Backend.lower
+        self.lower = self.Backend.lower
         (self.indices, self.indptr, self.pos_K, self.take_K,
          self.template) = self._pattern(rows, cols, self.inv, self.lower)
-        self.factoriser = Backend(self.n, self.indptr, self.indices)
-
         self.Cf = C[:, self.free_dofs].tocsr()
         self.Cf_T = self.Cf.T.tocsr()
         self.Cb_lu = spla.splu(C[:, self.bnd_dofs].tocsc()) if nc else None
-        self._pd = False          # the factoriser holds a positive definite factorisation
-        self._lock = threading.Lock()
-        self.stats = {"factorisations": 0, "cg_solves": 0, "cg_iterations": 0}
+        for a in (self.free_dofs, self.bnd_dofs, self.inv, self.indices, self.indptr, self.pos_K,
+                  self.take_K, self.template):
+            a.setflags(write=False)
 
     @property
     def factorisation(self) -> str:
-        return self.factoriser.name
+        return self.Backend.name
 
     # ----------------------------------------------------------------------- pieces
     def _ordering(self, rows, cols):
@@ -312,21 +317,23 @@ class SaddlePointSystem:
         data[self.pos_K] = np.asarray(blocks, np.float64).ravel()[self.take_K]
         return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
 
-    def _factorise(self, A):
-        """Factorise A; the number of negative eigenvalues of K_ff (0 when the inertia is
-        unknown), or None when the factorisation failed (a singular matrix)."""
-        self._pd = False
+    def factorise(self, A, fac=None):
+        """A new factorisation of the stored matrix A: (factor, number of negative eigenvalues
+        of K_ff: -1 unknown (perturbed or pivoted), -2 failed: a singular matrix). ``fac``:
+        a released factor object of this system to reuse (PARDISO keeps its analysis)."""
+        fac = self.Backend(self.n, self.indptr, self.indices) if fac is None else fac
         try:
-            neg = self.factoriser.factor(A.data)
+            neg = fac.factor(A.data)
         except FactorisationError:
-            return None
-        self.stats["factorisations"] += 1
-        return 0 if neg is None else neg - self.nc
+            return None, FAILED
+        STATS["factorisations"] += 1
+        return fac, (UNKNOWN if neg is None else neg - self.nc)
 
-    def _direct(self, b):
+    def direct(self, fac, b):
+        """K_ff x = b (n_free, m) with a factorisation of the saddle-point matrix."""
         B = np.zeros((self.n, b.shape[1]))
         B[self.inv[self.free_dofs]] = b
-        return self.factoriser.solve(B)[self.inv[self.free_dofs]]
+        return fac.solve(B)[self.inv[self.free_dofs]]
 
     def _product(self, A):
         """x -> A x for the stored matrix (symmetric: its CSC is the CSR of itself)."""
@@ -349,18 +356,18 @@ class SaddlePointSystem:
             out = out - self.Cf_T @ self.Cb_lu.solve(y[self.bnd_dofs], trans="T")
         return out
 
-    def _pcg(self, product, b, maxiter, rtol):
-        """CG on K_ff x = b preconditioned by the held factorisation, to the relative
-        residual rtol; returns x, or None when it stalls or meets negative curvature."""
+    def _pcg(self, fac, product, b, rtol):
+        """CG on K_ff x = b preconditioned by the factorisation ``fac`` of another matrix,
+        to the relative residual rtol; x, or None when it stalls or meets negative curvature."""
         bn = np.linalg.norm(b)
         x = np.zeros_like(b)
         if bn == 0:
             return x
         r = b.copy()
-        z = self._direct(r[:, None])[:, 0]
+        z = self.direct(fac, r[:, None])[:, 0]
         p = z.copy()
         rz = r @ z
-        for it in range(1, maxiter + 1):
+        for it in range(1, self.cg_maxiter + 1):
             Ap = self._matvec(product, p)
             pAp = p @ Ap
             if not pAp > 0:
@@ -369,47 +376,134 @@ class SaddlePointSystem:
             x += a * p
             r -= a * Ap
             if np.linalg.norm(r) <= rtol * bn:
-                self.stats["cg_iterations"] += it
+                STATS["cg_iterations"] += it
                 return x
-            z = self._direct(r[:, None])[:, 0]
+            z = self.direct(fac, r[:, None])[:, 0]
             rz, rz_old = r @ z, rz
             p = z + (rz / rz_old) * p
         return None
 
-    def _pcg_all(self, A, b, rtol):
-        cols = []
+    def preconditioned(self, fac, A, b, rtol):
+        """K_ff x = b for the matrix A by CG preconditioned with ``fac`` (every column), or
+        None when any column fails."""
         product = self._product(A)
+        cols = []
         for j in range(b.shape[1]):
-            xj = self._pcg(product, b[:, j], self.cg_maxiter, rtol)
+            xj = self._pcg(fac, product, b[:, j], rtol)
             if xj is None:
                 return None
             cols.append(xj)
+        STATS["cg_solves"] += 1
         return np.stack(cols, 1)
 
-    # ----------------------------------------------------------------------- solve
-    def solve(self, blocks, rhs, rtol=None):
-        """x (rhs.shape) with K_ff x = rhs (iterative solves to the relative residual rtol,
-        default cg_rtol), and whether K_ff looked positive definite. A singular K_ff gives
-        a non-finite x (the Newton solve then reports it)."""
-        rtol = self.cg_rtol if rtol is None else float(rtol)
-        rhs = np.asarray(rhs, np.float64)
-        b = rhs.reshape(len(self.free_dofs), -1)
-        with self._lock:
-            A = self.matrix(blocks)
-            if self._pd:
-                x = self._pcg_all(A, b, rtol)
-                if x is not None:
-                    self.stats["cg_solves"] += 1
-                    return x.reshape(rhs.shape), np.bool_(True)
-            neg = self._factorise(A)
-            if neg is None:
-                return np.full(rhs.shape, np.nan), np.bool_(False)
-            self._pd = neg == 0
-            return self._direct(b).reshape(rhs.shape), np.bool_(neg == 0)
 
-    def reset(self):
-        """Forget the cached factorisation and zero the statistics."""
-        with self._lock:
-            self._pd = False
-            self.factoriser.release()
-            self.stats = dict.fromkeys(self.stats, 0)
+# the inertia codes of a factorisation: >= 0 the number of negative eigenvalues of K_ff
+UNKNOWN = -1    # pivots were perturbed (PARDISO) or permuted (SuperLU): the count is unknown
+FAILED = -2     # the factorisation failed (a singular matrix)
+NONE = -3       # no factorisation held yet
+
+# instrumentation only (never read by the solver): counts since the last reset_stats()
+STATS = {"factorisations": 0, "cg_solves": 0, "cg_iterations": 0, "refactorisations": 0}
+
+
+def reset_stats():
+    for k in STATS:
+        STATS[k] = 0
+
+
+class FactorPool:
+    """The host-side factorisations of one SaddlePointSystem, addressed by handle.
+
+    A memo, not state: a handle always comes with the tangent blocks it was made from (the
+    solver state carries both), so a factorisation that was evicted to bound memory is made
+    again from those blocks and every result is the same whatever the call history.
+    ``size`` factorisations are kept (a kept preconditioner and a fresh one)."""
+
+    def __init__(self, system: SaddlePointSystem, size: int = 2):
+        self.system, self.size = system, size
+        self.slots: dict[int, tuple] = {}        # handle -> (factor, inertia), oldest first
+        self.spare = None                        # an evicted factor object, reused next
+        self.next = 1
+        self.lock = threading.Lock()
+
+    def _store(self, handle: int, fac, neg):
+        while len(self.slots) >= self.size:
+            self.spare = self.slots.pop(next(iter(self.slots)))[0]
+        self.slots[handle] = (fac, neg)
+
+    def _factorise(self, blocks):
+        fac, self.spare = self.spare, None
+        return self.system.factorise(self.system.matrix(blocks), fac)
+
+    def _keep(self, fac, neg) -> int:
+        """A new handle for a new factorisation (kept unless it failed)."""
+        h = self.next
+        self.next += 1
+        if fac is not None:
+            self._store(h, fac, neg)
+        return h
+
+    def factor(self, handle: int, blocks):
+        """The factorisation of ``handle`` (made again from ``blocks`` if evicted), or None."""
+        if handle in self.slots:
+            self.slots[handle] = self.slots.pop(handle)     # most recently used last
+            return self.slots[handle][0]
+        STATS["refactorisations"] += 1
+        fac, neg = self._factorise(blocks)
+        if fac is not None:
+            self._store(handle, fac, neg)
+        return fac
+
+    def init(self, blocks):
+        """Factorise the tangent ``blocks``: (handle, inertia code)."""
+        with self.lock:
+            fac, neg = self._factorise(blocks)
+            return np.int64(self._keep(fac, neg)), np.int64(neg)
+
+    def solve(self, handle, blocks, rhs):
+        """x (rhs.shape) with K_ff x = rhs by the factorisation ``handle`` of ``blocks``
+        (NaN where that factorisation failed)."""
+        rhs = np.asarray(rhs, np.float64)
+        with self.lock:
+            fac = self.factor(int(handle), blocks) if int(handle) > 0 else None
+            if fac is None:
+                return np.full(rhs.shape, np.nan)
+            return self.system.direct(fac, rhs.reshape(len(self.system.free_dofs), -1)).reshape(rhs.shape)
+
+    def newton_solve(self, handle, neg, kept_blocks, blocks, rhs, rtol):
+        """A Newton step's solve with the current tangent ``blocks``: CG preconditioned by the
+        held factorisation while it is positive definite and CG converges, else a new
+        factorisation. Returns (x, handle, inertia, reused) of the factorisation used."""
+        rhs = np.asarray(rhs, np.float64)
+        b = rhs.reshape(len(self.system.free_dofs), -1)
+        with self.lock:
+            if int(neg) == 0 and int(handle) > 0:
+                fac = self.factor(int(handle), kept_blocks)
+                if fac is not None:
+                    x = self.system.preconditioned(fac, self.system.matrix(blocks), b, float(rtol))
+                    if x is not None:
+                        return x.reshape(rhs.shape), np.int64(handle), np.int64(neg), np.bool_(True)
+            fac, neg = self._factorise(blocks)
+            h = self._keep(fac, neg)
+            if fac is None:
+                return np.full(rhs.shape, np.nan), np.int64(h), np.int64(neg), np.bool_(False)
+            return self.system.direct(fac, b).reshape(rhs.shape), np.int64(h), np.int64(neg), np.bool_(False)
+
+    def clear(self):
+        with self.lock:
+            for fac, _ in self.slots.values():
+                fac.release()
+            self.slots.clear()
+            self.spare = None
+
+
+_POOLS: "weakref.WeakKeyDictionary[SaddlePointSystem, FactorPool]" = weakref.WeakKeyDictionary()
+_POOLS_LOCK = threading.Lock()
+
+
+def pool(system: SaddlePointSystem) -> FactorPool:
+    """The factorisation pool of ``system`` (made on first use, freed with the system)."""
+    with _POOLS_LOCK:
+        if system not in _POOLS:
+            _POOLS[system] = FactorPool(system)
+        return _POOLS[system]

@@ -108,8 +108,8 @@ def test_affine_patch(shape):
 def rigid_modes(body, integration):
     model = jr.Model(body, jr.Fung(alpha=1.0, beta=1.0), integration=integration, essential={})
     assert len(model.sets.bnd) == 0
-    K = jax.jit(solve.tangent, static_argnums=2)(model.ops, model.params, model._config(), jnp.zeros((body.n, body.dim)),
-                      jnp.zeros((0, body.dim)))
+    K = jax.jit(lambda prob, u, g: prob.tangent(u, g))(model.problem(), jnp.zeros((body.n, body.dim)),
+                                                        jnp.zeros((0, body.dim)))
     ev = np.linalg.eigvalsh(np.asarray(K))
     rel = ev / ev.max()
     return int(np.sum(np.abs(rel) < 1e-10)), float(rel[np.abs(rel) >= 1e-10].min())

@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 import jaxrkpm as jr
+from jaxrkpm import sparse as jsparse
+from jaxrkpm.linear import Stability
 from experiments import cantilever
-from jaxrkpm.solve import residual, tangent
 
 F0_2D = np.array([[1.1, 0.2], [-0.1, 0.95]])           # general, non-symmetric
 F0_3D = np.array([[1.05, 0.1, -0.05], [0.02, 0.97, 0.08], [-0.06, 0.03, 1.1]])
@@ -136,16 +137,15 @@ def test_tangent_matches_central_differences():
     rng = np.random.default_rng(0)
     u = 0.05 * rng.standard_normal((len(model.sets.free), 2))
     g = jnp.zeros((len(model.sets.bnd), 2))
-    K = np.asarray(tangent(model.ops, model.params, model._config(), u, g))
-    W = model.material.W
+    prob = model.problem()
+    K = np.asarray(prob.tangent(u, g))
     n, eps = K.shape[0], 1e-6
     Kfd = np.empty_like(K)
     for i in range(n):
         e = np.zeros(n)
         e[i] = eps
         e = e.reshape(u.shape)
-        Kfd[:, i] = (np.asarray(residual(model.ops, model.params, W, u + e, g, 1.0))
-                     - np.asarray(residual(model.ops, model.params, W, u - e, g, 1.0))).ravel() / (2 * eps)
+        Kfd[:, i] = (np.asarray(prob.residual(u + e, g)) - np.asarray(prob.residual(u - e, g))).ravel() / (2 * eps)
     assert np.abs(K - Kfd).max() < 1e-7 * np.abs(K).max()
     assert np.abs(K - K.T).max() < 1e-10 * np.abs(K).max()
 
@@ -185,15 +185,15 @@ def test_jit_and_eager_agree():
     (a 3x3 block: eager execution dispatches every operation on its own)."""
     small = jr.Model(jr.Body.grid((3, 3), 0.5), MATERIALS["Fung"],
                      essential={"l": [0, 1, 2], "r": [6, 7, 8]})
-    cfg, W = small._config(), small.material.W
+    prob = small.problem()
     rng = np.random.default_rng(5)
     u = 0.02 * rng.standard_normal((len(small.sets.free), 2))
     g = small.prescribed({"r": jnp.array([-0.05, 0.02])})
-    r_jit = jax.jit(residual, static_argnums=2)(small.ops, small.params, W, u, g, 1.0)
-    K_jit = jax.jit(tangent, static_argnums=2)(small.ops, small.params, cfg, u, g)
+    r_jit = jax.jit(lambda p, u, g: p.residual(u, g))(prob, u, g)
+    K_jit = jax.jit(lambda p, u, g: p.tangent(u, g))(prob, u, g)
     with jax.disable_jit():
-        r_eager = residual(small.ops, small.params, W, u, g, 1.0)
-        K_eager = tangent(small.ops, small.params, cfg, u, g)
+        r_eager = prob.residual(u, g)
+        K_eager = prob.tangent(u, g)
     assert np.abs(np.asarray(r_jit) - np.asarray(r_eager)).max() < 1e-12 * np.abs(np.asarray(r_eager)).max()
     assert np.abs(np.asarray(K_jit) - np.asarray(K_eager)).max() < 1e-12 * np.abs(np.asarray(K_eager)).max()
     s_jit = small.solve({"r": jnp.array([-0.1, 0.05])})
@@ -219,11 +219,18 @@ def test_sparse_path_matches_dense(block9, factorisation):
                       factorisation=factorisation)
     assert sparse.linear.system.factorisation == factorisation
     a = dense.solve({"right": jnp.array([-0.2, 0.1])}, steps=2)
+    jsparse.reset_stats()
     b = sparse.solve({"right": jnp.array([-0.2, 0.1])}, steps=2)
     assert np.abs(np.asarray(a.u) - np.asarray(b.u)).max() < 1e-10
     # one factorisation, reused as the CG preconditioner by the later Newton iterations
-    stats = sparse.linear.system.stats
+    stats = dict(jsparse.STATS)
     assert stats["factorisations"] == 1 and stats["cg_solves"] == int(b.iterations) - 1
+    # the factorisation is explicit solver state: the same solve again (the host holds
+    # factorisations from the first) does the same work and gives the same result
+    jsparse.reset_stats()
+    c = sparse.solve({"right": jnp.array([-0.2, 0.1])}, steps=2)
+    assert dict(jsparse.STATS) == stats
+    assert np.array_equal(np.asarray(b.u), np.asarray(c.u))
 
 
 @pytest.fixture(scope="module")
@@ -244,10 +251,17 @@ def test_sparse_path_matches_dense_3d(block3d, factorisation):
     assert np.abs(np.asarray(a.u) - np.asarray(b.u)).max() < 1e-10
     assert int(a.iterations) == int(b.iterations)
     # the factorisation's inertia: K_ff has as many positive eigenvalues as free dofs
-    system = sparse.linear.system
-    system.reset()
-    blocks = tangent(sparse.ops, sparse.params, sparse._config(), b.u, b.g)
-    assert system._factorise(system.matrix(np.asarray(blocks))) == 0
+    prob = sparse.problem()
+    state = jax.jit(prob.factorise)(b.u, b.g)
+    assert int(state.inertia) == 0 and Stability.of(prob.stability(state)) == Stability.STABLE
+    # a solve with the factorisation = the dense solve of K_ff
+    r = jnp.asarray(np.random.default_rng(0).standard_normal(b.u.shape))
+    x = np.asarray(prob.solve_linear(state, r)).ravel()
+    K = np.asarray(prob.tangent(b.u, b.g))
+    assert np.abs(K @ x - np.asarray(r).ravel()).max() < 1e-9 * np.abs(np.asarray(r)).max()
+    # an evicted factorisation is made again from the blocks the state carries: same result
+    jsparse.pool(sparse.linear.system).clear()
+    assert np.abs(np.asarray(prob.solve_linear(state, r)).ravel() - x).max() < 1e-12 * np.abs(x).max()
 
 
 def test_unknown_factorisation_is_named(block9):
@@ -321,7 +335,7 @@ def column():
 
 
 def _min_eig(model, sol):
-    K = np.asarray(tangent(model.ops, model.params, model._config(), sol.u, sol.g))
+    K = np.asarray(model.problem().tangent(sol.u, sol.g))
     return np.linalg.eigvalsh(K)[0], np.linalg.eigvalsh(K)[-1]
 
 

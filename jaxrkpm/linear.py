@@ -1,0 +1,173 @@
+"""Linear solvers of the Newton iteration, with explicit state (in the manner of lineax).
+
+A solver is a static, immutable description (part of the jit configuration); everything that
+changes between calls is its *state*, a pytree returned and passed explicitly:
+
+    state = solver.init(ops, blocks)          # factorise the tangent given as pair blocks
+    x = solver.solve(state, rhs)              # K_ff x = rhs with that factorisation
+    solver.stability(state)                   # Stability: STABLE / UNSTABLE / UNKNOWN
+    x, state, stab = solver.newton_solve(state, ops, blocks, rhs, rtol)
+                                              # a Newton step with the current tangent, reusing
+                                              # ``state`` where the solver can
+
+``rhs`` is (Nf, d) or (Nf, d, m). One factorisation thus serves a Newton predictor, chord
+corrections and implicit Jacobians (``jaxrkpm.solve.newton`` and ``sensitivity``), for the
+dense and the sparse solver alike.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from . import sparse
+from .outcome import Outcome
+
+
+class Stability(Outcome):
+    """What a factorisation says of K_ff (inside jit: the int code)."""
+
+    STABLE = 0, "K_ff is positive definite (a stable equilibrium)"
+    UNSTABLE = 1, "K_ff has negative eigenvalues (a limit or bifurcation point was passed)"
+    UNKNOWN = 2, ("the factorisation could not tell the inertia of K_ff (pivots were perturbed "
+                  "or permuted): stability is unknown")
+
+
+# ------------------------------------------------------------------------------- dense
+class DenseState(NamedTuple):
+    K: jax.Array      # (n, n) K_ff
+    L: jax.Array      # (n, n) its Cholesky factor (NaN where K_ff is not positive definite)
+    spd: jax.Array    # () K_ff positive definite: L is usable (else solves use LU of K)
+
+
+def dense_tangent(ops, blocks):
+    """K_ff = T^T K T with T = [I; -A] (the thesis transformation), dense (Nf*d, Nf*d)."""
+    N, dim = ops.f_ext.shape
+    K = jnp.zeros((N, N, dim, dim), blocks.dtype).at[ops.pair_i, ops.pair_j].add(blocks)
+    K = K.transpose(0, 2, 1, 3)                                   # (N, d, N, d)
+    Kff = K[ops.free][:, :, ops.free]
+    if ops.bnd.shape[0]:
+        Kfb = K[ops.free][:, :, ops.bnd]                          # (Nf, d, Nb, d)
+        Kbb = K[ops.bnd][:, :, ops.bnd]
+        X = jnp.einsum("faBb,Bc->facb", Kfb, ops.A_near)         # (Nf, d, Nc, d)
+        Kff = Kff.at[:, :, ops.near].add(-X)
+        Kff = Kff.at[ops.near].add(-X.transpose(2, 3, 0, 1))
+        corr = jnp.einsum("Bc,BaDb,De->caeb", ops.A_near, Kbb, ops.A_near)
+        Kff = Kff.at[ops.near[:, None], :, ops.near[None, :], :].add(corr.transpose(0, 2, 1, 3))
+    n = Kff.shape[0] * dim
+    return Kff.reshape(n, n)
+
+
+@dataclass(frozen=True)
+class DenseSolver:
+    """Dense Cholesky of K_ff (LU where it is not positive definite): small systems.
+
+    ``branchless``: compute both the Cholesky and the LU solve and select, instead of a
+    lax.cond (XLA:CPU in jax 0.10.2 deadlocks on that cond inside a scan under vmap)."""
+
+    branchless: bool = False
+    name: str = "dense"
+
+    def matrix(self, ops, blocks):
+        return dense_tangent(ops, blocks)
+
+    def batched(self) -> "DenseSolver":
+        """The variant for vmapped batches (see ``branchless``)."""
+        return DenseSolver(branchless=True)
+
+    def init(self, ops, blocks) -> DenseState:
+        K = dense_tangent(ops, blocks)
+        L = jnp.linalg.cholesky(K)
+        spd = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
+        return DenseState(K, L, spd)
+
+    def empty(self, ops, dtype) -> DenseState:
+        n = ops.free.shape[0] * ops.f_ext.shape[1]
+        z = jnp.zeros((n, n), dtype)
+        return DenseState(z, z, jnp.array(False))
+
+    def solve(self, state: DenseState, rhs):
+        n = state.K.shape[0]
+        b = rhs.reshape(n, -1)
+        chol = lambda: jax.scipy.linalg.cho_solve((state.L, True), b)
+        lu = lambda: jnp.linalg.solve(state.K, b)
+        x = jnp.where(state.spd, chol(), lu()) if self.branchless else jax.lax.cond(state.spd, chol, lu)
+        return x.reshape(rhs.shape)
+
+    def stability(self, state: DenseState):
+        return jnp.where(state.spd, Stability.STABLE, Stability.UNSTABLE)
+
+    def newton_solve(self, state, ops, blocks, rhs, rtol=None):
+        """Exact: the current tangent is factorised (``state`` and ``rtol`` are not needed)."""
+        new = self.init(ops, blocks)
+        return self.solve(new, rhs), new, self.stability(new)
+
+
+# ------------------------------------------------------------------------------ sparse
+class SparseState(NamedTuple):
+    handle: jax.Array   # () int64 key of the host factorisation (0: none)
+    inertia: jax.Array  # () int64 negative eigenvalues of K_ff; sparse.UNKNOWN/FAILED/NONE
+    blocks: jax.Array   # (P, d, d) the tangent it factorises (to make it again if evicted)
+
+
+def _sparse_stability(inertia):
+    return jnp.where(inertia == 0, Stability.STABLE,
+                     jnp.where(inertia > 0, Stability.UNSTABLE, Stability.UNKNOWN))
+
+
+@dataclass(frozen=True, eq=False)
+class SparseSolver:
+    """Sparse path for large systems: the saddle-point form of the same transformation,
+
+        [K  C^T] [dd]   [r]
+        [C   0 ] [l ] = [0],   C dd = 0  <=>  dd = T du_f,
+
+    whose free part solves T^T K T du_f = r exactly, on the host (jax.pure_callback, so it
+    runs inside jit and while-loops): symmetric indefinite factorisations (PARDISO or
+    SuperLU), reused as conjugate-gradient preconditioners while they work (see
+    jaxrkpm.sparse). ``system`` is immutable; the factorisations are addressed by the
+    handles in the state."""
+
+    system: Any           # jaxrkpm.sparse.SaddlePointSystem
+    name: str = "sparse"
+
+    def matrix(self, ops, blocks):
+        return blocks  # the factorisation happens on the host
+
+    def batched(self) -> "SparseSolver":
+        return self     # host callbacks run batch members one after another
+
+    @property
+    def _pool(self):
+        return sparse.pool(self.system)
+
+    def init(self, ops, blocks) -> SparseState:
+        i64 = jax.ShapeDtypeStruct((), jnp.int64)
+        h, neg = jax.pure_callback(self._pool.init, (i64, i64), blocks, vmap_method="sequential")
+        return SparseState(h, neg, blocks)
+
+    def empty(self, ops, dtype) -> SparseState:
+        P, d = ops.pair_i.shape[0], ops.f_ext.shape[1]
+        return SparseState(jnp.zeros((), jnp.int64), jnp.asarray(sparse.NONE, jnp.int64),
+                           jnp.zeros((P, d, d), dtype))
+
+    def solve(self, state: SparseState, rhs):
+        return jax.pure_callback(self._pool.solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
+                                 state.handle, state.blocks, rhs, vmap_method="sequential")
+
+    def stability(self, state: SparseState):
+        return _sparse_stability(state.inertia)
+
+    def newton_solve(self, state: SparseState, ops, blocks, rhs, rtol=None):
+        """CG with the current tangent preconditioned by the held factorisation while it is
+        positive definite and CG converges (to ``rtol``, default the system's tight cg_rtol;
+        no negative curvature met counts as stable), else a new factorisation."""
+        rtol = jnp.asarray(self.system.cg_rtol if rtol is None else rtol, rhs.dtype)
+        i64 = jax.ShapeDtypeStruct((), jnp.int64)
+        out = (jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), i64, i64, jax.ShapeDtypeStruct((), jnp.bool_))
+        x, h, neg, reused = jax.pure_callback(self._pool.newton_solve, out, state.handle, state.inertia,
+                                              state.blocks, blocks, rhs, rtol, vmap_method="sequential")
+        new = SparseState(h, neg, jnp.where(reused, state.blocks, blocks))
+        return x, new, self.stability(new)
