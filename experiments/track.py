@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxrkpm as jr
-from jaxrkpm import plot
+from jaxrkpm import plot, polygons
 from jaxrkpm.control import PATHS, TABLE_5_1, TrackResult, track
 
 CP_2D = np.array([[0.5, 0.5]])
@@ -177,14 +177,9 @@ def waypoint_table(res: TrackResult) -> list[dict]:
 def path_deviation(res: TrackResult) -> np.ndarray:
     """Distance of the control point, at every iteration, from the desired segment it is
     travelling along (previous waypoint -> current waypoint): (n+1,)."""
-    D = res.desired
-    out = np.zeros(len(res.cp))
-    for k, (c, w) in enumerate(zip(res.cp, res.waypoint)):
-        a, b = D[max(int(w) - 1, 0)], D[int(w)]
-        ab = b - a
-        t = 0.0 if not np.any(ab) else np.clip(np.dot(c - a, ab) / np.dot(ab, ab), 0.0, 1.0)
-        out[k] = np.linalg.norm(c - (a + t * ab))
-    return out
+    w = np.asarray(res.waypoint).astype(int)
+    return polygons.distance_to_segment(np.asarray(res.cp, float), res.desired[np.maximum(w - 1, 0)],
+                                        res.desired[w])
 
 
 def snapshot_waypoints(exp: Experiment, res: TrackResult) -> list[int]:

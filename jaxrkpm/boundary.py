@@ -18,7 +18,6 @@ import numpy as np
 
 from .geometry import Body
 from .integration import Table
-from .rk import shape_functions
 
 
 @dataclass(frozen=True)
@@ -82,8 +81,8 @@ class Transformation:
 
     @staticmethod
     def build(body: Body, sets: EssentialSets, a: float, support_factor=None) -> "Transformation":
-        sf = shape_functions(body.X, body.volumes, body._tree, body.X[sets.bnd], a,
-                             gradients=False, support_factor=support_factor)
+        sf = body.shape_functions(body.X[sets.bnd], a, gradients=False,
+                                  support_factor=support_factor)
         pos = -np.ones(body.n, np.int64)
         pos[sets.bnd] = np.arange(len(sets.bnd))
         Nb = len(sets.bnd)

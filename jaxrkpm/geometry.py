@@ -11,7 +11,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import polygons
+from . import polygons, rk
 
 
 @dataclass(frozen=True, eq=False)
@@ -140,6 +140,20 @@ class Body:
         """Indices of the k particles nearest to each point: (P,) or (P, k)."""
         _, idx = self._tree.query(np.atleast_2d(points), k=k)
         return idx
+
+    def neighbours(self, points, radius: float, capacity: int | None = None) -> rk.Neighbours:
+        """Padded lists of the particles within the box-shaped window of half-width
+        ``radius`` around each point (``rk.neighbours`` on this body's KD-tree)."""
+        return rk.neighbours(self._tree, points, radius, capacity)
+
+    def shape_functions(self, points, a: float, *, gradients: bool = True,
+                        support_factor: float | None = None,
+                        capacity: int | None = None) -> rk.ShapeFunctions:
+        """RK shape functions of this body's particles with dilation ``a`` at ``points``
+        (``rk.shape_functions``; ``support_factor`` only names the support in errors)."""
+        return rk.shape_functions(self.X, self.volumes, self._tree, points, a,
+                                  capacity=capacity, gradients=gradients,
+                                  support_factor=support_factor)
 
     def contains(self, points, tol: float | None = None) -> np.ndarray:
         """(P,) bool: points inside the closed domain (with a small tolerance)."""

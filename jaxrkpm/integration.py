@@ -9,7 +9,6 @@ import numpy as np
 
 from . import polygons
 from .geometry import Body
-from .rk import shape_functions
 
 
 @dataclass(frozen=True)
@@ -29,29 +28,37 @@ class Table:
                      self.dpsi[keep], None if self.normals is None else self.normals[keep])
 
 
-def _gauss_1d(order: int):
+def gauss_1d(order: int):
+    """Gauss-Legendre rule with ``order`` points on [0, 1]: points (order,), weights (order,)."""
     x, w = np.polynomial.legendre.leggauss(order)
     return (x + 1) / 2, w / 2  # on [0, 1]
 
 
-def _tensor_rule(order: int, d: int):
-    x, w = _gauss_1d(order)
+def tensor_rule(order: int, d: int):
+    """Tensor-product Gauss rule on the unit cube [0, 1]^d: points (order^d, d), weights."""
+    x, w = gauss_1d(order)
     pts = np.stack(np.meshgrid(*([x] * d), indexing="ij"), -1).reshape(-1, d)
     wts = np.prod(np.stack(np.meshgrid(*([w] * d), indexing="ij"), -1).reshape(-1, d), axis=1)
     return pts, wts  # on the unit cube
 
 
-def _triangle_rule(tri: np.ndarray, order: int):
-    """Collapsed (Duffy) Gauss rule on a triangle (3, 2): order^2 points, exact for
-    polynomials of degree 2*order - 2."""
-    x, w = _gauss_1d(order)
+def segment_rule(a: np.ndarray, b: np.ndarray, order: int):
+    """Gauss rule on the segment a -> b in R^d: points (order, d), weights (order,)."""
+    x, w = gauss_1d(order)
+    return a + x[:, None] * (b - a), w * np.linalg.norm(b - a)
+
+
+def triangle_rule(a: np.ndarray, b: np.ndarray, c: np.ndarray, order: int):
+    """Collapsed (Duffy) Gauss rule on the planar triangle (a, b, c) in R^2 or R^3:
+    order^2 points (order^2, d) and weights, exact for polynomials of degree 2*order - 2."""
+    x, w = gauss_1d(order)
     s, t = np.meshgrid(x, x, indexing="ij")
     s, t = s.ravel(), t.ravel()
     ws = np.outer(w, w).ravel()
     # (s, t) in the unit square -> barycentric (1-s, s(1-t), st); Jacobian s
-    a, b, c = tri
     pts = a + np.outer(s * (1 - t), b - a) + np.outer(s * t, c - a)
-    jac = abs(polygons._cross(b - a, c - a))
+    e1, e2 = b - a, c - a
+    jac = abs(polygons.cross2(e1, e2)) if len(a) == 2 else np.linalg.norm(np.cross(e1, e2))
     return pts, ws * s * jac
 
 
@@ -70,7 +77,7 @@ def gauss_points(body: Body, order: int = 2, cell_size: float | None = None):
     span = body.upper - body.lower
     n = np.maximum(1, np.ceil(span / h - 1e-9).astype(int))
     sizes = span / n
-    ref_pts, ref_w = _tensor_rule(order, d)
+    ref_pts, ref_w = tensor_rule(order, d)
     corners = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1).reshape(-1, d)
     corners = body.lower + corners * sizes
     if body.is_box:
@@ -93,7 +100,7 @@ def gauss_points(body: Body, order: int = 2, cell_size: float | None = None):
             all_w.append(ref_w * cell_area)
             continue
         for tri in polygons.triangulate(piece):
-            p, w = _triangle_rule(tri, order)
+            p, w = triangle_rule(*tri, order)
             all_p.append(p)
             all_w.append(w)
     return np.concatenate(all_p), np.concatenate(all_w)
@@ -102,7 +109,7 @@ def gauss_points(body: Body, order: int = 2, cell_size: float | None = None):
 def boundary_points(body: Body, order: int = 2):
     """Gauss points on the domain boundary: points (B, d), weights (B,) (length / area),
     outward normals (B, d)."""
-    x, w = _gauss_1d(order)
+    x, w = gauss_1d(order)
     facets, normals = body.boundary_facets()
     if body.dim == 2:
         a, b = facets[:, 0], facets[:, 1]
@@ -111,7 +118,7 @@ def boundary_points(body: Body, order: int = 2):
         wts = (L[:, None] * w[None]).ravel()
         nrm = np.repeat(normals, order, axis=0)
         return pts, wts, nrm
-    uv, wuv = _tensor_rule(order, 2)
+    uv, wuv = tensor_rule(order, 2)
     q0, q1, q3 = facets[:, 0], facets[:, 1], facets[:, 3]
     e1, e2 = q1 - q0, q3 - q0
     pts = (q0[:, None] + uv[None, :, :1] * e1[:, None] + uv[None, :, 1:] * e2[:, None]).reshape(-1, 3)
@@ -122,6 +129,5 @@ def boundary_points(body: Body, order: int = 2):
 
 
 def table(body: Body, points, weights, a: float, normals=None, support_factor=None) -> Table:
-    sf = shape_functions(body.X, body.volumes, body._tree, points, a,
-                         support_factor=support_factor)
+    sf = body.shape_functions(points, a, support_factor=support_factor)
     return Table(np.asarray(points), np.asarray(weights), sf.idx, sf.psi, sf.dpsi, normals)

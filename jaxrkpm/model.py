@@ -13,7 +13,7 @@ from . import scni
 from .boundary import EssentialSets, Springs, Transformation, nodal_forces
 from .geometry import Body
 from .materials import Material, green_lagrange, pk2
-from .rk import neighbours, psi_jax, shape_functions
+from .rk import psi_jax
 from .linear import DenseSolver, SparseSolver
 from .problem import Problem
 from .sparse import SaddlePointSystem, factoriser
@@ -160,7 +160,7 @@ class Model:
         P = self.body.check_inside(springs.points, "spring point")
         k = springs.stiffnesses()
         if springs.region is None:
-            nb = neighbours(self.body._tree, P, self.a)
+            nb = self.body.neighbours(P, self.a)
             region = np.unique(nb.idx[nb.mask]).astype(np.int64)
         else:
             region = np.unique(np.asarray(springs.region, np.int64))
@@ -405,8 +405,7 @@ class Model:
 
     def shape_functions(self, points, gradients=True):
         P = self.body.check_inside(points)
-        return shape_functions(self.body.X, self.body.volumes, self.body._tree, P, self.a,
-                               gradients=gradients, support_factor=self.support)
+        return self.body.shape_functions(P, self.a, gradients=gradients, support_factor=self.support)
 
     def displacement(self, sol: Solution, points):
         """u(X) at reference points (P, d)."""

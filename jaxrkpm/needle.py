@@ -27,7 +27,6 @@ from .boundary import Springs
 from .geometry import Body
 from .materials import Fung
 from .model import Model
-from .rk import neighbours
 from .problem import Problem
 from .solve import Limits, Status, point_values
 
@@ -188,7 +187,7 @@ class Phantom:
             chain = self.paddle_chain
             t = np.linspace(0.0, 1.0, 41)[:, None]
             path = np.concatenate([a + t * (b - a) for a, b in zip(chain[:-1], chain[1:])])
-            nb = neighbours(self.body._tree, path, self.support * self.spacing)
+            nb = self.body.neighbours(path, self.support * self.spacing)
             region = np.unique(nb.idx[nb.mask])
             springs = Springs(np.asarray(self.paddle_points(1.0)), stiffness, region)
             self._cache[key] = Model(self.body, self.material(inclusion), self.integration,

@@ -1,12 +1,13 @@
-"""Small planar-polygon toolkit (NumPy, build time only): orientation, point location,
-clipping, Voronoi cells clipped to a domain, triangulation."""
+"""Small planar-polygon toolkit (NumPy, outside jit): orientation, point location,
+point-to-segment distance (any dimension), clipping (optionally carrying edge labels),
+Voronoi cells clipped to a domain, triangulation."""
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 
-def _cross(u, v):
+def cross2(u, v):
     """z-component of the 2D cross product (broadcasts)."""
     return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
 
@@ -53,29 +54,49 @@ def contains(V: np.ndarray, P: np.ndarray) -> np.ndarray:
     return (np.sum(cond & (x < xint), axis=1) % 2) == 1
 
 
+def distance_to_segment(P: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance from points P (..., d) to the segments a -> b (..., d), any dimension d,
+    broadcasting over the leading axes: |P - (a + t (b - a))| with t the projection of P
+    onto the segment's line clamped to [0, 1] (t = 0 on a zero-length segment)."""
+    ab = b - a
+    den = np.sum(ab * ab, -1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.clip(np.sum((P - a) * ab, -1) / den, 0.0, 1.0)
+    t = np.where(den > 0, t, 0.0)
+    return np.linalg.norm(P - (a + t[..., None] * ab), axis=-1)
+
+
 def distance_to_boundary(V: np.ndarray, P: np.ndarray) -> np.ndarray:
     """(P,) distance from each point to the nearest polygon edge."""
     P = np.atleast_2d(P)[:, None, :]
-    a, b = V[None], np.roll(V, -1, axis=0)[None]
-    ab = b - a
-    t = np.clip(np.sum((P - a) * ab, -1) / np.sum(ab * ab, -1), 0.0, 1.0)
-    return np.min(np.linalg.norm(P - (a + t[..., None] * ab), axis=-1), axis=1)
+    return np.min(distance_to_segment(P, V[None], np.roll(V, -1, axis=0)[None]), axis=1)
 
 
-def clip_halfplane(P: np.ndarray, n: np.ndarray, c: float) -> np.ndarray:
-    """Sutherland-Hodgman: the part of polygon P where n.x <= c (P may be non-convex)."""
-    if len(P) == 0:
+def clip_halfplane(P: np.ndarray, n: np.ndarray, c: float, labels: np.ndarray | None = None,
+                   label: int = -1):
+    """Sutherland-Hodgman: the part of polygon P where n.x <= c (P may be non-convex).
+
+    With edge ``labels`` (m,) (edge k runs P[k] -> P[k+1]) returns (polygon, labels) of the
+    clipped polygon, the new edge along the clip line labelled ``label``."""
+    m = len(P)
+    if m == 0 and labels is None:
         return P
+    L = np.zeros(m, np.int64) if labels is None else labels
     s = P @ n - c
-    out = []
-    for i in range(len(P)):
-        j = (i + 1) % len(P)
+    out, out_l = [], []
+    for i in range(m):
+        j = (i + 1) % m
         if s[i] <= 0:
             out.append(P[i])
-        if (s[i] < 0 < s[j]) or (s[j] < 0 < s[i]):
-            t = s[i] / (s[i] - s[j])
-            out.append(P[i] + t * (P[j] - P[i]))
-    return np.array(out).reshape(-1, 2)
+            out_l.append(L[i] if (s[j] <= 0 or s[i] < 0) else label)
+            if s[i] < 0 < s[j]:
+                out.append(P[i] + s[i] / (s[i] - s[j]) * (P[j] - P[i]))
+                out_l.append(label)
+        elif s[j] < 0:
+            out.append(P[i] + s[i] / (s[i] - s[j]) * (P[j] - P[i]))
+            out_l.append(L[i])
+    out = np.array(out).reshape(-1, 2)
+    return out if labels is None else (out, np.array(out_l, dtype=np.int64))
 
 
 def clip_convex(P: np.ndarray, C: np.ndarray) -> np.ndarray:
@@ -89,22 +110,29 @@ def clip_convex(P: np.ndarray, C: np.ndarray) -> np.ndarray:
     return P
 
 
-def voronoi_cells(X: np.ndarray, V: np.ndarray, k: int = 24) -> list[np.ndarray]:
+def voronoi_cells(X: np.ndarray, V: np.ndarray, k: int = 24, labelled: bool = False,
+                  tol: float = 0.0) -> list:
     """Voronoi cell of every particle intersected with the domain polygon V.
 
     Each cell is the domain clipped by the bisector half-planes of the k nearest
     particles (enough for the quasi-uniform particle sets built here; the cell areas are
-    checked to sum to the domain area)."""
+    checked to sum to the domain area). A cell is a counter-clockwise vertex array (m, 2)
+    without repeated or collinear vertices, (0, 2) if empty. With ``labelled`` a cell is
+    (vertices (m, 2), labels (m,)): the label of edge k (vertex k -> k+1) is the particle
+    across it, -1 on the domain boundary; edges shorter than ``tol`` are dropped and
+    collinear edges merged only where they carry the same label."""
     k = min(k, len(X) - 1)
     _, nbr = cKDTree(X).query(X, k=k + 1)
     cells = []
     for i, row in enumerate(nbr):
-        cell = V
+        cell, lab = V, -np.ones(len(V), np.int64)
         for j in row[1:]:
             n = X[j] - X[i]
-            cell = clip_halfplane(cell, n, float(n @ (X[i] + X[j]) / 2))
-        cells.append(_drop_degenerate(cell))
-    total = sum(area(c) for c in cells if len(c) >= 3)
+            cell, lab = clip_halfplane(cell, n, float(n @ (X[i] + X[j]) / 2), lab, int(j))
+            if len(cell) < 3:
+                break
+        cells.append(_clean_labelled(cell, lab, tol) if labelled else _drop_degenerate(cell))
+    total = sum(area(P) for P in ([c for c, _ in cells] if labelled else cells) if len(P) >= 3)
     if abs(total - area(V)) > 1e-9 * area(V):
         raise ValueError(f"Voronoi cells cover {total} of the domain area {area(V)}: "
                          "the particle distribution is too irregular for the neighbour search")
@@ -123,11 +151,36 @@ def _drop_degenerate(P: np.ndarray, tol: float = 1e-13) -> np.ndarray:
         for i in range(len(P)):
             a, b, c = P[i - 1], P[i], P[(i + 1) % len(P)]
             scale = max(np.abs(P).max(), 1.0)
-            if np.linalg.norm(b - a) < tol * scale or abs(_cross(b - a, c - b)) < tol * scale**2:
+            if np.linalg.norm(b - a) < tol * scale or abs(cross2(b - a, c - b)) < tol * scale**2:
                 P = np.delete(P, i, axis=0)
                 changed = True
                 break
     return P if len(P) >= 3 else np.zeros((0, 2))
+
+
+def _clean_labelled(P, L, tol):
+    """Drop zero-length edges and merge collinear consecutive edges with the same label."""
+    P, L = [p for p in P], [int(x) for x in L]
+    changed = True
+    while changed and len(P) >= 3:
+        changed = False
+        m = len(P)
+        for k in range(m):
+            k1 = (k + 1) % m
+            if np.linalg.norm(P[k1] - P[k]) < tol:
+                L[k] = L[k1]           # edge k vanishes: vertex k takes the next edge
+                del P[k1], L[k1]
+                changed = True
+                break
+            a, b, c = P[k - 1], P[k], P[k1]
+            if L[k - 1] == L[k] and abs(cross2(b - a, c - b)) < tol * np.linalg.norm(c - a) \
+                    and np.dot(b - a, c - b) > 0:
+                del P[k], L[k]
+                changed = True
+                break
+    if len(P) < 3:
+        return np.zeros((0, 2)), np.zeros(0, np.int64)
+    return np.array(P), np.array(L, np.int64)
 
 
 def triangulate(P: np.ndarray) -> np.ndarray:
@@ -141,7 +194,7 @@ def triangulate(P: np.ndarray) -> np.ndarray:
         for k in range(len(idx)):
             i, j, l = idx[k - 1], idx[k], idx[(k + 1) % len(idx)]
             a, b, c = P[i], P[j], P[l]
-            if _cross(b - a, c - b) <= 0:
+            if cross2(b - a, c - b) <= 0:
                 continue  # reflex vertex
             others = [P[m] for m in idx if m not in (i, j, l)]
             if others and _any_in_triangle(np.array(others), a, b, c):
@@ -157,6 +210,6 @@ def triangulate(P: np.ndarray) -> np.ndarray:
 
 def _any_in_triangle(Q, a, b, c) -> bool:
     def side(p, q):
-        return _cross(q - p, Q - p)
+        return cross2(q - p, Q - p)
     s1, s2, s3 = side(a, b), side(b, c), side(c, a)
     return bool(np.any((s1 > 0) & (s2 > 0) & (s3 > 0)))

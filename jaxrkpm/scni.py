@@ -47,12 +47,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from . import polygons
 from .geometry import Body
-from .integration import Table, _gauss_1d, _tensor_rule
-from .rk import shape_functions
+from .integration import Table, segment_rule, tensor_rule, triangle_rule
 
 # integration name accepted by Model -> (stabilisation beta, boundary rule)
 SCHEMES = {
@@ -66,74 +64,6 @@ NODAL_DEGREE = 1   # Lagrange degree of the boundary interpolant of the 'nodal' 
 def _rot(t):
     """Outward normal of a counter-clockwise edge with tangent t (2D): t rotated by -90 deg."""
     return np.stack([t[..., 1], -t[..., 0]], -1)
-
-
-# ============================================================== 2D: labelled Voronoi cells
-def _clip_labelled(P, L, n, c, label):
-    """Sutherland-Hodgman clip of polygon P (edges labelled L: edge k runs P[k] -> P[k+1])
-    to n.x <= c; the new edge along the clip line gets ``label``."""
-    s = P @ n - c
-    outP, outL = [], []
-    m = len(P)
-    for i in range(m):
-        j = (i + 1) % m
-        if s[i] <= 0:
-            outP.append(P[i])
-            outL.append(L[i] if (s[j] <= 0 or s[i] < 0) else label)
-            if s[i] < 0 < s[j]:
-                outP.append(P[i] + s[i] / (s[i] - s[j]) * (P[j] - P[i]))
-                outL.append(label)
-        elif s[j] < 0:
-            outP.append(P[i] + s[i] / (s[i] - s[j]) * (P[j] - P[i]))
-            outL.append(L[i])
-    return np.array(outP).reshape(-1, 2), np.array(outL, dtype=np.int64)
-
-
-def _clean_labelled(P, L, tol):
-    """Drop zero-length edges and merge collinear consecutive edges with the same label."""
-    P, L = [p for p in P], [int(x) for x in L]
-    changed = True
-    while changed and len(P) >= 3:
-        changed = False
-        m = len(P)
-        for k in range(m):
-            k1 = (k + 1) % m
-            if np.linalg.norm(P[k1] - P[k]) < tol:
-                L[k] = L[k1]           # edge k vanishes: vertex k takes the next edge
-                del P[k1], L[k1]
-                changed = True
-                break
-            a, b, c = P[k - 1], P[k], P[k1]
-            if L[k - 1] == L[k] and abs(polygons._cross(b - a, c - b)) < tol * np.linalg.norm(c - a) \
-                    and np.dot(b - a, c - b) > 0:
-                del P[k], L[k]
-                changed = True
-                break
-    if len(P) < 3:
-        return np.zeros((0, 2)), np.zeros(0, np.int64)
-    return np.array(P), np.array(L, np.int64)
-
-
-def voronoi_cells_labelled(X, V, h, k=24):
-    """Voronoi cells of the particles X clipped to the ccw polygon V. Returns a list of
-    (vertices (m, 2) ccw, labels (m,)): label of edge k = the particle across it, -1 on the
-    domain boundary."""
-    k = min(k, len(X) - 1)
-    _, nbr = cKDTree(X).query(X, k=k + 1)
-    out = []
-    for i, row in enumerate(nbr):
-        P, L = V.copy(), -np.ones(len(V), np.int64)
-        for j in row[1:]:
-            n = X[j] - X[i]
-            P, L = _clip_labelled(P, L, n, float(n @ (X[i] + X[j]) / 2), int(j))
-            if len(P) < 3:
-                break
-        out.append(_clean_labelled(P, L, 1e-11 * h))
-    total = sum(polygons.area(P) for P, _ in out if len(P) >= 3)
-    if abs(total - polygons.area(V)) > 1e-9 * polygons.area(V):
-        raise ValueError(f"SCNI: Voronoi cells cover {total} of the domain area {polygons.area(V)}; "
-                         "the particle distribution is too irregular for the neighbour search")
-    return out
 
 
 # ================================================================== facet bookkeeping
@@ -168,25 +98,9 @@ class _Builder:
         self.npts += g
 
 
-def _segment_rule(a, b, order):
-    x, w = _gauss_1d(order)
-    return a + x[:, None] * (b - a), w * np.linalg.norm(b - a)
-
-
-def _triangle_rule(a, b, c, order):
-    """Collapsed Gauss rule on a planar triangle in R^d (order^2 points)."""
-    x, w = _gauss_1d(order)
-    s, t = [v.ravel() for v in np.meshgrid(x, x, indexing="ij")]
-    ws = np.outer(w, w).ravel()
-    pts = a + np.outer(s * (1 - t), b - a) + np.outer(s * t, c - a)
-    e1, e2 = b - a, c - a
-    jac = abs(polygons._cross(e1, e2)) if len(a) == 2 else np.linalg.norm(np.cross(e1, e2))
-    return pts, ws * s * jac
-
-
 def _rect_rule(lo, hi, ax, val, order):
     """Tensor Gauss rule on the axis-aligned rectangle {x_ax = val} x [lo, hi] (3D)."""
-    uv, w = _tensor_rule(order, 2)
+    uv, w = tensor_rule(order, 2)
     a1, a2 = [i for i in range(3) if i != ax]
     pts = np.zeros((len(uv), 3))
     pts[:, ax] = val
@@ -198,7 +112,7 @@ def _rect_rule(lo, hi, ax, val, order):
 def _build_2d(body: Body, order, stabilised):
     h = body.spacing
     V = body.vertices
-    cells = voronoi_cells_labelled(body.X, V, h)
+    cells = polygons.voronoi_cells(body.X, V, labelled=True, tol=1e-11 * h)
     N = body.n
     B = _Builder(2)
     for i in range(N):
@@ -213,7 +127,7 @@ def _build_2d(body: Body, order, stabilised):
             cent.append(None)
             continue
         c = polygons.centroid(P)
-        tri_area = 0.5 * polygons._cross(P - c, np.roll(P, -1, axis=0) - c)
+        tri_area = 0.5 * polygons.cross2(P - c, np.roll(P, -1, axis=0) - c)
         if np.all(tri_area > 1e-12 * h * h):
             sub.append([B.row((c + P[k] + P[(k + 1) % len(P)]) / 3, 1, i) for k in range(len(P))])
         else:
@@ -224,10 +138,7 @@ def _build_2d(body: Body, order, stabilised):
     def sub_row_near(j, p):
         """Sub-cell of cell j whose outer edge is nearest to the point p."""
         P = cells[j][0]
-        a, b = P, np.roll(P, -1, axis=0)
-        ab = b - a
-        t = np.clip(np.sum((p - a) * ab, -1) / np.sum(ab * ab, -1), 0, 1)
-        return sub[j][int(np.argmin(np.linalg.norm(p - (a + t[:, None] * ab), axis=1)))]
+        return sub[j][int(np.argmin(polygons.distance_to_segment(p, P, np.roll(P, -1, axis=0))))]
 
     for i, (P, L) in enumerate(cells):
         m = len(P)
@@ -235,7 +146,7 @@ def _build_2d(body: Body, order, stabilised):
             a, b, j = P[k], P[(k + 1) % m], int(L[k])
             if j >= 0 and j < i:
                 continue                        # evaluated by cell j
-            pts, w = _segment_rule(a, b, order)
+            pts, w = segment_rule(a, b, order)
             n = _rot(b - a) / np.linalg.norm(b - a)
             uses = [(i, 1)]
             if sub[i] is not None:
@@ -248,7 +159,7 @@ def _build_2d(body: Body, order, stabilised):
         if sub[i] is not None and sub[i][0] != sub[i][-1]:
             c = cent[i]
             for k in range(m):                  # spokes c -> v_k between triangles k-1 and k
-                pts, w = _segment_rule(c, P[k], order)
+                pts, w = segment_rule(c, P[k], order)
                 n = _rot(P[k] - c) / np.linalg.norm(P[k] - c)
                 B.facet(pts, w, n, [(sub[i][k], 1), (sub[i][k - 1], -1)])
     return B
@@ -317,7 +228,7 @@ def _build_3d(body: Body, order, stabilised):
                     e0[ax2] = hi[i, ax2] if s2 > 0 else lo[i, ax2]
                     e1 = e0.copy()
                     e0[ax3], e1[ax3] = lo[i, ax3], hi[i, ax3]
-                    pts, w = _triangle_rule(c, e0, e1, order)
+                    pts, w = triangle_rule(c, e0, e1, order)
                     n = np.cross(e0 - c, e1 - c)
                     n /= np.linalg.norm(n)
                     fc2 = c.copy()
@@ -356,10 +267,10 @@ def _boundary_stencils_2d(body: Body, P, degree):
     done = np.zeros(len(P), bool)
     for a, b in zip(V, np.roll(V, -1, axis=0)):
         ab = b - a
-        sel = (~done) & (_dist_segment(P, a, b) < tol)
+        sel = (~done) & (polygons.distance_to_segment(P, a, b) < tol)
         if not sel.any():
             continue
-        on = np.flatnonzero(_dist_segment(body.X, a, b) < tol)
+        on = np.flatnonzero(polygons.distance_to_segment(body.X, a, b) < tol)
         t_on = (body.X[on] - a) @ ab / (ab @ ab)
         order = np.argsort(t_on)
         on, t_on = on[order], t_on[order]
@@ -373,12 +284,6 @@ def _boundary_stencils_2d(body: Body, P, degree):
     if not done.all():
         raise ValueError("SCNI: a boundary facet point lies on no polygon edge")
     return idx, wts
-
-
-def _dist_segment(P, a, b):
-    ab = b - a
-    t = np.clip((P - a) @ ab / (ab @ ab), 0, 1)
-    return np.linalg.norm(P - (a + t[:, None] * ab), axis=1)
 
 
 def _boundary_stencils_3d(body: Body, P, degree):
@@ -468,8 +373,7 @@ def build(body: Body, a: float, stab: float = DEFAULT_STAB, boundary: str = "nod
     R = len(row_pts)
 
     def sf(P):
-        return shape_functions(body.X, body.volumes, body._tree, P, a, gradients=False,
-                               support_factor=support_factor)
+        return body.shape_functions(P, a, gradients=False, support_factor=support_factor)
 
     # Psi at every facet point as sparse rows (point, particle, value)
     inner = np.flatnonzero(~isb) if boundary == "nodal" else np.arange(len(pts))

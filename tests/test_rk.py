@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 import jaxrkpm as jr
-from jaxrkpm.rk import kernel, kernel_derivative, shape_functions
+from jaxrkpm.rk import kernel, kernel_derivative
 
 PHANTOM = [[0.5, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.0, 0.5]]
 BODIES = {
@@ -20,7 +20,7 @@ def test_reproducing_conditions(name):
     rng = np.random.default_rng(1)
     P = body.lower + (body.upper - body.lower) * rng.random((400, body.dim))
     P = np.concatenate([P[body.contains(P)], body.X[:20]])
-    sf = shape_functions(body.X, body.volumes, body._tree, P, 2.01 * body.spacing)
+    sf = body.shape_functions(P, 2.01 * body.spacing)
     Xn = body.X[sf.idx]
     d = body.dim
     assert np.abs(sf.psi.sum(1) - 1).max() < 1e-12                                   # sum psi = 1
@@ -33,13 +33,13 @@ def test_gradients_match_finite_differences():
     body = jr.Body.polygon(PHANTOM, 0.1)
     P = np.array([[0.55, 0.43], [0.9, 0.1]])
     a = 2.01 * body.spacing
-    sf = shape_functions(body.X, body.volumes, body._tree, P, a, capacity=40)
+    sf = body.shape_functions(P, a, capacity=40)
     eps = 1e-6
     for j in range(2):
         e = np.zeros(2)
         e[j] = eps
-        fp = shape_functions(body.X, body.volumes, body._tree, P + e, a, capacity=40)
-        fm = shape_functions(body.X, body.volumes, body._tree, P - e, a, capacity=40)
+        fp = body.shape_functions(P + e, a, capacity=40)
+        fm = body.shape_functions(P - e, a, capacity=40)
         assert np.array_equal(fp.idx, sf.idx)
         assert np.abs((fp.psi - fm.psi) / (2 * eps) - sf.dpsi[..., j]).max() < 1e-6
 
@@ -60,11 +60,10 @@ def test_kernel_is_eq_3_21():
 def test_support_too_small_names_the_point():
     body = jr.Body.grid((5, 5), 0.25)
     with pytest.raises(ValueError, match=r"moment matrix is singular at point .*larger support"):
-        shape_functions(body.X, body.volumes, body._tree, np.array([[0.1, 0.1]]), 0.6 * 0.25,
-                        support_factor=0.6)
+        body.shape_functions(np.array([[0.1, 0.1]]), 0.6 * 0.25, support_factor=0.6)
 
 
 def test_neighbour_capacity_overflow_is_reported():
     body = jr.Body.grid((5, 5), 0.25)
     with pytest.raises(ValueError, match="capacity 3 overflows"):
-        shape_functions(body.X, body.volumes, body._tree, np.array([[0.5, 0.5]]), 0.5, capacity=3)
+        body.shape_functions(np.array([[0.5, 0.5]]), 0.5, capacity=3)

@@ -9,7 +9,6 @@ import jaxrkpm as jr
 from experiments import compress
 from jaxrkpm import integration as integ
 from jaxrkpm import polygons, scni, solve
-from jaxrkpm.rk import shape_functions
 
 F0_2D = np.array([[1.1, 0.2], [-0.1, 0.95]])           # general, non-symmetric
 
@@ -31,7 +30,7 @@ def boundary_integral_reference(body, a, pieces=400, order=6):
         pts = p + t[:, None] * (q - p)
         L = np.linalg.norm(q - p)
         n = np.array([q[1] - p[1], p[0] - q[0]]) / L
-        s = shape_functions(body.X, body.volumes, body._tree, pts, a, gradients=False)
+        s = body.shape_functions(pts, a, gradients=False)
         wt = np.tile(w, pieces) * L / pieces
         np.add.at(out, s.idx, (s.psi * wt[:, None])[..., None] * n)
     return out

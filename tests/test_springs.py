@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import jaxrkpm as jr
-from jaxrkpm.rk import psi_jax, shape_functions
+from jaxrkpm.rk import psi_jax
 from jaxrkpm.solve import point_values
 
 N = 7
@@ -26,7 +26,7 @@ def setup():
 def test_psi_jax_matches_build_time_shape_functions(setup):
     body, X, _, model = setup
     P = np.random.default_rng(0).uniform(0, 1, (6, 2))
-    sf = shape_functions(X, body.volumes, body._tree, P, model.a)
+    sf = body.shape_functions(P, model.a)
     region = np.tile(np.arange(body.n), (len(P), 1))
     psi = np.asarray(psi_jax(X, body.volumes, region, jnp.asarray(P), model.a))
     dense = np.zeros_like(psi)
