@@ -21,11 +21,12 @@ Per iteration three errors are kept apart (all in the object plane, mm):
 physical error = true physical control point - desired; camera error = measured - true;
 model mismatch = controller-model prediction at the commanded paddle - true physical.
 
-Corrections (see :mod:`jaxrkpm.rig.calibrate`): :meth:`ClosedLoop.probe` records camera and
+Corrections (see :mod:`jaxrkpm.rigsim.calibrate`): :meth:`ClosedLoop.probe` records camera and
 force data for calibrating the controller model; ``RigSettings(broyden=True)`` corrects its
 Jacobian online from the camera (J = J_model + D, D updated by Broyden on large enough steps).
 
-The rig imports the core; the core never imports the rig.
+It imports the solver core (Model, the solve, the control law) and the hardware package
+:mod:`jaxrkpm.rig`; neither of those imports it.
 """
 from __future__ import annotations
 
@@ -42,9 +43,9 @@ from ..model import SolveError
 from ..control import control_increment
 from ..solve import implicit_jacobian, point_values
 from .calibrate import Recording, broyden_update
-from .frames import RigidTransform, label_l_markers, object_frame_from_l_markers
-from .link import RobotClient, SafetyError, SafetyLimits, SimulatedRobotServer, LinkError
-from .stereo import ParallelStereo, StereoTracker, render_markers
+from ..rig.frames import RigidTransform, label_l_markers, object_frame_from_l_markers
+from ..rig.link import RobotClient, SafetyError, SafetyLimits, SimulatedRobotServer, LinkError
+from ..rig.stereo import ParallelStereo, StereoTracker, render_markers
 
 __all__ = [
     "CONTROL_POINT", "Inclusion", "planar_object", "PhysicalObject", "RigGeometry", "Vision",

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from jaxrkpm.control import PATHS
-from jaxrkpm.rig.calibrate import Recording, broyden_update, calibrate, region_index
-from jaxrkpm.rig.sim import (CONTROL_POINT, ClosedLoop, Inclusion, PhysicalObject, RigSettings, RigStatus,
-                             Vision, planar_object)
+from jaxrkpm.rigsim.calibrate import Recording, broyden_update, calibrate, region_index
+from jaxrkpm.rigsim.sim import (CONTROL_POINT, ClosedLoop, Inclusion, PhysicalObject, RigSettings, RigStatus,
+                                Vision, planar_object)
 from jaxrkpm.rig.stereo import MarkerCountError
 
 BETA = 0.02
