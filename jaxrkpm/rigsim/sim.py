@@ -41,7 +41,7 @@ import numpy as np
 from .. import Body, Fung, Model
 from ..model import SolveError
 from ..control import control_increment
-from ..solve import implicit_jacobian, point_values
+from ..solve import point_values
 from .calibrate import Recording, broyden_update
 from ..rig.frames import RigidTransform, label_l_markers, object_frame_from_l_markers
 from ..rig.link import RobotClient, SafetyError, SafetyLimits, SimulatedRobotServer, LinkError
@@ -89,15 +89,14 @@ def planar_object(n: int = 9, alpha: float = 1.0, beta: float = 0.02, paddle_hal
 
 class _Tracked:
     """A model with its paddle driven rigidly, its current equilibrium and cached control
-    point shape functions (the Jacobian is the jitted implicit one of the core)."""
+    point shape functions (the Jacobian is the model's implicit one, ``Model.jacobian``)."""
 
     def __init__(self, model: Model, params: dict | None = None, points=CONTROL_POINT[None]):
         self.model = model
         self.params = dict(params or {})
-        self._prm = model.params_with(self.params)
-        sf = model.shape_functions(np.atleast_2d(points), gradients=False)
+        self.points = np.atleast_2d(np.asarray(points, float))
+        sf = model.shape_functions(self.points, gradients=False)
         self._idx, self._psi = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
-        self._G = model.directions("paddle")
         self.sol = model.initial()
         self.paddle = np.zeros(model.dim)
 
@@ -116,9 +115,8 @@ class _Tracked:
         return np.asarray(point_values(self.model.ops, self._idx, self._psi, self.sol.u, self.sol.g)).ravel()
 
     def jacobian(self) -> np.ndarray:
-        J = implicit_jacobian(self.model.ops, self._prm, self.model._config(), self.sol.u, self.sol.g,
-                              self.sol.load, self._G, self._idx, self._psi)
-        return np.asarray(J).reshape(self._idx.shape[0] * self.model.dim, -1)
+        """d(control point displacement)/d(paddle translation) at the current equilibrium, (P*d, d)."""
+        return np.asarray(self.model.jacobian(self.sol, "paddle", self.points, params=self.params or None))
 
     def force(self) -> np.ndarray:
         """Force of the object on the paddle (model units): minus the constraint reaction."""
