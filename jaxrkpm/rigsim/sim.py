@@ -31,7 +31,6 @@ It imports the solver core (Model, the solve, the control law) and the hardware 
 from __future__ import annotations
 
 import dataclasses
-import enum
 import itertools
 from typing import Callable
 
@@ -41,6 +40,7 @@ import numpy as np
 from .. import Body, Fung, Model
 from ..model import SolveError
 from ..control import control_increment
+from ..outcome import Outcome
 from ..solve import point_values
 from .calibrate import Recording, broyden_update
 from ..rig.frames import RigidTransform, label_l_markers, object_frame_from_l_markers
@@ -299,12 +299,15 @@ class _TcpRobot:
 
 
 # ----------------------------------------------------------------------------- loop
-class RigStatus(enum.IntEnum):
-    DONE = 0             # every waypoint reached within tol (measured by the camera)
-    ITERATION_CAP = 1    # a waypoint used its max_iter iterations (budget mode: expected)
-    SAFETY_STOP = 2      # the robot link refused a command (workspace / step limit)
-    SOLVE_FAILED = 3     # the controller or the physical model did not converge
-    VISION_FAILED = 4    # no good stereo frame after the retries
+class RigStatus(Outcome):
+    """How a :meth:`ClosedLoop.run` ended (an :class:`~jaxrkpm.outcome.Outcome`: an int that
+    prints as its name, with a message). Summaries write ``status.name``."""
+
+    DONE = 0, "every waypoint reached within tolerance (measured by the camera)"
+    ITERATION_CAP = 1, "a waypoint used its max_iter iterations (expected in budget mode)"
+    SAFETY_STOP = 2, "the robot link refused a command (workspace or step limit)"
+    SOLVE_FAILED = 3, "the controller or the physical model did not converge"
+    VISION_FAILED = 4, "no good stereo frame after the retries"
 
 
 @dataclasses.dataclass(frozen=True)
