@@ -11,25 +11,8 @@ physical object). :mod:`.calibrate`: fitting material parameters to a recording,
 Broyden Jacobian correction.
 """
 
-from .calibrate import CalibrationResult, Recording, broyden_update, calibrate, predict, region_index
-from .sim import (
-    CONTROL_POINT,
-    ClosedLoop,
-    InProcessRobot,
-    Inclusion,
-    PhysicalObject,
-    RigGeometry,
-    RigRun,
-    RigSettings,
-    RigStatus,
-    Vision,
-    planar_object,
-)
+from . import calibrate as _calibrate, sim as _sim
+from .calibrate import *  # noqa: F401,F403  (the names in calibrate.__all__)
+from .sim import *  # noqa: F401,F403  (the names in sim.__all__)
 
-__all__ = [
-    # sim
-    "CONTROL_POINT", "Inclusion", "planar_object", "PhysicalObject", "RigGeometry", "Vision",
-    "InProcessRobot", "RigSettings", "RigStatus", "RigRun", "ClosedLoop",
-    # calibrate
-    "Recording", "CalibrationResult", "predict", "calibrate", "region_index", "broyden_update",
-]
+__all__ = [*_sim.__all__, *_calibrate.__all__]
