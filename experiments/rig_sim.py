@@ -30,9 +30,9 @@ import numpy as np
 
 from jaxrkpm import plot
 from jaxrkpm.control import PATHS
-from jaxrkpm.rig.calibrate import calibrate
-from jaxrkpm.rig.sim import (ClosedLoop, Inclusion, PhysicalObject, RigRun, RigSettings, Vision,
-                             planar_object)
+from jaxrkpm.rigsim.calibrate import calibrate
+from jaxrkpm.rigsim.sim import (ClosedLoop, Inclusion, PhysicalObject, RigRun, RigSettings, Vision,
+                                planar_object)
 
 RIG_PATHS = ("setpoint", "box")
 MODEL_ALPHA, MODEL_BETA = 1.0, 0.02

@@ -1,6 +1,15 @@
-"""Hardware side of the thesis' experimental rig (chapter 4): stereo marker tracking,
-coordinate frames and calibration, and the robot link. A side module: it never imports
-the jaxrkpm solver core (NumPy, SciPy, OpenCV and the standard library only)."""
+"""Hardware side of the thesis' experimental rig (chapter 4): stereo marker tracking
+(:mod:`.stereo`), coordinate frames, pivot calibration and registration (:mod:`.frames`) and
+the JSON-lines robot link (:mod:`.link`).
+
+Its modules import nothing from the jaxrkpm solver core and not JAX: only the standard
+library, NumPy, SciPy, OpenCV and each other (checked on the source by
+``tests/rig/test_layering.py``). Importing it as ``jaxrkpm.rig`` still runs the parent
+package's ``jaxrkpm/__init__.py`` (which loads JAX and the core); the separation is that no
+rig module needs the core, not that Python skips the parent.
+
+The simulated rig and the material calibration, which do use the core, are in
+:mod:`jaxrkpm.rigsim`."""
 
 from .frames import (
     PivotResult,

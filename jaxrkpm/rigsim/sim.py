@@ -21,16 +21,16 @@ Per iteration three errors are kept apart (all in the object plane, mm):
 physical error = true physical control point - desired; camera error = measured - true;
 model mismatch = controller-model prediction at the commanded paddle - true physical.
 
-Corrections (see :mod:`jaxrkpm.rig.calibrate`): :meth:`ClosedLoop.probe` records camera and
+Corrections (see :mod:`jaxrkpm.rigsim.calibrate`): :meth:`ClosedLoop.probe` records camera and
 force data for calibrating the controller model; ``RigSettings(broyden=True)`` corrects its
 Jacobian online from the camera (J = J_model + D, D updated by Broyden on large enough steps).
 
-The rig imports the core; the core never imports the rig.
+It imports the solver core (Model, the solve, the control law) and the hardware package
+:mod:`jaxrkpm.rig`; neither of those imports it.
 """
 from __future__ import annotations
 
 import dataclasses
-import enum
 import itertools
 from typing import Callable
 
@@ -40,11 +40,12 @@ import numpy as np
 from .. import Body, Fung, Model
 from ..model import SolveError
 from ..control import control_increment
-from ..solve import implicit_jacobian, point_values
+from ..outcome import Outcome
+from ..solve import point_values
 from .calibrate import Recording, broyden_update
-from .frames import RigidTransform, label_l_markers, object_frame_from_l_markers
-from .link import RobotClient, SafetyError, SafetyLimits, SimulatedRobotServer, LinkError
-from .stereo import ParallelStereo, StereoTracker, render_markers
+from ..rig.frames import RigidTransform, label_l_markers, object_frame_from_l_markers
+from ..rig.link import RobotClient, SafetyError, SafetyLimits, SimulatedRobotServer, LinkError
+from ..rig.stereo import ParallelStereo, StereoTracker, render_markers
 
 __all__ = [
     "CONTROL_POINT", "Inclusion", "planar_object", "PhysicalObject", "RigGeometry", "Vision",
@@ -88,15 +89,14 @@ def planar_object(n: int = 9, alpha: float = 1.0, beta: float = 0.02, paddle_hal
 
 class _Tracked:
     """A model with its paddle driven rigidly, its current equilibrium and cached control
-    point shape functions (the Jacobian is the jitted implicit one of the core)."""
+    point shape functions (the Jacobian is the model's implicit one, ``Model.jacobian``)."""
 
     def __init__(self, model: Model, params: dict | None = None, points=CONTROL_POINT[None]):
         self.model = model
         self.params = dict(params or {})
-        self._prm = model.params_with(self.params)
-        sf = model.shape_functions(np.atleast_2d(points), gradients=False)
+        self.points = np.atleast_2d(np.asarray(points, float))
+        sf = model.shape_functions(self.points, gradients=False)
         self._idx, self._psi = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
-        self._G = model.directions("paddle")
         self.sol = model.initial()
         self.paddle = np.zeros(model.dim)
 
@@ -115,9 +115,8 @@ class _Tracked:
         return np.asarray(point_values(self.model.ops, self._idx, self._psi, self.sol.u, self.sol.g)).ravel()
 
     def jacobian(self) -> np.ndarray:
-        J = implicit_jacobian(self.model.ops, self._prm, self.model._config(), self.sol.u, self.sol.g,
-                              self.sol.load, self._G, self._idx, self._psi)
-        return np.asarray(J).reshape(self._idx.shape[0] * self.model.dim, -1)
+        """d(control point displacement)/d(paddle translation) at the current equilibrium, (P*d, d)."""
+        return np.asarray(self.model.jacobian(self.sol, "paddle", self.points, params=self.params or None))
 
     def force(self) -> np.ndarray:
         """Force of the object on the paddle (model units): minus the constraint reaction."""
@@ -300,12 +299,15 @@ class _TcpRobot:
 
 
 # ----------------------------------------------------------------------------- loop
-class RigStatus(enum.IntEnum):
-    DONE = 0             # every waypoint reached within tol (measured by the camera)
-    ITERATION_CAP = 1    # a waypoint used its max_iter iterations (budget mode: expected)
-    SAFETY_STOP = 2      # the robot link refused a command (workspace / step limit)
-    SOLVE_FAILED = 3     # the controller or the physical model did not converge
-    VISION_FAILED = 4    # no good stereo frame after the retries
+class RigStatus(Outcome):
+    """How a :meth:`ClosedLoop.run` ended (an :class:`~jaxrkpm.outcome.Outcome`: an int that
+    prints as its name, with a message). Summaries write ``status.name``."""
+
+    DONE = 0, "every waypoint reached within tolerance (measured by the camera)"
+    ITERATION_CAP = 1, "a waypoint used its max_iter iterations (expected in budget mode)"
+    SAFETY_STOP = 2, "the robot link refused a command (workspace or step limit)"
+    SOLVE_FAILED = 3, "the controller or the physical model did not converge"
+    VISION_FAILED = 4, "no good stereo frame after the retries"
 
 
 @dataclasses.dataclass(frozen=True)

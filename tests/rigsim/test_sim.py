@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 
 from jaxrkpm.control import PATHS
-from jaxrkpm.rig.calibrate import Recording, broyden_update, calibrate, region_index
-from jaxrkpm.rig.sim import (CONTROL_POINT, ClosedLoop, Inclusion, PhysicalObject, RigSettings, RigStatus,
-                             Vision, planar_object)
+from jaxrkpm.outcome import Outcome
+from jaxrkpm.rigsim.calibrate import Recording, broyden_update, calibrate, region_index
+from jaxrkpm.rigsim.sim import (CONTROL_POINT, ClosedLoop, Inclusion, PhysicalObject, RigSettings, RigStatus,
+                                Vision, planar_object)
 from jaxrkpm.rig.stereo import MarkerCountError
 
 BETA = 0.02
@@ -143,6 +144,15 @@ def test_bad_inputs_are_named():
         RigSettings(gain=-1.0)
     with pytest.raises(ValueError, match="same"):
         Recording(np.zeros((2, 2)), np.zeros((3, 2)), np.zeros((2, 2)), CONTROL_POINT[None])
+
+
+def test_rig_status_is_an_outcome_with_messages():
+    assert issubclass(RigStatus, Outcome)
+    assert [int(s) for s in RigStatus] == [0, 1, 2, 3, 4] and RigStatus.SAFETY_STOP == 2
+    assert all(s.message for s in RigStatus)
+    assert RigStatus.DONE.ok and not RigStatus.ITERATION_CAP.ok
+    assert str(RigStatus.VISION_FAILED) == f"{RigStatus.VISION_FAILED}" == RigStatus.VISION_FAILED.name
+    assert RigStatus.of(np.int64(3)) is RigStatus.SOLVE_FAILED
 
 
 def test_rig_sim_cli_writes_summary_and_figures(tmp_path, loop):

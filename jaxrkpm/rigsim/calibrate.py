@@ -97,9 +97,10 @@ def _predictor(model: Model, rec: Recording, steps: int):
 
 
 def predict(model: Model, rec: Recording, params: dict, steps: int = 2):
-    """Model control point (N, d) and force (N, d) at the recording's paddle positions."""
+    """Model control point (N, d) and force (N, d) at the recording's paddle positions, and
+    the worst solve :class:`~jaxrkpm.solve.Status` among them."""
     cp, f, st = jax.jit(_predictor(model, rec, steps))({k: jnp.asarray(v, jnp.float64) for k, v in params.items()})
-    return np.asarray(cp), np.asarray(f), int(st)
+    return np.asarray(cp), np.asarray(f), Status(int(st))
 
 
 def region_index(points, regions) -> np.ndarray:
