@@ -17,7 +17,7 @@ import scipy.linalg as sla
 
 import jaxrkpm as jr
 from jaxrkpm import integration as integ
-from jaxrkpm import scni, solve
+from jaxrkpm import scni
 
 BODIES = {
     "grid2d_9": lambda: jr.Body.grid((9, 9), 0.125),

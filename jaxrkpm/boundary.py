@@ -12,7 +12,6 @@ eq 3.9) integrated once into a constant nodal force vector.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 

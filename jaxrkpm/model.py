@@ -1,7 +1,7 @@
 """The user-facing model: builds every table once, then solves and post-processes."""
 from __future__ import annotations
 
-from typing import Callable, Mapping
+from typing import Mapping
 
 import jax
 import jax.numpy as jnp
@@ -119,7 +119,7 @@ class Model:
         sp_pair = np.searchsorted(uniq, sp_key)
         pair_i, pair_j = uniq // N, uniq % N
 
-        Nb, Nf = len(self.sets.bnd), len(self.sets.free)
+        Nf = len(self.sets.free)
         if trans is not None:
             A = trans.coupling(self.sets, N)
             near = np.flatnonzero(np.any(A != 0, axis=0))

@@ -7,8 +7,7 @@ import pytest
 
 import jaxrkpm as jr
 from experiments import compress
-from jaxrkpm import integration as integ
-from jaxrkpm import polygons, scni, solve
+from jaxrkpm import polygons, scni
 
 F0_2D = np.array([[1.1, 0.2], [-0.1, 0.95]])           # general, non-symmetric
 
