@@ -39,7 +39,12 @@ import numpy as np
 
 from experiments import track as T
 from jaxrkpm import control as C
-from jaxrkpm.solve import implicit_jacobian, point_values, residual
+
+# XLA compilations during a run (JAX's own compile events): a warm tracking run compiles nothing
+COMPILES = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, duration, **kw: COMPILES.append(duration)
+    if event == "/jax/core/compile/backend_compile_duration" else None)
 
 THESIS_MIN = {"box": {"gauss": 625, "collocated": 38}, "figure8": {"gauss": 412, "collocated": 25}}
 
@@ -64,7 +69,7 @@ def bench_tracking(paths, integrations, repeats):
                 out[key] = {"error": f"ValueError: {e}"}
                 print(key, out[key], file=sys.stderr)
                 continue
-            cache0 = C._track_loop._cache_size()
+            compiles0 = len(COMPILES)
             res, timing = T.execute(exp, repeats=repeats)
             w = timing["wall_s"]
             r = {"wall_s_median": w, "wall_s_all": timing["warm_runs_s"], "compile_s": timing["compile_s"],
@@ -73,7 +78,7 @@ def bench_tracking(paths, integrations, repeats):
                  "ms_per_iteration": 1e3 * w / max(len(res.error) - 1, 1),
                  "integration": exp.model.integration, "particles": [9, 9],
                  # the compile probe and the warm runs share one compiled loop (no retrace)
-                 "loop_compilations": C._track_loop._cache_size() - cache0}
+                 "xla_compilations": len(COMPILES) - compiles0}
             ref = THESIS_MIN.get(path)
             if ref:
                 r["thesis_min_gauss"] = ref["gauss"]
@@ -108,27 +113,18 @@ def bench_jacobian(sizes, repeats, mp=(0.05, 0.05), eps=1e-5):
         t_imp, all_imp = _median_time(lambda: model.jacobian(sol, "paddle", cp), max(reps, 10 if n == 9 else reps))
         t_fd, all_fd = _median_time(lambda: model.jacobian(sol, "paddle", cp, method="fd", eps=eps), reps)
         # the same implicit Jacobian as the tracking loop calls it (arrays prepared once)
-        sf = model.shape_functions(cp, gradients=False)
-        args = (model.ops, model.params, model._config(), sol.u, sol.g, sol.load,
-                model.directions("paddle"), jnp.asarray(sf.idx), jnp.asarray(sf.psi))
-        t_kernel, _ = _median_time(lambda: implicit_jacobian(*args), max(reps, 10 if n == 9 else reps))
-        # the Jacobian as the tracking loop takes it: tangent + Cholesky (reused by the predictor)
-        side, cfg = C._side(model, "paddle", cp), model._config()
-        loop_jac = jax.jit(lambda s: C._jacobian(side, C._factor(side, cfg, s)))
-        Jl = np.asarray(loop_jac(sol))
-        t_loop, _ = _median_time(lambda: loop_jac(sol), max(reps, 10 if n == 9 else reps))
-        fac = jax.jit(lambda s: C._factor(side, cfg, s))(sol)
-
-        @jax.jit
-        def marginal(f, s):   # what the Jacobian adds to a step that factorises K_ff anyway
-            dr = jax.vmap(lambda t: jax.jvp(lambda x: residual(side.ops, side.params, cfg.W, s.u, x, s.load),
-                                            (s.g,), (t,))[1])(side.G)
-            X = jax.scipy.linalg.cho_solve((f.L, True), dr.reshape(dr.shape[0], -1).T)
-            du = -X.T.reshape(dr.shape)
-            return jax.vmap(lambda a, b: point_values(side.ops, side.idx, side.psi, a, b).ravel())(du, side.G).T
-
-        Jm = np.asarray(marginal(fac, sol))
-        t_marg, _ = _median_time(lambda: marginal(fac, sol), max(reps, 10 if n == 9 else reps))
+        side = C.ControlledModel.of(model, "paddle", cp)
+        kernel = jax.jit(lambda sd, s: sd.problem.jacobian(s, sd.G, sd.idx, sd.psi))
+        t_kernel, _ = _median_time(lambda: kernel(side, sol), max(reps, 10 if n == 9 else reps))
+        # the Jacobian as the tracking loop takes it: tangent + factorisation (reused by the predictor)
+        loop_jac = jax.jit(lambda sd, s: sd.jacobian(s, sd.problem.factorise(s.u, s.g)))
+        Jl = np.asarray(loop_jac(side, sol))
+        t_loop, _ = _median_time(lambda: loop_jac(side, sol), max(reps, 10 if n == 9 else reps))
+        fac = jax.jit(lambda sd, s: sd.problem.factorise(s.u, s.g))(side, sol)
+        # what the Jacobian adds to a step that factorises K_ff anyway
+        marginal = jax.jit(lambda sd, st, s: sd.jacobian(s, st))
+        Jm = np.asarray(marginal(side, fac, sol))
+        t_marg, _ = _median_time(lambda: marginal(side, fac, sol), max(reps, 10 if n == 9 else reps))
         g = model.prescribed({"paddle": jnp.asarray(mp) + eps}, base=sol.g)
         resolve_its = int(model.solve_g(g, initial=sol, loads=sol.load).iterations)
         out[f"{n}x{n}"] = {

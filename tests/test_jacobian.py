@@ -6,6 +6,8 @@ import pytest
 
 import jaxrkpm as jr
 from jaxrkpm.control import PATHS, TrackStatus, control_increment, track
+from jaxrkpm.linear import Stability
+from jaxrkpm.solve import Status
 
 CP = np.array([[0.5, 0.5]])
 
@@ -134,22 +136,53 @@ def test_unreachable_waypoint_stops_with_status_and_history(planar):
 
 
 def test_tracking_step_reuses_one_factorisation(planar):
-    """The tracking loop's step: one Cholesky factorisation at the converged state gives the
-    implicit Jacobian and the predictor + chord corrections of the next solve, which lands on
-    the same equilibrium as the full Newton solve; a step too big for it is refused."""
-    from jaxrkpm import control as C
+    """The tracking loop's step: one factorisation at the converged state gives the implicit
+    Jacobian and the predictor + chord corrections of the next solve, which lands on the same
+    equilibrium as the full Newton solve; a step too big for it is refused."""
+    from jaxrkpm.control import ControlledModel
 
     model, sol = planar
-    side, cfg = C._side(model, "paddle", CP), model._config()
-    f = jax.jit(lambda s: C._factor(side, cfg, s))(sol)
-    assert bool(f.spd)
-    J = np.asarray(C._jacobian(side, f))
+    side = ControlledModel.of(model, "paddle", CP)
+    state = jax.jit(lambda p, s: p.factorise(s.u, s.g))(side.problem, sol)
+    assert Stability.of(side.problem.stability(state)) == Stability.STABLE
+    J = np.asarray(jax.jit(lambda sd, s, st: sd.jacobian(s, st))(side, sol, state))
     assert np.abs(J - np.asarray(model.jacobian(sol, "paddle", CP))).max() < 1e-12 * np.abs(J).max()
-    chord = jax.jit(lambda f, s, d: C._chord_solve(side, cfg, f, s, d, 6))
-    u, g1, its, rn, ok = chord(f, sol, jnp.array([0.004, -0.003]))
+
+    @jax.jit
+    def chord(prob, s, st, dmp):
+        g1 = s.g + jnp.einsum("a,abi->bi", dmp, side.G)
+        return prob.newton(s.u, s.g, g1, s.load, s.load, max_iter=7, state=st, chord=True), g1
+
+    (u, status, its, rn, _), g1 = chord(side.problem, sol, state, jnp.array([0.004, -0.003]))
     ref = model.solve_g(g1, initial=sol, loads=sol.load)
-    assert bool(ok) and 2 <= int(its) <= 6
+    assert Status.of(status) == Status.CONVERGED and 2 <= int(its) <= 7
     assert np.abs(np.asarray(u - ref.u)).max() < 1e-10
     # half the object's size in one step: the chord iteration must give up (the loop then
     # runs the full Newton path)
-    assert not bool(chord(f, sol, jnp.array([0.5, 0.0]))[4])
+    (_, status, *_), _ = chord(side.problem, sol, state, jnp.array([0.5, 0.0]))
+    assert Status.of(status) != Status.CONVERGED
+
+
+def test_tracking_fast_path_with_the_sparse_solver(planar):
+    """The sparse solver takes the same fast path as the dense one (one factorisation per
+    iteration, chord corrections with it) and tracks the same path."""
+    from jaxrkpm import sparse as jsparse
+
+    model, _ = planar
+    sparse = jr.Model(model.body, model.material, essential={n: model.set_indices(n) for n in model.set_names},
+                      solver="sparse")
+    path = PATHS["setpoint"]
+    dense_run = track(model, path, "paddle", CP)
+    jsparse.reset_stats()
+    sparse_run = track(sparse, path, "paddle", CP)
+    stats = dict(jsparse.STATS)
+    assert sparse_run.status == TrackStatus.DONE
+    assert np.abs(sparse_run.cp - dense_run.cp).max() < 1e-8
+    assert np.abs(sparse_run.mp - dense_run.mp).max() < 1e-8
+    n = len(sparse_run.error) - 1
+    # one factorisation per iteration (at the converged state; the loop also takes and
+    # discards a step on each waypoint hit) and no full Newton solve: that would add CG
+    # solves preconditioned by its first factorisation
+    hits = int(np.sum(sparse_run.reached >= 0))
+    assert stats["factorisations"] == n + hits and stats["cg_solves"] == 0, stats
+    assert np.all(sparse_run.newton[1:] <= 7)

@@ -1,0 +1,106 @@
+"""The public API is the API: nothing outside jaxrkpm/model.py touches a private member of
+Model, and outcomes print as names."""
+import ast
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import jaxrkpm as jr
+from jaxrkpm.outcome import Outcome
+
+ROOT = Path(__file__).resolve().parents[1]
+MODEL = ROOT / "jaxrkpm" / "model.py"
+MAGIC = re.compile(r"^\s*(%%?[A-Za-z]|!)")
+
+
+def private_members_of_model() -> set:
+    """Private (single underscore) methods and attributes of class Model, from its source."""
+    tree = ast.parse(MODEL.read_text())
+    cls = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "Model")
+    names = set()
+    for node in ast.walk(cls):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            names.add(node.name)
+        elif isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "self":
+            names.add(node.attr)
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            names.add(node.value)   # self.__dict__.setdefault("_cache", ...)
+    return {n for n in names if n.startswith("_") and not n.startswith("__")}
+
+
+def uses(source: str, private: set) -> list:
+    """(line, name) of every attribute access ``x._name`` with a name in ``private``."""
+    return [(n.lineno, n.attr) for n in ast.walk(ast.parse(source))
+            if isinstance(n, ast.Attribute) and n.attr in private]
+
+
+def sources():
+    """Every Python source of the repository outside model.py, notebooks' code cells too."""
+    for path in sorted(ROOT.rglob("*.py")):
+        rel = path.relative_to(ROOT)
+        if path == MODEL or rel.parts[0] in (".venv", "build", ".git") or "site-packages" in rel.parts:
+            continue
+        yield str(rel), path.read_text()
+    for path in sorted((ROOT / "notebooks").glob("*.ipynb")):
+        cells = json.loads(path.read_text())["cells"]
+        code = "\n".join("".join(c["source"]) for c in cells if c["cell_type"] == "code")
+        code = "\n".join(l for l in code.splitlines() if not MAGIC.match(l))   # IPython magics
+        yield str(path.relative_to(ROOT)), code
+
+
+def test_the_checker_finds_private_uses():
+    private = private_members_of_model()
+    assert {"_springs", "_check_set"} <= private
+    assert uses("model._check_set('a')\ncfg = m._springs(None)", private) == [(1, "_check_set"), (2, "_springs")]
+    assert uses("model.config()\nx = y.public", private) == []
+
+
+def test_nothing_outside_model_uses_a_private_member_of_model():
+    private = private_members_of_model()
+    found = {name: hits for name, src in sources() if (hits := uses(src, private))}
+    assert not found, f"private members of Model used outside model.py: {found}"
+
+
+def test_outcomes_print_as_names_and_carry_messages():
+    model = jr.Model(jr.Body.grid((3, 3), 0.5), jr.NeoHookean(1.0, 1.0), essential={"l": [0, 1, 2]})
+    sol = model.solve()
+    assert str(sol.outcome) == "CONVERGED" and f"{sol.outcome}" == "CONVERGED"
+    from jaxrkpm.control import TrackStatus
+    from jaxrkpm.linear import Stability
+    for kind in (jr.Status, TrackStatus, Stability):
+        assert issubclass(kind, Outcome)
+        for member in kind:
+            assert str(member) == member.name and member.message and kind.of(int(member)) is member
+    with pytest.raises(ValueError, match="one code"):
+        jr.Status.of(np.zeros(3))
+
+
+def test_unknown_inertia_is_reported_as_unknown(monkeypatch):
+    """A factorisation that cannot tell the inertia (PARDISO with perturbed pivots, SuperLU
+    with pivoting) gives STABILITY_UNKNOWN, never CONVERGED on a claimed positive definite
+    tangent; the equilibrium is still returned (no SolveError)."""
+    from jaxrkpm import sparse
+    body = jr.Body.grid((4, 4), 1 / 3)
+    sets = {"l": body.select(lambda X: X[:, 0] < 1e-9), "r": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
+    model = jr.Model(body, jr.NeoHookean(1.0, 1.0), essential=sets, solver="sparse", factorisation="superlu")
+    monkeypatch.setattr(sparse.SuperLU, "factor", _unknown)
+    sol = model.solve({"r": [-0.05, 0.0]})
+    assert sol.outcome == jr.Status.STABILITY_UNKNOWN and sol.converged
+    assert "could not tell" in sol.message
+    state = model.problem().factorise(sol.u, sol.g)
+    from jaxrkpm.linear import Stability
+    assert Stability.of(model.problem().stability(state)) == Stability.UNKNOWN
+    # with the check off there is nothing to report
+    assert model.solve({"r": [-0.05, 0.0]}, check_stability=False).outcome == jr.Status.CONVERGED
+
+
+def _unknown(self, data):
+    """SuperLU.factor that factorises but reports the inertia as unknown."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+    A = sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+    self.lu = spla.splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+    return None
