@@ -162,7 +162,7 @@ def run_dynamic(phantom, inclusion, increments, out: Path, paddle=None, n_device
         "depths": run.depths.tolist(),
         "static_deviation": sw.deviation[chosen - 1].tolist(),
         "no_paddle_per_increment": sw.no_paddle.tolist(),
-        "status": run.status, "message": run.message,
+        "status": run.status.name.lower(), "message": run.message,
         "wall_s": wall,
         "thesis": {"controllability": nd.THESIS["controllability"].get(inclusion), "best": 3},
     }
@@ -238,7 +238,7 @@ def run_optimize(phantom, inclusion, increments, out: Path, n_devices=1, start=N
         "best_discrete": sw.best, "best_discrete_deviation": best_dev,
         "no_paddle_deviation": float(sw.no_paddle[-1]),
         "improvement_over_discrete": abs(best_dev) / max(abs(opt.deviation), 1e-300),
-        "start": start, "status": opt.status, "message": opt.message,
+        "start": start, "status": opt.status.name.lower(), "message": opt.message,
         "rejected_steps": opt.rejected,
         "history": {"q": opt.history[:, 0].tolist(), "deviation": opt.history[:, 1].tolist(),
                     "gradient": opt.history[:, 2].tolist()},

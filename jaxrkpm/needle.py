@@ -27,6 +27,7 @@ from .boundary import Springs
 from .geometry import Body
 from .materials import Fung
 from .model import Model
+from .outcome import Outcome
 from .problem import Problem
 from .solve import Limits, Status, point_values
 
@@ -394,6 +395,22 @@ def static_sweep(phantom: Phantom, inclusion: str = "none", increments: int = 15
                        np.asarray(free.status[0]), np.asarray(runs.jacobian))
 
 
+class HoldStatus(Outcome):
+    """Outcome of the closed-loop paddle (``dynamic_paddle``)."""
+
+    CONVERGED = 0, "target held on the needle line at every increment"
+    NOT_HELD = 1, "the corrections did not bring the lateral deviation below tol"
+    SOLVE_FAILED = 2, "a solve failed (see solve_status); the increments before it are kept"
+
+
+class OptimizeStatus(Outcome):
+    """Outcome of the paddle optimisation (``optimize_paddle``)."""
+
+    CONVERGED = 0, "the deviation or the step fell below its tolerance"
+    MAX_ITERATIONS = 1, "the iteration budget ran out; the best iterate is returned"
+    START_FAILED = 2, "the insertion fails at the start position (see solve_status)"
+
+
 @dataclass
 class DynamicRun:
     """Closed loop: the paddle moves during insertion to hold the target on the needle line."""
@@ -404,9 +421,10 @@ class DynamicRun:
     uncorrected: np.ndarray   # (n,) target x displacement after the feed-forward move only
     paddle_u: np.ndarray      # (n, 2) paddle translation
     iterations: np.ndarray    # (n,) correction solves per increment
-    status: str
+    status: HoldStatus
     message: str
     solution: object = None   # the last converged Solution (for plots and post-processing)
+    solve_status: Status = Status.CONVERGED   # of the solve that stopped the loop, if one did
 
     @property
     def travel(self) -> float:
@@ -430,7 +448,7 @@ def dynamic_paddle(phantom: Phantom, paddle: int, inclusion: str = "none", incre
     sol = model.initial()
     p = np.zeros(2)
     dev, pre, pu, its = [], [], [], []
-    status, message = "converged", "target held on the needle line at every increment"
+    status, message, solve_status = HoldStatus.CONVERGED, HoldStatus.CONVERGED.message, Status.CONVERGED
     depth_prev = 0.0
 
     def solve_at(depth, p, start):
@@ -455,19 +473,19 @@ def dynamic_paddle(phantom: Phantom, paddle: int, inclusion: str = "none", incre
                     break
                 e = float(model.displacement(new, target)[0, 0])
         if int(new.status) != Status.CONVERGED:
-            status, message = Status(int(new.status)).name.lower(), new.message
+            status, message, solve_status = HoldStatus.SOLVE_FAILED, new.message, new.outcome
             break
         sol, depth_prev = new, depth
         dev.append(e)
         pu.append(p.copy())
         its.append(k)
         if abs(e) >= tol:
-            status = "not_held"
+            status = HoldStatus.NOT_HELD
             message = f"|x deviation| {abs(e):.2e} >= {tol:g} after {k} corrections at depth {depth:.4f}"
             break
     n = len(dev)
     return DynamicRun(paddle, depths[:n], np.array(dev), np.array(pre[:n]),
-                      np.array(pu).reshape(n, 2), np.array(its, int), status, message, sol)
+                      np.array(pu).reshape(n, 2), np.array(its, int), status, message, sol, solve_status)
 
 
 def static_state(phantom: Phantom, inclusion: str = "none", paddle: int | None = None,
@@ -497,8 +515,9 @@ class PaddleOptimum:
     deviation: float            # final x deviation there
     history: np.ndarray         # (iterations, 3): q, deviation, d(deviation^2)/dq per iteration
     rejected: int               # steps whose insertion failed (det F <= 0 ...), undone and shortened
-    status: str
+    status: OptimizeStatus
     message: str
+    solve_status: Status = Status.CONVERGED   # of the start position's insertion
 
 
 def spring_insertion(model: Model, phantom: Phantom, q, depths):
@@ -511,7 +530,7 @@ def spring_insertion(model: Model, phantom: Phantom, q, depths):
     for depth in depths:
         new = model.solve({"needle": [0.0, float(depth)]}, params=springs, initial=sol, throw=False)
         if int(new.status) != Status.CONVERGED:
-            return sol, np.array(dev), Status(int(new.status))
+            return sol, np.array(dev), new.outcome
         sol = new
         dev.append(float(model.displacement(sol, target)[0, 0]))
     return sol, np.array(dev), Status.CONVERGED
@@ -533,7 +552,7 @@ def final_deviation_and_gradient(model: Model, phantom: Phantom, q: float, depth
         return point_values(model.ops, idx, psi, s.u, s.g)[0, 0], s.status
 
     (d, st), g = jax.value_and_grad(final, has_aux=True)(jnp.float64(q))
-    return float(d), float(g), Status(int(st))
+    return float(d), float(g), Status.of(st)
 
 
 def optimize_paddle(phantom: Phantom, inclusion: str = "none", start: float = 4.0,
@@ -556,17 +575,18 @@ def optimize_paddle(phantom: Phantom, inclusion: str = "none", start: float = 4.
     d, g, st = final_deviation_and_gradient(model, phantom, q, depths)
     if st != Status.CONVERGED:
         return PaddleOptimum(inclusion, q, phantom.arc_length(q), np.nan, np.zeros((0, 3)), 0,
-                             st.name.lower(), f"the insertion fails at the start position q = {q}")
+                             OptimizeStatus.START_FAILED,
+                             f"the insertion fails at the start position q = {q} ({st.name})", st)
     hist, rejected, scale = [(q, d, 2 * d * g)], 0, 1.0
-    status, message = "max_iterations", f"{iterations} iterations"
+    status, message = OptimizeStatus.MAX_ITERATIONS, f"{iterations} iterations"
     for _ in range(iterations):
         if abs(d) < tol:
-            status, message = "converged", f"|deviation| < {tol:g}"
+            status, message = OptimizeStatus.CONVERGED, f"|deviation| < {tol:g}"
             break
         upd, new_state = opt.update(jnp.float64(2 * d * g), state)
         q_new = float(np.clip(q + scale * float(upd), 1.0, P))
         if abs(q_new - q) < step_tol:
-            status, message = "converged", f"step below {step_tol:g}"
+            status, message = OptimizeStatus.CONVERGED, f"step below {step_tol:g}"
             break
         d_new, g_new, st = final_deviation_and_gradient(model, phantom, q_new, depths)
         if st != Status.CONVERGED:

@@ -98,7 +98,7 @@ def test_controllability_and_dynamic_paddle(phantom, sweeps):
     assert np.all(np.isfinite(ctrl)) and np.all(ctrl > 0)
     assert np.argmax(ctrl) == 0                        # paddle 1 the least controllable (Table 6.3)
     run = nd.dynamic_paddle(phantom, 5, "none", INCREMENTS)
-    assert run.status == "converged", run.message
+    assert run.status == nd.HoldStatus.CONVERGED, run.message
     assert len(run.deviation) == INCREMENTS
     assert np.abs(run.deviation).max() < 1e-4
     assert np.abs(run.uncorrected).max() > 1e-5         # the feed-forward alone does not hold it
