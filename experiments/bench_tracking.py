@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import track as T
+from jaxrkpm.studies import track as T
 from jaxrkpm import control as C
 from jaxrkpm.solve import implicit_jacobian, point_values, residual
 

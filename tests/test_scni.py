@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import jaxrkpm as jr
-from experiments import compress
+from jaxrkpm.studies import compress
 from jaxrkpm import polygons, scni
 
 F0_2D = np.array([[1.1, 0.2], [-0.1, 0.95]])           # general, non-symmetric

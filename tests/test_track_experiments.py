@@ -1,12 +1,12 @@
-"""The chapter-5 tracking experiments (experiments/track.py, experiments/demo.py), run small."""
+"""The chapter-5 tracking experiments (jaxrkpm/studies/track.py, jaxrkpm/studies/demo.py), run small."""
 import json
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from experiments import demo
-from experiments import track as T
+from jaxrkpm.studies import demo
+from jaxrkpm.studies import track as T
 from jaxrkpm import cli
 
 SUMMARY_KEYS = {"max_waypoint_error", "waypoints", "status", "message", "wall_s", "compile_s",
@@ -26,7 +26,7 @@ def setpoint_run(setpoint, tmp_path_factory):
 
 
 def test_cli_registers_track():
-    assert cli.COMMANDS["track"] == "experiments.track"
+    assert cli.COMMANDS["track"] == "jaxrkpm.studies.track"
 
 
 def test_planar_model_is_the_design_setup(setpoint):

@@ -40,7 +40,7 @@ class Entry:
 # ------------------------------------------------------------------ runners
 def _track(path=None, integration="gauss", dim=2, model="reduced", scheme="self"):
     def run(out: Path, quick: bool) -> dict:
-        from experiments import track
+        from jaxrkpm.studies import track
         argv = ["--dim", str(dim), "--integration", integration, "--out", str(out)]
         if path:
             argv += ["--path", path]
@@ -54,7 +54,7 @@ def _track(path=None, integration="gauss", dim=2, model="reduced", scheme="self"
 
 def _compress(mode, integration):
     def run(out: Path, quick: bool) -> dict:
-        from experiments import compress
+        from jaxrkpm.studies import compress
         argv = ["--mode", mode, "--integration", integration, "--out", str(out)]
         if quick:
             argv += ["--n", "5", "--max", "0.03"]
@@ -63,7 +63,7 @@ def _compress(mode, integration):
 
 
 def _cantilever(out: Path, quick: bool) -> dict:
-    from experiments import cantilever
+    from jaxrkpm.studies import cantilever
     levels = 2 if quick else 3
     s = cantilever.convergence(tuple(0.25 / 2**k for k in range(levels)))
     _cantilever_figure(out, s)
@@ -89,14 +89,14 @@ def _cantilever_figure(out: Path, s: dict):
 
 def _rig(path):
     def run(out: Path, quick: bool) -> dict:
-        from experiments import rig_sim
+        from jaxrkpm.studies import rig_sim
         return rig_sim.main(["--path", path, "--out", str(out)])
     return run
 
 
 def _needle(mode, inclusion):
     def run(out: Path, quick: bool) -> dict:
-        from experiments import needle
+        from jaxrkpm.studies import needle
         return needle.main(["--mode", mode, "--inclusion", inclusion, "--out", str(out)]
                            + (["--increments", "3"] if quick else []))
     return run
