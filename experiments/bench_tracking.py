@@ -40,8 +40,9 @@ import numpy as np
 from jaxrkpm.studies import track as T
 from jaxrkpm import control as C
 from jaxrkpm.solve import implicit_jacobian, point_values, residual
+from jaxrkpm.thesis import TRACKING_MINUTES
 
-THESIS_MIN = {"box": {"gauss": 625, "collocated": 38}, "figure8": {"gauss": 412, "collocated": 25}}
+THESIS_MIN = {p: {k: TRACKING_MINUTES[k][p] for k in TRACKING_MINUTES} for p in ("box", "figure8")}
 
 
 def _median_time(f, repeats):
