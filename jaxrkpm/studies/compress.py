@@ -56,7 +56,7 @@ def _diagnostics(model):
     the integration points, smallest acoustic-tensor eigenvalue min_q min_|n|=1 eig A(n),
     A_ik = dP_ij/dF_kl n_j n_l: it turns negative where the material itself loses strong
     ellipticity, i.e. admits a localised (shear band / kink) instability)."""
-    cfg = model._config()
+    cfg = model.config()
     W = model.material.W
     theta = np.linspace(0, np.pi, 90, endpoint=False)
     normals = jnp.asarray(np.stack([np.cos(theta), np.sin(theta)], 1))   # 2D directions
