@@ -37,8 +37,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import track as T
+from jaxrkpm.studies import track as T
 from jaxrkpm import control as C
+from jaxrkpm.thesis import TRACKING_MINUTES
 
 # XLA compilations during a run (JAX's own compile events): a warm tracking run compiles nothing
 COMPILES = []
@@ -46,7 +47,7 @@ jax.monitoring.register_event_duration_secs_listener(
     lambda event, duration, **kw: COMPILES.append(duration)
     if event == "/jax/core/compile/backend_compile_duration" else None)
 
-THESIS_MIN = {"box": {"gauss": 625, "collocated": 38}, "figure8": {"gauss": 412, "collocated": 25}}
+THESIS_MIN = {p: {k: TRACKING_MINUTES[k][p] for k in TRACKING_MINUTES} for p in ("box", "figure8")}
 
 
 def _median_time(f, repeats):

@@ -1,17 +1,18 @@
-"""Command line: ``jaxrkpm <command> [options]``; each command runs an experiment script."""
+"""Command line: ``jaxrkpm <command> [options]``; each command runs a study of
+:mod:`jaxrkpm.studies` (imported only when its command is given, so ``--help`` stays cheap)."""
 from __future__ import annotations
 
 import importlib
 import sys
 
-# command -> module with a main(argv) in experiments/
+# command -> module with a main(argv) in jaxrkpm/studies/
 COMMANDS = {
-    "demo": "experiments.demo",
-    "track": "experiments.track",
-    "compress": "experiments.compress",
-    "needle": "experiments.needle",
-    "rig-sim": "experiments.rig_sim",
-    "reproduce": "experiments.reproduce",
+    "demo": "jaxrkpm.studies.demo",
+    "track": "jaxrkpm.studies.track",
+    "compress": "jaxrkpm.studies.compress",
+    "needle": "jaxrkpm.studies.needle",
+    "rig-sim": "jaxrkpm.studies.rig_sim",
+    "reproduce": "jaxrkpm.studies.reproduce",
 }
 
 

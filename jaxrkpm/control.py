@@ -24,8 +24,10 @@ import numpy as np
 
 from .model import Model
 from .outcome import Outcome
+from .polygons import distance_to_segment
 from .problem import Problem
 from .solve import Limits, Solution, Status, reached_equilibrium, solve_path
+from .thesis import PATHS, TABLE_5_1  # noqa: F401  (re-exported: the thesis' paths)
 
 
 class TrackStatus(Outcome):
@@ -277,18 +279,30 @@ def track(model: Model, path, driven: str, control_points, *, plant: Model | Non
                        np.asarray(reached), np.asarray(achieved), path, TrackStatus.of(status), c, p)
 
 
-# ----------------------------------------------------------------- the thesis' paths
-PATHS = {
-    # control point displacements (chapter 5); the set point goes (0,0) -> (0.05,0.05)
-    "setpoint": [[0.0, 0.0], [0.05, 0.05]],
-    "box": [[0.00, 0.00], [0.00, 0.01], [0.00, 0.02], [0.00, 0.03], [0.00, 0.04], [0.01, 0.04],
-            [0.02, 0.04], [0.03, 0.04], [0.04, 0.04], [0.04, 0.03], [0.04, 0.02], [0.04, 0.01],
-            [0.04, 0.00], [0.03, 0.00], [0.02, 0.00], [0.01, 0.00], [0.00, 0.00]],     # Table 5.3
-    "figure8": [[0.00, 0.00], [0.01, 0.01], [0.01, 0.02], [0.00, 0.03], [-0.01, 0.02], [-0.01, 0.01],
-                [0.00, 0.00], [0.01, -0.01], [0.01, -0.02], [0.00, -0.03], [-0.01, -0.02],
-                [-0.01, -0.01]],                                                         # Table 5.4
-    "line": [[0.01 * i, 0.0] for i in range(16)],                                        # Table 5.5
-}
-# Table 5.1: control point positions of the 3D cube (object coordinates)
-TABLE_5_1 = [[-2.0, 0.0, 2.5], [-2.0, 0.0, 2.7], [-2.2, 0.0, 2.7], [-2.3, 0.0, 2.9],
-             [-2.5, 0.0, 2.9], [-2.6, 0.0, 3.0]]
+# ----------------------------------------------------------------- analysis of a TrackResult
+def waypoint_table(res: TrackResult) -> list[dict]:
+    """Per waypoint: desired, achieved, error, the iterations spent on it, and when."""
+    rows, prev = [], 0
+    for i, (des, ach, k) in enumerate(zip(res.desired, res.achieved, res.reached)):
+        k = int(k)
+        if k >= 0:
+            rows.append({"index": i, "desired": des.tolist(), "achieved": ach.tolist(),
+                         "error": float(np.linalg.norm(ach - des)), "iterations": k - prev,
+                         "reached_at": k})
+            prev = k
+        else:
+            spent = int(np.sum(res.waypoint[1:] == i))
+            last = res.cp[-1]
+            rows.append({"index": i, "desired": des.tolist(), "achieved": None,
+                         "error": None, "iterations": spent, "reached_at": None,
+                         "closest": float(np.min(res.error[1:][res.waypoint[1:] == i]))
+                         if spent else float(np.linalg.norm(last - des))})
+    return rows
+
+
+def path_deviation(res: TrackResult) -> np.ndarray:
+    """Distance of the control point, at every iteration, from the desired segment it is
+    travelling along (previous waypoint -> current waypoint): (n+1,)."""
+    w = np.asarray(res.waypoint).astype(int)
+    return distance_to_segment(np.asarray(res.cp, float), res.desired[np.maximum(w - 1, 0)],
+                               res.desired[w])

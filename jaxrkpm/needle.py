@@ -30,22 +30,10 @@ from .model import Model
 from .outcome import Outcome
 from .problem import Problem
 from .solve import Limits, Status, point_values
+from .thesis import INCLUSIONS, PHANTOM_OUTLINE, TABLE_6_2
+from .thesis import NEEDLE as THESIS  # noqa: F401  (re-exported: needle.THESIS, the reference values)
 
-# Table 6.2: paddle position index -> the two boundary particles it covers
-TABLE_6_2 = (((0.4, 0.1), (0.3, 0.2)),
-             ((0.3, 0.2), (0.2, 0.3)),
-             ((0.2, 0.3), (0.1, 0.4)),
-             ((0.1, 0.4), (0.0, 0.5)),
-             ((0.0, 0.5), (0.0, 0.6)))
-# section 6.3.1: inclusions given by the four nodes at their corners, (x range, y range);
-# the stiffness (x100) is carried by those nodes, i.e. by their cells (half a spacing around)
-INCLUSIONS = {"none": None, "right": ((0.6, 0.7), (0.3, 0.4)), "left": ((0.3, 0.4), (0.4, 0.5))}
 IMMOBILE = ("bottom", "top")
-# thesis figures to compare with
-THESIS = {"no_paddle_deviation": 0.0307454,
-          "best_static": {"none": 4, "right": 2, "left": 1},
-          "controllability": {"none": (4.7822, 4.1544, 3.2715, 3.3748, 3.3999),
-                              "right": (6.3556, 5.3583, 4.8749, 5.4552, 5.9523)}}
 
 
 @dataclass(frozen=True)
@@ -60,7 +48,7 @@ class Phantom:
     the text). Only "bottom" reproduces the thesis in kind: with "top" the unsupported
     deviation is 0.0007 (thesis 0.0307) and four of the five paddles increase it."""
 
-    vertices: tuple = ((0.5, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0), (0.0, 0.5))
+    vertices: tuple = PHANTOM_OUTLINE
     spacing: float = 0.1
     immobile: str = "bottom"
     needle_x: float = 0.5

@@ -3,8 +3,8 @@ import pytest
 
 import jaxrkpm as jr
 from jaxrkpm import integration, polygons
+from tests.problems import phantom_body, unit_grid
 
-PHANTOM = [[0.5, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.0, 0.5]]
 
 
 def test_grid_volumes_sum_to_measure():
@@ -16,7 +16,7 @@ def test_grid_volumes_sum_to_measure():
 
 
 def test_polygon_particles_and_volumes():
-    body = jr.Body.polygon(PHANTOM, 0.1)
+    body = phantom_body(0.1)
     assert body.volumes.sum() == pytest.approx(0.875, rel=1e-12)
     assert np.all(body.volumes > 0)
     assert body.contains(body.X).all()
@@ -27,7 +27,7 @@ def test_polygon_particles_and_volumes():
 
 
 def test_gauss_points_integrate_the_domain():
-    for body in (jr.Body.polygon(PHANTOM, 0.1), jr.Body.grid((5, 4, 3), 0.25),
+    for body in (phantom_body(0.1), jr.Body.grid((5, 4, 3), 0.25),
                  jr.Body.polygon([[0, 0], [1, 0], [1, 1], [0.5, 0.4], [0, 1]], 0.1)):
         p, w = integration.gauss_points(body, order=3)
         assert w.sum() == pytest.approx(body.measure, rel=1e-12)
@@ -35,7 +35,7 @@ def test_gauss_points_integrate_the_domain():
         # first moments too: the centroid
         if body.dim == 2 and not body.is_box:
             assert (w[:, None] * p).sum(0) / w.sum() == pytest.approx(polygons.centroid(body.vertices), abs=1e-12)
-    bp, bw, bn = integration.boundary_points(jr.Body.polygon(PHANTOM, 0.1))
+    bp, bw, bn = integration.boundary_points(phantom_body(0.1))
     perimeter = 0.5 + 1 + 1 + 0.5 + np.sqrt(0.5)
     assert bw.sum() == pytest.approx(perimeter, rel=1e-12)
     # the divergence theorem: closed boundary integral of n vanishes, of X (x) n is the area * I
@@ -44,7 +44,7 @@ def test_gauss_points_integrate_the_domain():
 
 
 def test_select_and_inside_checks():
-    body = jr.Body.grid((9, 9), 0.125)
+    body = unit_grid(9)
     wall = body.select(lambda X: X[:, 0] < 1e-9)
     assert len(wall) == 9 and np.all(body.X[wall, 0] == 0)
     with pytest.raises(ValueError, match="predicate must return"):
@@ -63,7 +63,7 @@ def test_body_shape_functions_and_neighbours_wrap_rk():
     from scipy.spatial import cKDTree
 
     from jaxrkpm import rk
-    body = jr.Body.polygon(PHANTOM, 0.1)
+    body = phantom_body(0.1)
     tree = cKDTree(body.X)                      # the reference: rk on a tree built here
     P = np.array([[0.55, 0.43], [0.9, 0.1], [0.2, 0.8]])
     a = 2.01 * body.spacing
@@ -103,7 +103,7 @@ def test_quadrature_rules():
 
 
 def test_labelled_voronoi_cells_match_the_plain_ones():
-    body = jr.Body.polygon(PHANTOM, 0.1)
+    body = phantom_body(0.1)
     plain = polygons.voronoi_cells(body.X, body.vertices)
     labelled = polygons.voronoi_cells(body.X, body.vertices, labelled=True, tol=1e-11 * body.spacing)
     for i, (P, (Q, L)) in enumerate(zip(plain, labelled)):

@@ -106,7 +106,7 @@ def test_controllability_and_dynamic_paddle(phantom, sweeps):
 
 
 def test_cli_static(tmp_path):
-    from experiments import needle as cli
+    from jaxrkpm.studies import needle as cli
     s = cli.main(["--mode", "static", "--inclusion", "none", "--increments", str(INCREMENTS),
                   "--out", str(tmp_path)])
     saved = json.loads((tmp_path / "summary.json").read_text())

@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from experiments import reproduce
+from jaxrkpm.studies import reproduce
 from jaxrkpm import cli
 
 

@@ -4,12 +4,12 @@ import pytest
 
 import jaxrkpm as jr
 from jaxrkpm.rk import kernel, kernel_derivative
+from tests.problems import phantom_body, unit_grid
 
-PHANTOM = [[0.5, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.0, 0.5]]
 BODIES = {
-    "grid2d": lambda: jr.Body.grid((9, 9), 0.125),
+    "grid2d": lambda: unit_grid(9),
     "grid3d": lambda: jr.Body.grid((4, 5, 3), 0.25, origin=(-2.5, -0.5, 1.5)),
-    "polygon": lambda: jr.Body.polygon(PHANTOM, 0.1),
+    "polygon": lambda: phantom_body(0.1),
     "nonconvex": lambda: jr.Body.polygon([[0, 0], [1, 0], [1, 1], [0.5, 0.4], [0, 1]], 0.1),
 }
 
@@ -30,7 +30,7 @@ def test_reproducing_conditions(name):
 
 
 def test_gradients_match_finite_differences():
-    body = jr.Body.polygon(PHANTOM, 0.1)
+    body = phantom_body(0.1)
     P = np.array([[0.55, 0.43], [0.9, 0.1]])
     a = 2.01 * body.spacing
     sf = body.shape_functions(P, a, capacity=40)
@@ -58,12 +58,12 @@ def test_kernel_is_eq_3_21():
 
 
 def test_support_too_small_names_the_point():
-    body = jr.Body.grid((5, 5), 0.25)
+    body = unit_grid(5)
     with pytest.raises(ValueError, match=r"moment matrix is singular at point .*larger support"):
         body.shape_functions(np.array([[0.1, 0.1]]), 0.6 * 0.25, support_factor=0.6)
 
 
 def test_neighbour_capacity_overflow_is_reported():
-    body = jr.Body.grid((5, 5), 0.25)
+    body = unit_grid(5)
     with pytest.raises(ValueError, match="capacity 3 overflows"):
         body.shape_functions(np.array([[0.5, 0.5]]), 0.5, capacity=3)

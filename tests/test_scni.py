@@ -6,15 +6,16 @@ import numpy as np
 import pytest
 
 import jaxrkpm as jr
-from experiments import compress
+from jaxrkpm.studies import compress
 from jaxrkpm import polygons, scni
+from tests.problems import FUNG, phantom_body, unit_grid
 
 F0_2D = np.array([[1.1, 0.2], [-0.1, 0.95]])           # general, non-symmetric
 
 BODIES = {
-    "grid2d": lambda: jr.Body.grid((9, 9), 0.125),
-    "polygon": lambda: jr.Body.polygon([[0.5, 0], [1, 0], [1, 1], [0, 1], [0, 0.5]], 0.1),
-    "grid3d": lambda: jr.Body.grid((4, 4, 4), 1 / 3),
+    "grid2d": lambda: unit_grid(9),
+    "polygon": lambda: phantom_body(0.1),
+    "grid3d": lambda: unit_grid(4, dim=3),
 }
 
 
@@ -80,7 +81,7 @@ def test_boundary_rule_approximates_true_integral(smoothing):
         assert err < (0.1 if boundary == "nodal" else 5e-3)
 
 
-def patch_error(body, boundary, integration, material=jr.Fung(alpha=1.0, beta=1.0)):
+def patch_error(body, boundary, integration, material=FUNG):
     model = jr.Model(body, material, integration=integration, essential={"boundary": boundary})
     G = F0_2D - np.eye(2)
     sol = model.solve({"boundary": body.X[boundary] @ G.T})
@@ -93,9 +94,9 @@ def patch_error(body, boundary, integration, material=jr.Fung(alpha=1.0, beta=1.
 @pytest.mark.parametrize("shape", ["grid", "polygon"])
 def test_affine_patch(shape):
     if shape == "grid":
-        body = jr.Body.grid((7, 7), 1 / 6)
+        body = unit_grid(7)
     else:
-        body = jr.Body.polygon([[0.5, 0], [1, 0], [1, 1], [0, 1], [0, 0.5]], 0.125)
+        body = phantom_body(0.125)
     bnd = body.select(lambda X: polygons.distance_to_boundary(body.vertices, X) < 1e-9)
     eu, eF = patch_error(body, bnd, "scni")
     print(f"SCNI affine patch ({shape}): |u err| {eu:.2e}, |F err| {eF:.2e} "
@@ -104,7 +105,7 @@ def test_affine_patch(shape):
 
 
 def rigid_modes(body, integration):
-    model = jr.Model(body, jr.Fung(alpha=1.0, beta=1.0), integration=integration, essential={})
+    model = jr.Model(body, FUNG, integration=integration, essential={})
     assert len(model.sets.bnd) == 0
     K = jax.jit(lambda prob, u, g: prob.tangent(u, g))(model.problem(), jnp.zeros((body.n, body.dim)),
                                                         jnp.zeros((0, body.dim)))
@@ -115,7 +116,7 @@ def rigid_modes(body, integration):
 
 @pytest.mark.parametrize("dim,integration", [(2, "scni"), (2, "mscni"), (3, "scni")])
 def test_only_rigid_zero_modes(dim, integration):
-    body = jr.Body.grid((7, 7), 1 / 6) if dim == 2 else jr.Body.grid((4, 4, 4), 1 / 3)
+    body = unit_grid(7) if dim == 2 else unit_grid(4, dim=3)
     zeros, smallest = rigid_modes(body, integration)
     print(f"{integration} {dim}D: {zeros} zero modes, smallest non-zero eigenvalue / max {smallest:.2e}")
     assert zeros == (3 if dim == 2 else 6)
@@ -123,7 +124,7 @@ def test_only_rigid_zero_modes(dim, integration):
 
 
 def test_polygon_rigid_modes_and_cells():
-    body = jr.Body.polygon([[0.5, 0], [1, 0], [1, 1], [0, 1], [0, 0.5]], 0.2)
+    body = phantom_body(0.2)
     zeros, smallest = rigid_modes(body, "scni")
     assert zeros == 3 and smallest > 1e-4
 
@@ -160,4 +161,4 @@ def test_fung_has_a_homogeneous_compression_limit():
 
 def test_unknown_integration_is_rejected():
     with pytest.raises(ValueError, match="scni"):
-        jr.Model(jr.Body.grid((3, 3), 0.5), jr.Quadratic(1.0), integration="collocated")
+        jr.Model(unit_grid(3), jr.Quadratic(1.0), integration="collocated")

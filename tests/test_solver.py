@@ -7,7 +7,7 @@ import pytest
 import jaxrkpm as jr
 from jaxrkpm import sparse as jsparse
 from jaxrkpm.linear import Stability
-from experiments import cantilever
+from jaxrkpm.studies import cantilever
 
 F0_2D = np.array([[1.1, 0.2], [-0.1, 0.95]])           # general, non-symmetric
 F0_3D = np.array([[1.05, 0.1, -0.05], [0.02, 0.97, 0.08], [-0.06, 0.03, 1.1]])

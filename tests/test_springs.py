@@ -7,14 +7,14 @@ import pytest
 import jaxrkpm as jr
 from jaxrkpm.rk import psi_jax
 from jaxrkpm.solve import point_values
+from tests.problems import FUNG, unit_grid
 
 N = 7
-FUNG = jr.Fung(alpha=1.0, beta=1.0)
 
 
 @pytest.fixture(scope="module")
 def setup():
-    body = jr.Body.grid((N, N), 1.0 / (N - 1))
+    body = unit_grid(N)
     X = body.X
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9),
             "top": body.select(lambda X: (X[:, 1] > 1 - 1e-9) & (X[:, 0] > 1e-9))}

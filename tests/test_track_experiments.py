@@ -1,13 +1,13 @@
-"""The chapter-5 tracking experiments (experiments/track.py, experiments/demo.py), run small."""
+"""The chapter-5 tracking experiments (jaxrkpm/studies/track.py, jaxrkpm/studies/demo.py), run small."""
 import json
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from experiments import demo
-from experiments import track as T
-from jaxrkpm import cli
+from jaxrkpm.studies import demo
+from jaxrkpm.studies import track as T
+from jaxrkpm import cli, thesis
 
 SUMMARY_KEYS = {"max_waypoint_error", "waypoints", "status", "message", "wall_s", "compile_s",
                 "gain", "clamp", "tol", "material", "integration", "particles"}
@@ -26,7 +26,7 @@ def setpoint_run(setpoint, tmp_path_factory):
 
 
 def test_cli_registers_track():
-    assert cli.COMMANDS["track"] == "experiments.track"
+    assert cli.COMMANDS["track"] == "jaxrkpm.studies.track"
 
 
 def test_planar_model_is_the_design_setup(setpoint):
@@ -84,7 +84,7 @@ def test_demo_delegates_to_track(setpoint, tmp_path):
 
 
 def test_path_helpers():
-    D = T.table_5_1_displacements()
+    D = thesis.cube_path()
     assert D.shape == (6, 3) and np.all(D[0] == 0)
     assert D[-1] == pytest.approx([-0.6, 0.0, 0.5])
     assert set(T.PATH_NAMES_2D) == {"setpoint", "box", "figure8", "line"}
@@ -105,10 +105,10 @@ def test_cube_models_follow_section_5_3_1():
 
 
 def test_cube_reduced_implicit_jacobian_matches_central_fd():
-    m = T.cube_model("reduced")
+    m = thesis.cube("reduced")
     sol = m.solve({"paddle": jnp.array([-0.3, 0.0, 0.3])}, steps=2)
-    Ji = np.asarray(m.jacobian(sol, "paddle", T.CP_3D))
-    Jf = np.asarray(m.jacobian(sol, "paddle", T.CP_3D, method="fd", eps=1e-5, scheme="central"))
+    Ji = np.asarray(m.jacobian(sol, "paddle", thesis.CP_3D))
+    Jf = np.asarray(m.jacobian(sol, "paddle", thesis.CP_3D, method="fd", eps=1e-5, scheme="central"))
     assert Ji.shape == (3, 3)
     assert np.abs(Ji - Jf).max() / np.abs(Ji).max() < 1e-6
     assert abs(np.linalg.det(Ji)) > 1e-6   # the paddle controls all three CP coordinates

@@ -3,16 +3,13 @@ import numpy as np
 import jax.numpy as jnp
 import pytest
 
-import jaxrkpm as jr
 from jaxrkpm import vtk
+from tests.problems import block
 
 
 @pytest.fixture(scope="module")
 def solved():
-    body = jr.Body.grid((5, 5), spacing=0.25)
-    wall = body.select(lambda X: X[:, 0] < 1e-9)
-    pad = body.select(lambda X: X[:, 0] > 1 - 1e-9)
-    model = jr.Model(body, jr.Fung(alpha=1.0, beta=1.0), essential={"wall": wall, "pad": pad})
+    _, _, model = block(5, right="pad")
     sol = model.solve({"pad": jnp.array([0.1, 0.05])}, steps=2)
     return model, sol
 

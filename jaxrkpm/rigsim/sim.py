@@ -37,11 +37,12 @@ from typing import Callable
 import jax.numpy as jnp
 import numpy as np
 
-from .. import Body, Fung, Model
+from .. import Fung, Model
 from ..model import SolveError
 from ..control import control_increment
 from ..outcome import Outcome
 from ..solve import point_values
+from ..thesis import CP_2D, PADDLE_HALF_WIDTH, RIG_MODEL_BETA, planar_square
 from .calibrate import Recording, broyden_update
 from ..rig.frames import RigidTransform, label_l_markers, object_frame_from_l_markers
 from ..rig.link import RobotClient, SafetyError, SafetyLimits, SimulatedRobotServer, LinkError
@@ -52,7 +53,7 @@ __all__ = [
     "InProcessRobot", "RigSettings", "RigStatus", "RigRun", "ClosedLoop",
 ]
 
-CONTROL_POINT = np.array([0.5, 0.5])   # model coordinates of the control point marker
+CONTROL_POINT = CP_2D[0].copy()   # model coordinates of the control point marker
 
 
 # ----------------------------------------------------------------------------- objects
@@ -69,22 +70,13 @@ class Inclusion:
         return lambda X: np.where(np.linalg.norm(np.asarray(X)[:, :2] - c, axis=1) < r, f * base, base)
 
 
-def planar_object(n: int = 9, alpha: float = 1.0, beta: float = 0.02, paddle_halfwidth: float = 0.125,
-                  integration: str = "gauss") -> Model:
-    """The chapter-5 planar object on an n x n grid of the unit square: "wall" = left edge,
-    "paddle" = the right-edge particles with |y - 0.5| <= paddle_halfwidth (the same
-    physical contact patch at every resolution: 3 particles at 9x9, 5 at 17x17)."""
-    if n < 3:
-        raise ValueError(f"n must be >= 3 particles per side, got {n}")
-    if not paddle_halfwidth > 0:
-        raise ValueError(f"paddle_halfwidth must be > 0, got {paddle_halfwidth}")
-    body = Body.grid((n, n), 1.0 / (n - 1))
-    wall = body.select(lambda X: X[:, 0] < 1e-9)
-    paddle = body.select(lambda X: (X[:, 0] > 1 - 1e-9) & (np.abs(X[:, 1] - 0.5) <= paddle_halfwidth + 1e-9))
-    if len(np.atleast_1d(paddle)) < 1:
-        raise ValueError(f"no right-edge particle within {paddle_halfwidth} of y = 0.5 at n = {n}")
-    return Model(body, Fung(alpha=alpha, beta=beta), integration=integration,
-                 essential={"wall": wall, "paddle": paddle})
+def planar_object(n: int = 9, alpha: float = 1.0, beta: float = RIG_MODEL_BETA,
+                  paddle_halfwidth: float = PADDLE_HALF_WIDTH, integration: str = "gauss") -> Model:
+    """The chapter-5 planar object of the rig (:func:`jaxrkpm.thesis.planar_square`): Fung(alpha,
+    beta), "wall" = left edge, "paddle" = the right-edge particles with |y - 0.5| <=
+    paddle_halfwidth (the same physical contact patch at every resolution: 3 particles at
+    9x9, 5 at 17x17)."""
+    return planar_square(n, integration, Fung(alpha=alpha, beta=beta), paddle=paddle_halfwidth)
 
 
 class _Tracked:
@@ -128,7 +120,7 @@ class PhysicalObject(_Tracked):
     inclusion (all unknown to the controller)."""
 
     def __init__(self, n: int = 17, alpha: float = 1.0, beta: float = 0.04,
-                 inclusion: Inclusion | None = Inclusion(), paddle_halfwidth: float = 0.125):
+                 inclusion: Inclusion | None = Inclusion(), paddle_halfwidth: float = PADDLE_HALF_WIDTH):
         model = planar_object(n, alpha, beta, paddle_halfwidth)
         params = {}
         if inclusion is not None:

@@ -156,7 +156,7 @@ def test_rig_status_is_an_outcome_with_messages():
 
 
 def test_rig_sim_cli_writes_summary_and_figures(tmp_path, loop):
-    from experiments import rig_sim
+    from jaxrkpm.studies import rig_sim
 
     s = rig_sim.main(["--path", "box", "--waypoints", "3", "--physical-n", "9", "--broyden",
                       "--transport", "inprocess", "--out", str(tmp_path)])

@@ -27,18 +27,11 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxrkpm as jr
-from jaxrkpm import plot, polygons
-from jaxrkpm.control import PATHS, TABLE_5_1, TrackResult, track
+from jaxrkpm import plot
+from jaxrkpm.control import TrackResult, path_deviation, track, waypoint_table
+from jaxrkpm.thesis import CP_2D, CP_3D, CUBES, CUBE_MAX_ERROR, PATHS, TRACKING_MINUTES, cube, cube_path, \
+    planar_square
 
-CP_2D = np.array([[0.5, 0.5]])
-CP_3D = np.array([[-2.0, 0.0, 2.5]])
-CUBE_ORIGIN = (-2.5, -0.5, 1.5)
-CUBES = {"reduced": (3, 0.5), "refined": (5, 0.25)}   # particles per side, spacing
-
-# thesis figures to compare with
-THESIS_MAX_ERROR_3D = {"reduced": 0.049859, "refined": 0.090322}          # section 5.3.1
-THESIS_MINUTES = {"gauss": {"setpoint": 75, "box": 625, "figure8": 412},   # section 5.3.2
-                  "collocated": {"setpoint": 6, "box": 38, "figure8": 25}}
 PATH_NAMES_2D = tuple(PATHS)
 PATH_3D = "table5.1"
 
@@ -46,36 +39,9 @@ PATH_3D = "table5.1"
 # --------------------------------------------------------------------------- models
 def planar_model(n: int = 9, integration: str = "gauss", alpha: float = 1.0, beta: float = 1.0,
                  solver: str = "auto") -> jr.Model:
-    """The chapter-5 planar object on an n x n grid of the unit square (9x9: spacing 0.125):
-    set "wall" = left edge, set "paddle" = the three right-edge particles nearest (1, 0.5)."""
-    body = jr.Body.grid((n, n), 1.0 / (n - 1))
-    wall = body.select(lambda X: X[:, 0] < 1e-9)
-    right = np.asarray(body.select(lambda X: X[:, 0] > 1 - 1e-9))
-    paddle = np.sort(right[np.argsort(np.abs(body.X[right, 1] - 0.5), kind="stable")[:3]])
-    return jr.Model(body, jr.Fung(alpha=alpha, beta=beta), integration=integration,
-                    essential={"wall": wall, "paddle": paddle}, solver=solver)
-
-
-def cube_model(kind: str = "reduced", integration: str = "gauss", alpha: float = 1.0) -> jr.Model:
-    """The section 5.3.1 cube: "wall" = face x=-1.5; "paddle" = face x=-2.5, its bottom two
-    of three layers (z < 2.25) in the reduced model, the whole face in the refined one."""
-    if kind not in CUBES:
-        raise ValueError(f"unknown cube model {kind!r}: choose {list(CUBES)}")
-    n, h = CUBES[kind]
-    body = jr.Body.grid((n, n, n), h, origin=CUBE_ORIGIN)
-    wall = body.select(lambda X: X[:, 0] > -1.5 - 1e-9)
-    if kind == "reduced":
-        paddle = body.select(lambda X: (X[:, 0] < -2.5 + 1e-9) & (X[:, 2] < 2.25))
-    else:
-        paddle = body.select(lambda X: X[:, 0] < -2.5 + 1e-9)
-    return jr.Model(body, jr.Quadratic(alpha=alpha), integration=integration,
-                    essential={"wall": wall, "paddle": paddle})
-
-
-def table_5_1_displacements() -> np.ndarray:
-    """Table 5.1 lists control point positions; the tracker wants displacements."""
-    T = np.asarray(TABLE_5_1, float)
-    return T - T[0]
+    """The chapter-5 tracking model: :func:`jaxrkpm.thesis.planar_square` with Fung(alpha,
+    beta) and the paddle on the three right-edge particles nearest (1, 0.5)."""
+    return planar_square(n, integration, jr.Fung(alpha=alpha, beta=beta), paddle="three", solver=solver)
 
 
 @dataclass
@@ -123,10 +89,10 @@ def build(path: str | None = None, dim: int = 2, integration: str = "gauss", mod
     if scheme == "reduced-to-refined":
         if model != "refined":
             raise ValueError("--scheme reduced-to-refined needs --model refined (the plant)")
-        ctrl, plant = cube_model("reduced", integration, alpha), cube_model("refined", integration, alpha)
+        ctrl, plant = cube("reduced", integration, alpha), cube("refined", integration, alpha)
     else:
-        ctrl, plant = cube_model(model, integration, alpha), None
-    return Experiment(f"cube-{model}-{scheme}-{integration}", 3, path, table_5_1_displacements(),
+        ctrl, plant = cube(model, integration, alpha), None
+    return Experiment(f"cube-{model}-{scheme}-{integration}", 3, path, cube_path(),
                       ctrl, CP_3D, plant, model, scheme)
 
 
@@ -152,34 +118,6 @@ def execute(exp: Experiment, *, gain=0.05, clamp=0.01, tol=1e-4, max_iter=2000, 
     w = float(np.median(warm))
     return res, {"wall_s": w, "compile_s": compile_s, "first_run_s": compile_s + warm[0],
                  "warm_runs_s": warm}
-
-
-def waypoint_table(res: TrackResult) -> list[dict]:
-    """Per waypoint: desired, achieved, error, the iterations spent on it, and when."""
-    rows, prev = [], 0
-    for i, (des, ach, k) in enumerate(zip(res.desired, res.achieved, res.reached)):
-        k = int(k)
-        if k >= 0:
-            rows.append({"index": i, "desired": des.tolist(), "achieved": ach.tolist(),
-                         "error": float(np.linalg.norm(ach - des)), "iterations": k - prev,
-                         "reached_at": k})
-            prev = k
-        else:
-            spent = int(np.sum(res.waypoint[1:] == i))
-            last = res.cp[-1]
-            rows.append({"index": i, "desired": des.tolist(), "achieved": None,
-                         "error": None, "iterations": spent, "reached_at": None,
-                         "closest": float(np.min(res.error[1:][res.waypoint[1:] == i]))
-                         if spent else float(np.linalg.norm(last - des))})
-    return rows
-
-
-def path_deviation(res: TrackResult) -> np.ndarray:
-    """Distance of the control point, at every iteration, from the desired segment it is
-    travelling along (previous waypoint -> current waypoint): (n+1,)."""
-    w = np.asarray(res.waypoint).astype(int)
-    return polygons.distance_to_segment(np.asarray(res.cp, float), res.desired[np.maximum(w - 1, 0)],
-                                        res.desired[w])
 
 
 def snapshot_waypoints(exp: Experiment, res: TrackResult) -> list[int]:
@@ -239,12 +177,12 @@ def summarize(exp: Experiment, res: TrackResult, timing: dict, settings: dict, s
         s["scheme"] = exp.scheme
         s["controller_particles"] = shape(m)
         s["desired_positions"] = (res.desired + exp.cp.ravel()).tolist()
-        s["thesis_max_error"] = THESIS_MAX_ERROR_3D[exp.kind]
+        s["thesis_max_error"] = CUBE_MAX_ERROR[exp.kind]
     else:
-        ref = THESIS_MINUTES["gauss"].get(exp.path_name)
+        ref = TRACKING_MINUTES["gauss"].get(exp.path_name)
         if ref is not None:
             s["thesis_minutes_gauss"] = ref
-            s["thesis_minutes_collocated"] = THESIS_MINUTES["collocated"][exp.path_name]
+            s["thesis_minutes_collocated"] = TRACKING_MINUTES["collocated"][exp.path_name]
             s["speedup_vs_thesis_gauss"] = ref * 60 / timing["wall_s"]
     s["snapshots"] = []
     for i, k, sol in snaps:

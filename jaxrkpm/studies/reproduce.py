@@ -23,6 +23,9 @@ from typing import Callable
 
 from tqdm import tqdm
 
+from jaxrkpm.thesis import COMPRESSION_BREAKDOWN, CUBE_MAX_ERROR, RIG_SETTLE_MM, TRACKING_MINUTES
+from jaxrkpm.thesis import NEEDLE as NEEDLE_REF
+
 
 @dataclass
 class Entry:
@@ -40,7 +43,7 @@ class Entry:
 # ------------------------------------------------------------------ runners
 def _track(path=None, integration="gauss", dim=2, model="reduced", scheme="self"):
     def run(out: Path, quick: bool) -> dict:
-        from experiments import track
+        from jaxrkpm.studies import track
         argv = ["--dim", str(dim), "--integration", integration, "--out", str(out)]
         if path:
             argv += ["--path", path]
@@ -54,7 +57,7 @@ def _track(path=None, integration="gauss", dim=2, model="reduced", scheme="self"
 
 def _compress(mode, integration):
     def run(out: Path, quick: bool) -> dict:
-        from experiments import compress
+        from jaxrkpm.studies import compress
         argv = ["--mode", mode, "--integration", integration, "--out", str(out)]
         if quick:
             argv += ["--n", "5", "--max", "0.03"]
@@ -63,7 +66,7 @@ def _compress(mode, integration):
 
 
 def _cantilever(out: Path, quick: bool) -> dict:
-    from experiments import cantilever
+    from jaxrkpm.studies import cantilever
     levels = 2 if quick else 3
     s = cantilever.convergence(tuple(0.25 / 2**k for k in range(levels)))
     _cantilever_figure(out, s)
@@ -89,14 +92,14 @@ def _cantilever_figure(out: Path, s: dict):
 
 def _rig(path):
     def run(out: Path, quick: bool) -> dict:
-        from experiments import rig_sim
+        from jaxrkpm.studies import rig_sim
         return rig_sim.main(["--path", path, "--out", str(out)])
     return run
 
 
 def _needle(mode, inclusion):
     def run(out: Path, quick: bool) -> dict:
-        from experiments import needle
+        from jaxrkpm.studies import needle
         return needle.main(["--mode", mode, "--inclusion", inclusion, "--out", str(out)]
                            + (["--increments", "3"] if quick else []))
     return run
@@ -173,6 +176,17 @@ def _fmt_needle_optimize(s):
 
 
 GAUSS_TIME = "{m} minutes (section 5.3.2, Gaussian Quadrature)"
+MIN, BREAK = TRACKING_MINUTES, COMPRESSION_BREAKDOWN
+
+
+def _pct(fraction):
+    return f"{100 * fraction:.0f}%"
+
+
+def _xmin(inclusion):
+    """Table 6.3's delta x_min per paddle, as quoted (two decimals)."""
+    return ", ".join(f"{v:.2f}" for v in NEEDLE_REF["controllability"][inclusion])
+
 COLL = ("the thesis used collocation; we use SCNI (stabilised conforming nodal integration), "
         "the stable nodal scheme, so this compares the nodal alternative, not the same scheme")
 
@@ -181,50 +195,55 @@ NEEDLE = ("phantom of Fig 6.1 with the bottom edge right of the needle entry imm
           "support and boundary details, so compare in kind")
 
 ENTRIES = [
-    Entry("compress_straight_gauss", "Figs 5.10-5.12", '"at 43% for the straight compression"',
+    Entry("compress_straight_gauss", "Figs 5.10-5.12", f'"at {_pct(BREAK["straight", "gauss"])} for the straight compression"',
           _compress("straight", "gauss"), _fmt_compress, quick=True),
-    Entry("compress_shear_gauss", "Figs 5.13-5.16", '"the model begins to breakdown at 50% for the '
-          'shear compression" (Fig 5.16 shows 58%, 59%)', _compress("shear", "gauss"), _fmt_compress),
-    Entry("compress_straight_scni", "Fig 5.17", '"The simulations break down at 15% and 14% '
-          'respectively" (straight: 15%)', _compress("straight", "scni"), _fmt_compress, note=COLL),
-    Entry("compress_shear_scni", "Fig 5.18", "shear: 14% (same sentence)",
+    Entry("compress_shear_gauss", "Figs 5.13-5.16", f'"the model begins to breakdown at {_pct(BREAK["shear", "gauss"])} '
+          'for the shear compression" (Fig 5.16 shows 58%, 59%)', _compress("shear", "gauss"), _fmt_compress),
+    Entry("compress_straight_scni", "Fig 5.17", f'"The simulations break down at {_pct(BREAK["straight", "collocated"])} '
+          f'and {_pct(BREAK["shear", "collocated"])} respectively" (straight: {_pct(BREAK["straight", "collocated"])})', _compress("straight", "scni"), _fmt_compress, note=COLL),
+    Entry("compress_shear_scni", "Fig 5.18", f"shear: {_pct(BREAK['shear', 'collocated'])} (same sentence)",
           _compress("shear", "scni"), _fmt_compress, note=COLL),
     Entry("track_setpoint_gauss", "Fig 5.19", '"within 0.0001 of the desired position"; '
-          + GAUSS_TIME.format(m=75), _track("setpoint"), _fmt_track_vs(75), quick=True),
-    Entry("track_setpoint_scni", "Fig 5.20", '"The Collocated model time was approximately 6 minutes"',
-          _track("setpoint", "scni"), _fmt_track_vs(6), note=COLL),
-    Entry("track_box_gauss", "Figs 5.21-5.22 (Table 5.3)", GAUSS_TIME.format(m=625),
-          _track("box"), _fmt_track_vs(625)),
-    Entry("track_figure8_gauss", "Figs 5.23-5.24 (Table 5.4)", GAUSS_TIME.format(m=412),
-          _track("figure8"), _fmt_track_vs(412)),
+          + GAUSS_TIME.format(m=MIN["gauss"]["setpoint"]), _track("setpoint"),
+          _fmt_track_vs(MIN["gauss"]["setpoint"]), quick=True),
+    Entry("track_setpoint_scni", "Fig 5.20", f'"The Collocated model time was approximately {MIN["collocated"]["setpoint"]} minutes"',
+          _track("setpoint", "scni"), _fmt_track_vs(MIN["collocated"]["setpoint"]), note=COLL),
+    Entry("track_box_gauss", "Figs 5.21-5.22 (Table 5.3)", GAUSS_TIME.format(m=MIN["gauss"]["box"]),
+          _track("box"), _fmt_track_vs(MIN["gauss"]["box"])),
+    Entry("track_figure8_gauss", "Figs 5.23-5.24 (Table 5.4)", GAUSS_TIME.format(m=MIN["gauss"]["figure8"]),
+          _track("figure8"), _fmt_track_vs(MIN["gauss"]["figure8"])),
     Entry("track_line_gauss", "Figs 5.25-5.26 (Table 5.5)", "tracked (no time given)",
           _track("line"), _fmt_track),
-    Entry("track_box_scni", "Figs 5.27-5.28 (Table 5.3)", '"the Collocated model took 38 ... minutes"',
-          _track("box", "scni"), _fmt_track_vs(38), note=COLL),
-    Entry("track_figure8_scni", "Figs 5.29-5.30 (Table 5.4)", '"... and 25 minutes"',
-          _track("figure8", "scni"), _fmt_track_vs(25), note=COLL),
+    Entry("track_box_scni", "Figs 5.27-5.28 (Table 5.3)", f'"the Collocated model took {MIN["collocated"]["box"]} ... minutes"',
+          _track("box", "scni"), _fmt_track_vs(MIN["collocated"]["box"]), note=COLL),
+    Entry("track_figure8_scni", "Figs 5.29-5.30 (Table 5.4)", f'"... and {MIN["collocated"]["figure8"]} minutes"',
+          _track("figure8", "scni"), _fmt_track_vs(MIN["collocated"]["figure8"]), note=COLL),
     Entry("track_line_scni", "Figs 5.31-5.32 (Table 5.5)", "tracked (no time given)",
           _track("line", "scni"), _fmt_track, note=COLL),
-    Entry("track3d_reduced", "Fig 5.2 (Table 5.1)", '"0.049859 for the reduced model object" '
+    Entry("track3d_reduced", "Fig 5.2 (Table 5.1)", f'"{CUBE_MAX_ERROR["reduced"]} for the reduced model object" '
           "(maximum absolute error)", _track(dim=3, model="reduced"), _fmt_track3d),
-    Entry("track3d_refined", "Fig 5.6 (Table 5.1)", '"0.090322 for the refined model object"',
+    Entry("track3d_refined", "Fig 5.6 (Table 5.1)", f'"{CUBE_MAX_ERROR["refined"]} for the refined model object"',
           _track(dim=3, model="refined"), _fmt_track3d),
-    Entry("track3d_reduced_to_refined", "Figs 5.6-5.8 (Table 5.1)", '"0.090322 for the refined model '
+    Entry("track3d_reduced_to_refined", "Figs 5.6-5.8 (Table 5.1)", f'"{CUBE_MAX_ERROR["refined"]} for the refined model '
           'object" (Jacobian from the reduced model)', _track(dim=3, model="refined",
                                                              scheme="reduced-to-refined"), _fmt_track3d),
     Entry("rig_sim_setpoint", "Figs 5.33, 5.35", '"the physical control point is shown to settle within '
-          'a error margin of 1 millimeter of the target"', _rig("setpoint"), _fmt_rig,
+          f'a error margin of {RIG_SETTLE_MM:g} millimeter of the target"', _rig("setpoint"), _fmt_rig,
           note="simulated rig (stereo vision, TCP robot link, a physical object the model does not know)"),
-    Entry("needle_static_none", "Figs 6.2-6.3 (Table 6.2)", '"0.0307454" with no paddle at 15%; best '
-          "static paddle 4; a paddle cuts the deviation 10x to 100x", _needle("static", "none"),
-          _fmt_needle_static, note=NEEDLE),
-    Entry("needle_static_right", "Fig 6.4 (section 6.3.1)", "inclusion right of the target: best paddle 2",
+    Entry("needle_static_none", "Figs 6.2-6.3 (Table 6.2)",
+          f'"{NEEDLE_REF["no_paddle_deviation"]}" with no paddle at 15%; best static paddle '
+          f"{NEEDLE_REF['best_static']['none']}; a paddle cuts the deviation 10x to 100x",
+          _needle("static", "none"), _fmt_needle_static, note=NEEDLE),
+    Entry("needle_static_right", "Fig 6.4 (section 6.3.1)",
+          f"inclusion right of the target: best paddle {NEEDLE_REF['best_static']['right']}",
           _needle("static", "right"), _fmt_needle_static, note=NEEDLE),
-    Entry("needle_static_left", "Fig 6.5 (section 6.3.1)", "inclusion left of the target: best paddle 1",
+    Entry("needle_static_left", "Fig 6.5 (section 6.3.1)",
+          f"inclusion left of the target: best paddle {NEEDLE_REF['best_static']['left']}",
           _needle("static", "left"), _fmt_needle_static, note=NEEDLE),
-    Entry("needle_dynamic_none", "Table 6.3, Fig 6.6", "delta x_min 4.78, 4.15, 3.27, 3.37, 3.40 "
-          "(minimum at paddle 3)", _needle("dynamic", "none"), _fmt_needle_dynamic, note=NEEDLE),
-    Entry("needle_dynamic_right", "Table 6.3", "delta x_min 6.36, 5.36, 4.87, 5.46, 5.95 (inclusion right)",
+    Entry("needle_dynamic_none", "Table 6.3, Fig 6.6", f"delta x_min {_xmin('none')} "
+          f"(minimum at paddle {NEEDLE_REF['most_controllable']})", _needle("dynamic", "none"),
+          _fmt_needle_dynamic, note=NEEDLE),
+    Entry("needle_dynamic_right", "Table 6.3", f"delta x_min {_xmin('right')} (inclusion right)",
           _needle("dynamic", "right"), _fmt_needle_dynamic, note=NEEDLE),
     Entry("needle_optimize_none", "- (beyond the thesis; Table 6.2 positions as a continuum)",
           "-", _needle("optimize", "none"), _fmt_needle_optimize, note=NEEDLE),

@@ -11,11 +11,11 @@ import argparse
 import json
 from pathlib import Path
 
-from experiments import track
+from jaxrkpm.studies import track
 
 
 def run(out: Path, path: str = "box", integration: str = "gauss", **kw) -> dict:
-    """Track ``path`` (default the box) on the 9x9 planar model; see experiments.track.run."""
+    """Track ``path`` (default the box) on the 9x9 planar model; see jaxrkpm.studies.track.run."""
     return track.run(Path(out), path, dim=2, integration=integration, **kw)
 
 

@@ -30,6 +30,7 @@ import jaxrkpm as jr
 from jaxrkpm import plot
 from jaxrkpm import solve as jsolve
 from jaxrkpm.solve import coefficients, deformation_gradients
+from jaxrkpm.thesis import PADDLE_HALF_WIDTH, planar_square
 
 MODES = {"straight": (-1.0, 0.0), "shear": (-1.0, -1.0)}
 
@@ -43,14 +44,11 @@ MATERIALS = {
 }
 
 
-def setup(n: int = 9, integration: str = "gauss", material: str = "fung", half_width: float = 0.125):
-    h = 1.0 / (n - 1)
-    body = jr.Body.grid((n, n), spacing=h)
-    wall = body.select(lambda X: X[:, 0] < 1e-9)
-    paddle = body.select(lambda X: (X[:, 0] > 1 - 1e-9) & (np.abs(X[:, 1] - 0.5) <= half_width + 1e-9))
-    model = jr.Model(body, MATERIALS[material](), integration=integration,
-                     essential={"wall": wall, "paddle": paddle})
-    return model
+def setup(n: int = 9, integration: str = "gauss", material: str = "fung",
+          half_width: float = PADDLE_HALF_WIDTH):
+    """The compressed square: :func:`jaxrkpm.thesis.planar_square` with the paddle on the
+    right-edge particles with |y - 0.5| <= ``half_width`` (the same physical segment at every n)."""
+    return planar_square(n, integration, MATERIALS[material](), paddle=half_width)
 
 
 def _diagnostics(model):
@@ -58,7 +56,7 @@ def _diagnostics(model):
     the integration points, smallest acoustic-tensor eigenvalue min_q min_|n|=1 eig A(n),
     A_ik = dP_ij/dF_kl n_j n_l: it turns negative where the material itself loses strong
     ellipticity, i.e. admits a localised (shear band / kink) instability)."""
-    cfg = model._config()
+    cfg = model.config()
     W = model.material.W
     theta = np.linspace(0, np.pi, 90, endpoint=False)
     normals = jnp.asarray(np.stack([np.cos(theta), np.sin(theta)], 1))   # 2D directions
@@ -81,7 +79,7 @@ def _diagnostics(model):
 
 def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_compression: float = 0.9,
         step: float = 0.01, through: bool = False, material: str = "fung", keep_states: bool = True,
-        half_width: float = 0.125):
+        half_width: float = PADDLE_HALF_WIDTH):
     """Step the paddle until failure. Returns (summary dict, model, states) where states maps
     compression -> particle displacements (N, d)."""
     if mode not in MODES:
@@ -290,7 +288,7 @@ def main(argv=None):
     p.add_argument("--max", type=float, default=0.9, help="largest compression tried (fraction)")
     p.add_argument("--step", type=float, default=0.01)
     p.add_argument("--material", choices=list(MATERIALS), default="fung")
-    p.add_argument("--paddle-half-width", type=float, default=0.125,
+    p.add_argument("--paddle-half-width", type=float, default=PADDLE_HALF_WIDTH,
                    help="paddle = right-edge particles with |y - 0.5| <= this (0.5: the whole edge, "
                         "a homogeneous compression without punch corners)")
     p.add_argument("--through", action="store_true",
@@ -305,7 +303,7 @@ def main(argv=None):
     summary["fold_estimate"] = fold_estimate(summary)
     summary["material_uniaxial_limits"] = uniaxial_limits(a.material)
     tag = (f"{a.mode}_{a.integration}_{a.n}" + ("" if a.material == "fung" else f"_{a.material}")
-           + ("" if a.paddle_half_width == 0.125 else "_edge" if a.paddle_half_width >= 0.5
+           + ("" if a.paddle_half_width == PADDLE_HALF_WIDTH else "_edge" if a.paddle_half_width >= 0.5
               else f"_hw{a.paddle_half_width:g}"))
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     figures(out, summary, model, states, tag)

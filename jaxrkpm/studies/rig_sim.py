@@ -29,13 +29,13 @@ from pathlib import Path
 import numpy as np
 
 from jaxrkpm import plot
-from jaxrkpm.control import PATHS
 from jaxrkpm.rigsim.calibrate import calibrate
 from jaxrkpm.rigsim.sim import (ClosedLoop, Inclusion, PhysicalObject, RigRun, RigSettings, Vision,
                                 planar_object)
+from jaxrkpm.thesis import PATHS, RIG_MODEL_BETA, RIG_SETTLE_MM
 
 RIG_PATHS = ("setpoint", "box")
-MODEL_ALPHA, MODEL_BETA = 1.0, 0.02
+MODEL_ALPHA, MODEL_BETA = 1.0, RIG_MODEL_BETA   # section 5.3.2: beta tuned by hand
 PROBE = np.array([[a, b] for a in (0.0, 0.06, 0.12) for b in (0.0, 0.06, 0.12) if a or b]
                  + [[-0.03, 0.06], [0.06, -0.03]])   # paddle positions (model units)
 
@@ -144,7 +144,7 @@ def fig_errors(run: RigRun, name: str, tol_mm: float, out: Path):
     l.semilogy(k, e_phys, "-o", ms=3, color="tab:red", label="physical |true - desired|")
     l.semilogy(k, e_meas, "-", lw=1, color="tab:blue", label="camera |measured - desired|")
     l.axhline(tol_mm, color="k", ls="--", lw=1, label=f"tolerance {tol_mm} mm (camera)")
-    l.axhline(1.0, color="0.5", ls=":", lw=1, label="1 mm (thesis)")
+    l.axhline(RIG_SETTLE_MM, color="0.5", ls=":", lw=1, label=f"{RIG_SETTLE_MM:g} mm (thesis)")
     l.set_xlabel("iteration")
     l.set_ylabel("control point error to the current waypoint (mm)")
     l.grid(alpha=0.3, which="both")

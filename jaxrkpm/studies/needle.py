@@ -28,10 +28,11 @@ import numpy as np
 
 from jaxrkpm import needle as nd
 from jaxrkpm import plot
+from jaxrkpm.thesis import INCLUSIONS, NEEDLE
 
 
 def _inclusion_box(inclusion):
-    return nd.INCLUSIONS[inclusion]
+    return INCLUSIONS[inclusion]
 
 
 def draw_phantom(ax, phantom: nd.Phantom, model, sol, inclusion, paddle=None, paddle_u=None,
@@ -91,8 +92,8 @@ def run_static(phantom, inclusion, increments, out: Path, n_devices=1):
         "no_paddle_status": [nd.Status(int(s)).name.lower() for s in sw.no_paddle_status],
         "converged": sw.converged,
         "wall_s": wall,
-        "thesis": {"no_paddle_deviation": nd.THESIS["no_paddle_deviation"],
-                   "best": nd.THESIS["best_static"][inclusion]},
+        "thesis": {"no_paddle_deviation": NEEDLE["no_paddle_deviation"],
+                   "best": NEEDLE["best_static"][inclusion]},
     }
     static_figures(phantom, sw, summary, out)
     return summary
@@ -106,7 +107,7 @@ def static_figures(phantom, sw, summary, out: Path):
     a1.bar(idx, np.abs(sw.final), color=["C0" if o else "0.6" for o in ok])
     a1.axhline(abs(summary["no_paddle_deviation"]), color="r", ls="--", label="no paddle")
     if sw.inclusion == "none":
-        a1.axhline(nd.THESIS["no_paddle_deviation"], color="k", ls=":", label="no paddle (thesis)")
+        a1.axhline(NEEDLE["no_paddle_deviation"], color="k", ls=":", label="no paddle (thesis)")
     a1.set_yscale("log")
     a1.set_xticks(idx)
     a1.set_xlabel("paddle position (Table 6.2)")
@@ -164,7 +165,8 @@ def run_dynamic(phantom, inclusion, increments, out: Path, paddle=None, n_device
         "no_paddle_per_increment": sw.no_paddle.tolist(),
         "status": run.status.name.lower(), "message": run.message,
         "wall_s": wall,
-        "thesis": {"controllability": nd.THESIS["controllability"].get(inclusion), "best": 3},
+        "thesis": {"controllability": NEEDLE["controllability"].get(inclusion),
+                   "best": NEEDLE["most_controllable"]},
     }
     dynamic_figures(phantom, sw, run, summary, out)
     return summary
@@ -295,7 +297,7 @@ def main(argv=None):
     p = argparse.ArgumentParser(prog="jaxrkpm needle", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--mode", choices=["static", "dynamic", "optimize"], default="static")
-    p.add_argument("--inclusion", choices=list(nd.INCLUSIONS), default="none")
+    p.add_argument("--inclusion", choices=list(INCLUSIONS), default="none")
     p.add_argument("--increments", type=int, default=15, help="insertion increments up to 15%%")
     p.add_argument("--paddle", type=int, default=None,
                    help="dynamic mode: paddle to move (default: the most controllable)")

@@ -1,0 +1,154 @@
+"""The thesis' scenarios and reference values, each defined once, with where it comes from.
+
+Scenarios (builders of :class:`jaxrkpm.Model`): :func:`planar_square` (the chapter-5 planar
+object with its paddle), :func:`cube` (the section 5.3.1 cube); the needle phantom of
+chapter 6 is :class:`jaxrkpm.needle.Phantom`, whose paddle positions and inclusions are
+:data:`TABLE_6_2` and :data:`INCLUSIONS` here. Paths: :data:`PATHS` (Tables 5.3-5.5 and the
+set point), :data:`TABLE_5_1`. Reference values: the numbers the thesis reports, which the
+studies (:mod:`jaxrkpm.studies`) and ``jaxrkpm reproduce`` compare with.
+
+The studies, the simulated rig, the notebooks and the tests build their models from here;
+:mod:`jaxrkpm.control` and :mod:`jaxrkpm.needle` re-export the paths and tables.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .geometry import Body
+from .materials import Fung, Material, Quadratic
+from .model import Model
+
+__all__ = [
+    "planar_square", "cube", "cube_path", "CP_2D", "CP_3D", "CUBE_ORIGIN", "CUBES", "PATHS",
+    "TABLE_5_1", "TABLE_6_2", "INCLUSIONS", "PHANTOM_OUTLINE", "PADDLE_HALF_WIDTH", "CUBE_MAX_ERROR", "TRACKING_MINUTES",
+    "COMPRESSION_BREAKDOWN", "RIG_MODEL_BETA", "RIG_SETTLE_MM", "NEEDLE",
+]
+
+# ================================================================== chapter 5: planar square
+# section 5.2 / 5.3.2: the unit square, left edge immobile, the paddle on the right edge
+# around (1, 0.5), the control point at the centre (DESIGN.md: the 9x9 grid, spacing 0.125)
+CP_2D = np.array([[0.5, 0.5]])
+PADDLE_HALF_WIDTH = 0.125   # |y - 0.5| <= 0.125: the three particles nearest (1, 0.5) at 9x9
+
+
+def planar_square(n: int = 9, integration: str = "gauss", material: Material | None = None,
+                  paddle: str | float = "three", solver: str = "auto") -> Model:
+    """The chapter-5 planar object on an n x n grid of the unit square (9x9: spacing 0.125):
+    set "wall" = the left edge x = 0, set "paddle" on the right edge x = 1.
+
+    material  default Fung(alpha=1, beta=1) (eq 5.2, Table 5.2 tensors)
+    paddle    "three": the three right-edge particles nearest (1, 0.5) (the tracking model,
+              three particles at every resolution); a number w: the right-edge particles with
+              |y - 0.5| <= w (the same physical contact patch at every resolution: 3
+              particles at 9x9 for w = 0.125, 5 at 17x17). The two agree at 9x9.
+    """
+    if n < 3:
+        raise ValueError(f"n must be >= 3 particles per side, got {n}")
+    body = Body.grid((n, n), 1.0 / (n - 1))
+    wall = body.select(lambda X: X[:, 0] < 1e-9)
+    if isinstance(paddle, str):
+        if paddle != "three":
+            raise ValueError(f"paddle must be 'three' or a half width, got {paddle!r}")
+        right = np.asarray(body.select(lambda X: X[:, 0] > 1 - 1e-9))
+        sel = np.sort(right[np.argsort(np.abs(body.X[right, 1] - 0.5), kind="stable")[:3]])
+    else:
+        w = float(paddle)
+        if not w > 0:
+            raise ValueError(f"the paddle half width must be > 0, got {paddle}")
+        sel = body.select(lambda X: (X[:, 0] > 1 - 1e-9) & (np.abs(X[:, 1] - 0.5) <= w + 1e-9))
+        if len(np.atleast_1d(sel)) < 1:
+            raise ValueError(f"no right-edge particle within {w} of y = 0.5 at n = {n}")
+    material = Fung(alpha=1.0, beta=1.0) if material is None else material
+    return Model(body, material, integration=integration, essential={"wall": wall, "paddle": sel},
+                 solver=solver)
+
+
+# ================================================================== chapter 5: the 3D cube
+# section 5.3.1: x in [-2.5, -1.5], y in [-0.5, 0.5], z in [1.5, 2.5]; face x = -1.5
+# immobile, the paddle on face x = -2.5, the control point at the top centre (-2, 0, 2.5)
+CP_3D = np.array([[-2.0, 0.0, 2.5]])
+CUBE_ORIGIN = (-2.5, -0.5, 1.5)
+CUBES = {"reduced": (3, 0.5), "refined": (5, 0.25)}   # particles per side, spacing
+
+
+def cube(kind: str = "reduced", integration: str = "gauss", alpha: float = 1.0,
+         solver: str = "auto") -> Model:
+    """The section 5.3.1 cube (material eq 5.1, :class:`Quadratic`): "wall" = face x=-1.5;
+    "paddle" = face x=-2.5, its bottom two of three layers (z < 2.25) in the reduced model
+    (3x3x3), the whole face in the refined one (5x5x5)."""
+    if kind not in CUBES:
+        raise ValueError(f"unknown cube model {kind!r}: choose {list(CUBES)}")
+    n, h = CUBES[kind]
+    body = Body.grid((n, n, n), h, origin=CUBE_ORIGIN)
+    wall = body.select(lambda X: X[:, 0] > -1.5 - 1e-9)
+    if kind == "reduced":
+        paddle = body.select(lambda X: (X[:, 0] < -2.5 + 1e-9) & (X[:, 2] < 2.25))
+    else:
+        paddle = body.select(lambda X: X[:, 0] < -2.5 + 1e-9)
+    return Model(body, Quadratic(alpha=alpha), integration=integration,
+                 essential={"wall": wall, "paddle": paddle}, solver=solver)
+
+
+# ================================================================== chapter 5: paths
+PATHS = {
+    # control point displacements (chapter 5); the set point goes (0,0) -> (0.05,0.05) (Fig 5.19)
+    "setpoint": [[0.0, 0.0], [0.05, 0.05]],
+    "box": [[0.00, 0.00], [0.00, 0.01], [0.00, 0.02], [0.00, 0.03], [0.00, 0.04], [0.01, 0.04],
+            [0.02, 0.04], [0.03, 0.04], [0.04, 0.04], [0.04, 0.03], [0.04, 0.02], [0.04, 0.01],
+            [0.04, 0.00], [0.03, 0.00], [0.02, 0.00], [0.01, 0.00], [0.00, 0.00]],     # Table 5.3
+    "figure8": [[0.00, 0.00], [0.01, 0.01], [0.01, 0.02], [0.00, 0.03], [-0.01, 0.02], [-0.01, 0.01],
+                [0.00, 0.00], [0.01, -0.01], [0.01, -0.02], [0.00, -0.03], [-0.01, -0.02],
+                [-0.01, -0.01]],                                                         # Table 5.4
+    "line": [[0.01 * i, 0.0] for i in range(16)],                                        # Table 5.5
+}
+# Table 5.1: control point positions of the 3D cube (object coordinates)
+TABLE_5_1 = [[-2.0, 0.0, 2.5], [-2.0, 0.0, 2.7], [-2.2, 0.0, 2.7], [-2.3, 0.0, 2.9],
+             [-2.5, 0.0, 2.9], [-2.6, 0.0, 3.0]]
+
+
+def cube_path() -> np.ndarray:
+    """Table 5.1 as control point displacements (the tracker's input): (6, 3)."""
+    T = np.asarray(TABLE_5_1, float)
+    return T - T[0]
+
+
+# ================================================================== chapter 5: reference values
+# section 5.3.1 (Figs 5.2 and 5.6): maximum absolute control point error along Table 5.1
+CUBE_MAX_ERROR = {"reduced": 0.049859, "refined": 0.090322}
+# section 5.3.2: tracking run times in minutes, Gaussian quadrature and collocated models
+# (set point: Figs 5.19/5.20; box: Figs 5.21/5.27; figure 8: Figs 5.23/5.29)
+TRACKING_MINUTES = {"gauss": {"setpoint": 75, "box": 625, "figure8": 412},
+                    "collocated": {"setpoint": 6, "box": 38, "figure8": 25}}
+# section 5.2: compression (fraction of the side) at which the model breaks down:
+# Gauss straight 43% (Figs 5.10-5.12), shear 50% (Figs 5.13-5.16; Fig 5.16 shows 58%, 59%),
+# collocated straight 15% (Fig 5.17) and shear 14% (Fig 5.18)
+COMPRESSION_BREAKDOWN = {("straight", "gauss"): 0.43, ("shear", "gauss"): 0.50,
+                         ("straight", "collocated"): 0.15, ("shear", "collocated"): 0.14}
+# section 5.3.2: the rig's controller model, Fung alpha = 1 with beta tuned by hand to 0.02,
+# and the physical control point settling within 1 mm of the target (Figs 5.33, 5.35)
+RIG_MODEL_BETA = 0.02
+RIG_SETTLE_MM = 1.0
+
+# ================================================================== chapter 6: needle phantom
+# Figure 6.1: the phantom's outline, the unit square with the corner x + y < 0.5 cut away
+PHANTOM_OUTLINE = ((0.5, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0), (0.0, 0.5))
+# Table 6.2: paddle position index -> the two boundary particles it covers (Fig 6.1 phantom)
+TABLE_6_2 = (((0.4, 0.1), (0.3, 0.2)),
+             ((0.3, 0.2), (0.2, 0.3)),
+             ((0.2, 0.3), (0.1, 0.4)),
+             ((0.1, 0.4), (0.0, 0.5)),
+             ((0.0, 0.5), (0.0, 0.6)))
+# section 6.3.1: inclusions given by the four nodes at their corners, (x range, y range);
+# the stiffness (x100) is carried by those nodes, i.e. by their cells (half a spacing around)
+INCLUSIONS = {"none": None, "right": ((0.6, 0.7), (0.3, 0.4)), "left": ((0.3, 0.4), (0.4, 0.5))}
+NEEDLE = {
+    # section 6.3 (Figs 6.2-6.3): target deviation with no paddle at 15% insertion
+    "no_paddle_deviation": 0.0307454,
+    # Figs 6.3-6.5 (section 6.3.1): best static paddle (Table 6.2 index) per inclusion
+    "best_static": {"none": 4, "right": 2, "left": 1},
+    # Table 6.3: controllability delta x_min per paddle 1-5 (no inclusion, inclusion right)
+    "controllability": {"none": (4.7822, 4.1544, 3.2715, 3.3748, 3.3999),
+                        "right": (6.3556, 5.3583, 4.8749, 5.4552, 5.9523)},
+    # Table 6.3, Fig 6.6: the most controllable paddle (no inclusion), used by the dynamic run
+    "most_controllable": 3,
+}
