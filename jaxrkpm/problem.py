@@ -16,10 +16,13 @@ essential particles and ``load`` the scale of the dead loads.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 
 from . import solve as S
+from .linear import dense_tangent
 from .solve import Config, Limits, Ops, Params, Solution
 
 
@@ -44,7 +47,6 @@ class Problem:
 
     def with_config(self, **settings) -> "Problem":
         """A copy with other solver settings (Config fields)."""
-        import dataclasses
         return self.replace(config=dataclasses.replace(self.config, **settings))
 
     # ------------------------------------------------------------------ the discrete model
@@ -74,7 +76,6 @@ class Problem:
 
     def tangent(self, u, g):
         """K_ff = dr/du, dense (Nf*d, Nf*d) whatever the linear solver (small problems)."""
-        from .linear import dense_tangent
         return dense_tangent(self.ops, self.tangent_blocks(u, g))
 
     def point_values(self, idx, psi, u, g):
