@@ -23,6 +23,10 @@ class Body:
     spacing          nominal particle spacing h (the kernel support is a multiple of it)
     lower, upper (d,) bounding box of the domain
     vertices (V, 2)  counter-clockwise domain polygon (2D only; a box gives 4 corners)
+    cells    (C, d+1) simplices (triangles / tetrahedra, particle indices) of a body built
+             from a mesh; None for grid and polygon bodies
+    tags     name -> particle indices: named sets that came with the body (mesh physical
+             groups / tags); empty for grid and polygon bodies
     """
 
     X: np.ndarray
@@ -33,6 +37,8 @@ class Body:
     vertices: np.ndarray | None = None
     is_box: bool = True
     _tree: cKDTree = field(default=None, repr=False)
+    cells: np.ndarray | None = None
+    tags: dict = field(default_factory=dict)
 
     @property
     def dim(self) -> int:
