@@ -76,6 +76,23 @@ def test_setpoint_figures_and_snapshots(setpoint_run):
     assert fx > 0 and fy > 0
 
 
+def test_setpoint_writes_paraview_files(setpoint, setpoint_run):
+    import meshio
+    from jaxrkpm import output
+    out, s = setpoint_run
+    assert (s["vtu"], s["series"], s["series_frames"]) == ("final.vtu", "series.pvd", 2)
+    frames = output.read_series(out / "series.pvd")
+    # a frame per reached waypoint, at the control step that reached it
+    assert [t for t, _ in frames] == [float(w["reached_at"]) for w in s["waypoints"]] == [0.0, s["iterations"]]
+    pad = setpoint.model.set_indices("paddle")
+    final_mp = s["final_manipulation_point"]
+    for f in (frames[-1][1], out / "final.vtu"):
+        m = meshio.read(f)
+        assert m.cells[0].type == "quad" and len(m.cells[0].data) == 64 and len(m.points) == 81
+        np.testing.assert_allclose(m.point_data["displacement"][pad, :2], np.tile(final_mp, (3, 1)), atol=1e-10)
+    assert np.abs(meshio.read(frames[0][1]).point_data["displacement"]).max() < 1e-12   # the start
+
+
 def test_demo_delegates_to_track(setpoint, tmp_path):
     # the demo's box run compiles another loop (17 waypoints); the set point reuses the fixture's
     s = demo.run(tmp_path, path="setpoint", experiment=setpoint, make_figures=False)

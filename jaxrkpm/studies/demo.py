@@ -2,8 +2,9 @@
 (Algorithm 3) on the 9x9 Fung square (Table 5.2 tensors, alpha = beta = 1), Gauss
 integration, gain 0.05, increment clamp 0.01, tolerance 1e-4.
 
-Writes summary.json (waypoint errors, status, warm and compile time, ...) and figures
-(control point path, error per iteration, manipulation point path, deformed snapshots).
+Writes summary.json (waypoint errors, status, warm and compile time, ...), figures
+(control point path, error per iteration, manipulation point path, deformed snapshots) and
+ParaView files: final.vtu (the final state) and series.pvd (a frame per waypoint).
 The same run as ``jaxrkpm track --path box``."""
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ def main(argv=None):
     s = run(Path(a.out))
     keys = ("experiment", "status", "message", "max_waypoint_error", "iterations", "wall_s",
             "compile_s", "speedup_vs_thesis_gauss", "material", "integration", "particles",
-            "gain", "clamp", "tol", "figures")
+            "gain", "clamp", "tol", "figures", "vtu", "series")
     print(json.dumps({k: s[k] for k in keys if k in s}, indent=2))
     print(f"wrote {a.out}/summary.json")
     return s

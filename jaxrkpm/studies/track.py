@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxrkpm as jr
-from jaxrkpm import plot
+from jaxrkpm import output, plot
 from jaxrkpm.control import TrackResult, path_deviation, track, waypoint_table
 from jaxrkpm.thesis import CP_2D, CP_3D, CUBES, CUBE_MAX_ERROR, PATHS, TRACKING_MINUTES, cube, cube_path, \
     planar_square
@@ -143,6 +143,19 @@ def snapshots(exp: Experiment, res: TrackResult, which: list[int]):
     if res.status.name != "DONE":
         out.append((None, len(res.error) - 1, res.plant_solution))
     return out
+
+
+def write_mesh_outputs(exp: Experiment, res: TrackResult, out: Path) -> dict:
+    """ParaView / PyVista files of the run (jaxrkpm.output): ``final.vtu``, the measured model's
+    last state, and ``series.pvd``, one frame per reached waypoint (plus the final state if the
+    run stopped early), re-solved as in :func:`snapshots`, time = the control step."""
+    reached = [i for i in range(len(res.desired)) if res.reached[i] >= 0]
+    frames = {}
+    for _, k, sol in snapshots(exp, res, reached):
+        frames[k] = sol                      # one frame per control step (the later state wins)
+    output.write_solution(out / "final.vtu", exp.measured, res.plant_solution)
+    output.write_series(out / "series.pvd", exp.measured, list(frames.values()), list(frames))
+    return {"vtu": "final.vtu", "series": "series.pvd", "series_frames": len(frames)}
 
 
 def summarize(exp: Experiment, res: TrackResult, timing: dict, settings: dict, snaps=()) -> dict:
@@ -444,7 +457,9 @@ def figures(exp: Experiment, res: TrackResult, snaps, out: Path, tol: float) -> 
             names.append("deformed.png")
         else:
             fig_layers_3d(exp, res, snaps, out)
-            names.append("layers.png")
+            plot.deformed_body_png(out / "deformed_3d.png", exp.measured, res.plant_solution,
+                                   title=_title(exp, res) + "\nfinal state, faces coloured by von Mises stress")
+            names += ["layers.png", "deformed_3d.png"]
     return names
 
 
@@ -453,10 +468,11 @@ def run(out: Path, path: str | None = None, *, dim: int = 2, integration: str = 
         model: str = "reduced", scheme: str = "self", n: int = 9, alpha: float = 1.0,
         beta: float = 1.0, gain: float = 0.05, clamp: float = 0.01, tol: float = 1e-4,
         max_iter: int = 2000, max_steps: int = 20000, window: int = 300, repeats: int = 1,
-        make_figures: bool = True, experiment: Experiment | None = None) -> dict:
-    """Build (or reuse ``experiment``), track, write summary.json (+ figures) and
-    history.npz; return the summary. ``repeats`` warm runs are timed (wall_s: their median;
-    compile_s: see ``execute``)."""
+        make_figures: bool = True, mesh_output: bool = True,
+        experiment: Experiment | None = None) -> dict:
+    """Build (or reuse ``experiment``), track, write summary.json (+ figures), history.npz
+    (+ final.vtu and series.pvd, :func:`write_mesh_outputs`); return the summary. ``repeats``
+    warm runs are timed (wall_s: their median; compile_s: see ``execute``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     exp = experiment or build(path, dim, integration, model, scheme, n, alpha, beta)
@@ -467,6 +483,8 @@ def run(out: Path, path: str | None = None, *, dim: int = 2, integration: str = 
     s = summarize(exp, res, timing, settings, snaps)
     if make_figures:
         s["figures"] = figures(exp, res, snaps, out, tol)
+    if mesh_output:
+        s.update(write_mesh_outputs(exp, res, out))
     np.savez_compressed(out / "history.npz", mp=res.mp, cp=res.cp, error=res.error,
                         waypoint=res.waypoint, newton=res.newton, solve_status=res.solve_status,
                         reached=res.reached, achieved=res.achieved, desired=res.desired)
@@ -495,6 +513,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--window", type=int, default=300, help="iterations without progress before giving up")
     p.add_argument("--repeats", type=int, default=1, help="timed warm runs (wall_s: their median)")
     p.add_argument("--no-figures", action="store_true")
+    p.add_argument("--no-mesh", action="store_true", help="skip final.vtu and series.pvd (ParaView)")
     p.add_argument("--out", default=None, help="output folder (default results/track/<name>)")
     return p
 
@@ -514,7 +533,8 @@ def main(argv=None):
         p.error(f"cannot build the model: {e}")
     out = Path(a.out or f"results/track/{exp.name}")
     s = run(out, gain=a.gain, clamp=a.clamp, tol=a.tol, max_iter=a.max_iter, max_steps=a.max_steps,
-            window=a.window, repeats=a.repeats, make_figures=not a.no_figures, experiment=exp)
+            window=a.window, repeats=a.repeats, make_figures=not a.no_figures,
+            mesh_output=not a.no_mesh, experiment=exp)
     brief = {k: v for k, v in s.items() if k not in ("waypoints", "snapshots", "warm_runs_s",
                                                       "paddle_particles", "desired_positions")}
     print(json.dumps(brief, indent=2))
