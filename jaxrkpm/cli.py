@@ -48,7 +48,7 @@ def main(argv=None) -> int:
     """Run ``jaxrkpm`` with ``argv``; returns the exit code (see ``jaxrkpm --help``)."""
     argv = sys.argv[1:] if argv is None else list(argv)
     if not argv or argv[0] in ("-h", "--help"):
-        print(help_text(), file=sys.stdout if argv else sys.stderr)
+        print(help_text(), end="", file=sys.stdout if argv else sys.stderr)
         return interface.EXIT_OK if argv else interface.EXIT_USAGE
     if argv[0] == "--version":
         print(f"jaxrkpm {__version__}")

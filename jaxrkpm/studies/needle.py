@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from matplotlib.patches import Patch
 
 from jaxrkpm import cli, plot
 from jaxrkpm import needle as nd
@@ -94,14 +95,14 @@ def draw_phantom(ax, phantom: nd.Phantom, model, sol, inclusion, paddle=None, pa
     return sc
 
 
-def legend_below(fig, axes):
+def legend_below(fig, axes, ncol: int = 6):
     """One legend for the figure, below the axes (never over the particles): the entries of
-    every axes, each label once."""
+    every axes, each label once, in ``ncol`` columns (fewer for a narrow figure)."""
     seen = {}
     for ax in np.atleast_1d(axes).ravel():
         for h, lab in zip(*ax.get_legend_handles_labels()):
             seen.setdefault(lab, h)
-    fig.legend(seen.values(), seen.keys(), loc="outside lower center", ncol=min(len(seen), 6), fontsize=8)
+    fig.legend(seen.values(), seen.keys(), loc="outside lower center", ncol=min(len(seen), ncol), fontsize=8)
 
 
 def phantom_limits(phantom, *states):
@@ -145,28 +146,29 @@ def run_static(phantom, inclusion, increments, out: Path, n_devices=1):
 
 def static_figures(phantom, sw, summary, out: Path):
     P = len(sw.final)
-    fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(11, 5))
     idx = np.arange(1, P + 1)
     ok = [all(s == "converged" for s in row) for row in summary["status"]]
     a1.bar(idx, np.abs(sw.final), color=["C0" if o else "0.6" for o in ok])
-    a1.bar([], [], color="C0", label="converged to full insertion")
+    handles = [Patch(color="C0", label="reached full insertion")]
     if not all(ok):
         why = ", ".join(sorted({s for row in summary["status"] for s in row if s != "converged"}))
-        a1.bar([], [], color="0.6", label=f"stopped early ({why}): deviation at\nits last converged increment")
-    a1.axhline(abs(summary["no_paddle_deviation"]), color="r", ls="--", label="no paddle")
+        handles.append(Patch(color="0.6", label=f"stopped early ({why}): the deviation\n"
+                                                "at its last converged increment"))
+    handles.append(a1.axhline(abs(summary["no_paddle_deviation"]), color="r", ls="--", label="no paddle"))
     if sw.inclusion == "none":
-        a1.axhline(NEEDLE["no_paddle_deviation"], color="k", ls=":", label="no paddle (thesis)")
+        handles.append(a1.axhline(NEEDLE["no_paddle_deviation"], color="k", ls=":", label="no paddle (thesis)"))
     a1.set_yscale("log")
     a1.set_xticks(idx)
     a1.set_xlabel("paddle position (Table 6.2)")
     a1.set_ylabel(f"|target x deviation| at {100 * phantom.insertion:.0f}% insertion ({plot.UNITS})")
     a1.set_title(f"inclusion: {sw.inclusion}; best paddle {sw.best} "
                  f"({summary['best_reduction']:.0f}x less than no paddle)", fontsize=10)
-    a1.legend(fontsize=8)
+    a1.legend(handles=handles, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2)
     a2.plot(100 * sw.depths, sw.no_paddle, "k--", label="no paddle")
     for p in range(P):
         a2.plot(100 * sw.depths, sw.deviation[p], "o-", ms=3, label=f"paddle {p + 1}"
-                + ("" if ok[p] else " (failed)"))
+                + ("" if ok[p] else " (stopped early)"))
     a2.axhline(0, color="0.5", lw=0.6)
     a2.set_xlabel("needle insertion (% of height)")
     a2.set_ylabel(f"target x deviation ({plot.UNITS})")
@@ -267,8 +269,8 @@ def dynamic_figures(phantom, sw, run, summary, out: Path):
         model = phantom.model(sw.inclusion, run.paddle)
         fig, ax = plot.plt.subplots(figsize=(6.5, 6.5), layout="constrained")
         sc = draw_phantom(ax, phantom, model, run.solution, sw.inclusion, paddle=run.paddle,
-                          title=f"dynamic paddle {run.paddle}, insertion {100 * (d[-1] if n else 0):.0f}%")
-        legend_below(fig, ax)
+                          title=f"dynamic paddle {run.paddle}, insertion {d[-1] if n else 0:.0f}%")
+        legend_below(fig, ax, ncol=3)
         fig.colorbar(sc, ax=ax, label=f"|u| ({plot.UNITS})", shrink=0.8)
         fig.savefig(out / f"phantom_dynamic_{sw.inclusion}.png", dpi=120)
         plot.plt.close(fig)

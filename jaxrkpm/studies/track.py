@@ -491,7 +491,7 @@ def result(s: dict) -> tuple[bool, str]:
             else f"Table 5.1 on the {s['model']} cube" + (" (Jacobian from the reduced model)"
                                                            if s.get("scheme") == "reduced-to-refined" else ""))
     words = (f"{what}: {s['waypoints_reached']}/{s['waypoints_total']} waypoints reached, max waypoint error "
-             f"{s['max_waypoint_error']:.1e} (tolerance {s['tol']:g}), {s['iterations']} iterations, "
+             f"{s['max_waypoint_error']:.1e} (tolerance {s['tol']:.0e}), {s['iterations']} iterations, "
              f"{s['wall_s']:.1f} s warm + {s['compile_s']:.1f} s compile")
     if s.get("thesis_minutes_gauss"):
         words += f" (thesis: {s['thesis_minutes_gauss']} min)"
