@@ -26,7 +26,7 @@ __all__ = [
 
 # ================================================================== chapter 5: planar square
 # section 5.2 / 5.3.2: the unit square, left edge immobile, the paddle on the right edge
-# around (1, 0.5), the control point at the centre (DESIGN.md: the 9x9 grid, spacing 0.125)
+# around (1, 0.5), the control point at the centre (the 9x9 grid: spacing 0.125)
 CP_2D = np.array([[0.5, 0.5]])
 PADDLE_HALF_WIDTH = 0.125   # |y - 0.5| <= 0.125: the three particles nearest (1, 0.5) at 9x9
 

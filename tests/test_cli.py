@@ -173,9 +173,9 @@ def test_report_has_a_verdict_per_row_and_each_note_once():
     assert "| ours 0 | agrees in kind (scheme) [1] |" in md and "| ours 1 | agrees in kind (scheme) [1] |" in md
     assert "| ours 2 | differs (limit point) [2] |" in md and md.count(reproduce.LIMIT) == 1
     assert md.count(reproduce.COLL) == 1 and f"1. {reproduce.COLL}" in md
-    assert "Verdicts: 0 agrees, 2 agrees in kind, 1 differs." in md
+    assert "Verdicts: agrees 0, agrees in kind 2, differs 1." in md
     ok, words = reproduce.result({"experiments": rows, "total_wall_s": 60})
-    assert ok and words == "3/3 experiments ran in 1.0 min; 0 agrees, 2 agrees in kind, 1 differs (report.md)"
+    assert ok and words == "3/3 experiments ran in 1.0 min; verdicts: agrees 0, agrees in kind 2, differs 1 (report.md)"
 
 
 # ------------------------------------------------------------------ figures

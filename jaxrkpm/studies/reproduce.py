@@ -380,7 +380,7 @@ def report_md(rows, quick: bool, total_s: float) -> str:
         lines.append(f"| `{r['id']}` | {r['thesis_ref']} | {r['thesis_value']} | {r['ours']} | {verdict} "
                      f"| {r['wall_s']:.0f} | {figs} |")
     counts = {v: sum(r.get("verdict") == v for r in rows) for v in (AGREES, IN_KIND, DIFFERS)}
-    lines += ["", "Verdicts: " + ", ".join(f"{n} {v}" for v, n in counts.items()) + "."]
+    lines += ["", "Verdicts: " + ", ".join(f"{v} {n}" for v, n in counts.items()) + "."]
     if notes:
         lines += ["", "Notes:", ""] + [f"{i}. {n}" for i, n in enumerate(notes, 1)]
     lines += ["", "Figures (the main one of each experiment):", ""]
@@ -397,7 +397,7 @@ def result(rep: dict) -> tuple[bool, str]:
     counts = {v: sum(r.get("verdict") == v for r in rows) for v in (AGREES, IN_KIND, DIFFERS)}
     words = (f"{len(rows) - len(failed)}/{len(rows)} experiments ran in {rep['total_wall_s'] / 60:.1f} min"
              + (f" (failed: {', '.join(failed)})" if failed else "") + "; "
-             + ", ".join(f"{n} {v}" for v, n in counts.items()) + " (report.md)")
+             + "verdicts: " + ", ".join(f"{v} {n}" for v, n in counts.items()) + " (report.md)")
     return not failed, words
 
 
