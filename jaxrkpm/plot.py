@@ -12,6 +12,10 @@ from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection  # noq
 
 from . import output  # noqa: E402
 
+# the thesis' objects are dimensionless: lengths in units of the square's side (the cube's
+# edge), forces per unit thickness in units of the material constants times a length
+UNITS = "model units"
+
 
 def deformed_particles(ax, X, u, title=None, vmax=None, cmap="viridis", size=30, show_reference=True):
     """Scatter the deformed particles x = X + u (2D, or the x-z projection in 3D),
@@ -26,8 +30,8 @@ def deformed_particles(ax, X, u, title=None, vmax=None, cmap="viridis", size=30,
     sc = ax.scatter(x[:, i], x[:, j], c=mag, s=size, cmap=cmap, vmin=0, vmax=vmax,
                     edgecolors="k", linewidths=0.3, label="deformed")
     ax.set_aspect("equal")
-    ax.set_xlabel("x" if i == 0 else "x")
-    ax.set_ylabel("y" if j == 1 else "z")
+    ax.set_xlabel(f"x ({UNITS})")
+    ax.set_ylabel(f"{'xyz'[j]} ({UNITS})")
     if title:
         ax.set_title(title)
     return sc

@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import Body
-from .materials import Fung, Material, Quadratic
-from .model import Model
+# the builders reach Body, the materials and Model through the package's lazy names: the
+# thesis' data (paths, tables, reference values) imports without JAX, for the command line
+import jaxrkpm as jr
 
 __all__ = [
     "planar_square", "cube", "cube_path", "CP_2D", "CP_3D", "CUBE_ORIGIN", "CUBES", "PATHS",
@@ -26,13 +26,13 @@ __all__ = [
 
 # ================================================================== chapter 5: planar square
 # section 5.2 / 5.3.2: the unit square, left edge immobile, the paddle on the right edge
-# around (1, 0.5), the control point at the centre (DESIGN.md: the 9x9 grid, spacing 0.125)
+# around (1, 0.5), the control point at the centre (the 9x9 grid: spacing 0.125)
 CP_2D = np.array([[0.5, 0.5]])
 PADDLE_HALF_WIDTH = 0.125   # |y - 0.5| <= 0.125: the three particles nearest (1, 0.5) at 9x9
 
 
-def planar_square(n: int = 9, integration: str = "gauss", material: Material | None = None,
-                  paddle: str | float = "three", solver: str = "auto") -> Model:
+def planar_square(n: int = 9, integration: str = "gauss", material: jr.Material | None = None,
+                  paddle: str | float = "three", solver: str = "auto") -> jr.Model:
     """The chapter-5 planar object on an n x n grid of the unit square (9x9: spacing 0.125):
     set "wall" = the left edge x = 0, set "paddle" on the right edge x = 1.
 
@@ -44,7 +44,7 @@ def planar_square(n: int = 9, integration: str = "gauss", material: Material | N
     """
     if n < 3:
         raise ValueError(f"n must be >= 3 particles per side, got {n}")
-    body = Body.grid((n, n), 1.0 / (n - 1))
+    body = jr.Body.grid((n, n), 1.0 / (n - 1))
     wall = body.select(lambda X: X[:, 0] < 1e-9)
     if isinstance(paddle, str):
         if paddle != "three":
@@ -58,8 +58,8 @@ def planar_square(n: int = 9, integration: str = "gauss", material: Material | N
         sel = body.select(lambda X: (X[:, 0] > 1 - 1e-9) & (np.abs(X[:, 1] - 0.5) <= w + 1e-9))
         if len(np.atleast_1d(sel)) < 1:
             raise ValueError(f"no right-edge particle within {w} of y = 0.5 at n = {n}")
-    material = Fung(alpha=1.0, beta=1.0) if material is None else material
-    return Model(body, material, integration=integration, essential={"wall": wall, "paddle": sel},
+    material = jr.Fung(alpha=1.0, beta=1.0) if material is None else material
+    return jr.Model(body, material, integration=integration, essential={"wall": wall, "paddle": sel},
                  solver=solver)
 
 
@@ -72,20 +72,20 @@ CUBES = {"reduced": (3, 0.5), "refined": (5, 0.25)}   # particles per side, spac
 
 
 def cube(kind: str = "reduced", integration: str = "gauss", alpha: float = 1.0,
-         solver: str = "auto") -> Model:
+         solver: str = "auto") -> jr.Model:
     """The section 5.3.1 cube (material eq 5.1, :class:`Quadratic`): "wall" = face x=-1.5;
     "paddle" = face x=-2.5, its bottom two of three layers (z < 2.25) in the reduced model
     (3x3x3), the whole face in the refined one (5x5x5)."""
     if kind not in CUBES:
         raise ValueError(f"unknown cube model {kind!r}: choose {list(CUBES)}")
     n, h = CUBES[kind]
-    body = Body.grid((n, n, n), h, origin=CUBE_ORIGIN)
+    body = jr.Body.grid((n, n, n), h, origin=CUBE_ORIGIN)
     wall = body.select(lambda X: X[:, 0] > -1.5 - 1e-9)
     if kind == "reduced":
         paddle = body.select(lambda X: (X[:, 0] < -2.5 + 1e-9) & (X[:, 2] < 2.25))
     else:
         paddle = body.select(lambda X: X[:, 0] < -2.5 + 1e-9)
-    return Model(body, Quadratic(alpha=alpha), integration=integration,
+    return jr.Model(body, jr.Quadratic(alpha=alpha), integration=integration,
                  essential={"wall": wall, "paddle": paddle}, solver=solver)
 
 

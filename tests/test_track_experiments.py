@@ -26,7 +26,7 @@ def setpoint_run(setpoint, tmp_path_factory):
 
 
 def test_cli_registers_track():
-    assert cli.COMMANDS["track"] == "jaxrkpm.studies.track"
+    assert cli.COMMANDS["track"][0] == "jaxrkpm.studies.track"
 
 
 def test_planar_model_is_the_design_setup(setpoint):

@@ -17,8 +17,8 @@ solve fails, still recording where the eigenvalue crossed zero.
 """
 from __future__ import annotations
 
-import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -27,10 +27,14 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxrkpm as jr
-from jaxrkpm import plot
+from jaxrkpm import cli, plot
 from jaxrkpm import solve as jsolve
 from jaxrkpm.solve import coefficients, deformation_gradients
+from jaxrkpm.studies import interface
 from jaxrkpm.thesis import PADDLE_HALF_WIDTH, planar_square
+
+# 2D: a force per unit thickness, in the units of the material constants times a length
+FORCE_UNITS = "model units: force per unit thickness"
 
 MODES = {"straight": (-1.0, 0.0), "shear": (-1.0, -1.0)}
 
@@ -93,7 +97,9 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
     reason, first_unstable, limit = "reached the requested maximum compression", None, None
     first_nonelliptic = None
     k_max = int(round(max_compression / step))
-    for k in range(1, k_max + 1):
+    bar = interface.progress(range(1, k_max + 1), desc=f"compress {mode} {integration}", unit="step")
+    for k in bar:
+        bar.set_postfix_str(f"{100 * k * step:.0f}%")
         c = k * step
         t0 = time.perf_counter()
         # the study follows the path itself and checks stability with the exact smallest
@@ -141,6 +147,7 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
                 reason = (f"tangent lost positive definiteness at {100 * c:.0f}% (smallest eigenvalue "
                           f"{lam:.3g}): physical instability of the equilibrium path")
                 break
+    bar.close()
     ok = [r for r in rows if r["status"] == "CONVERGED"]
     times = [r["time_s"] for r in ok]
     summary = {
@@ -239,19 +246,22 @@ def figures(out: Path, summary, model, states, tag: str):
         sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=18 if len(X) < 100 else 6)
         x = X + u
         ax.scatter(x[paddle, 0], x[paddle, 1], marker="s", s=max(12.0, 40.0 * (9.0 / n) ** 2),
-                   facecolors="none", edgecolors="r", lw=1.2, label="paddle")
-        ax.scatter(x[wall, 0], x[wall, 1], marker="|", s=60, c="b", lw=1.2, label="wall")
-        ax.set_title(f"{100 * c:.0f}%", fontsize=11)
+                   facecolors="none", edgecolors="r", lw=1.2, label="paddle (moved)")
+        ax.scatter(x[wall, 0], x[wall, 1], marker="|", s=60, c="b", lw=1.2, label="wall (immobile)")
+        ax.set_title(f"{100 * c:.0f}% compression", fontsize=10)
         ax.set_xlim(-0.08, 1.08)
         ax.set_ylim(-0.25, 1.25)
         ax.tick_params(labelsize=7)
-        ax.set_xlabel("")
+    for ax in axes[:, 1:].flat:      # axis labels on the outer panels only
         ax.set_ylabel("")
+    for ax in axes[:-1, :].flat:
+        ax.set_xlabel("")
     for ax in list(axes.flat)[len(levels):]:
         ax.axis("off")
+    fig.legend(*axes.flat[0].get_legend_handles_labels(), loc="outside lower center", ncol=4, fontsize=9)
     fig.suptitle(f"{summary['mode']} compression, {summary['integration']}, {n}x{n} "
                  f"{summary['material']['name']}: last converged step {100 * cmax:.0f}%", fontsize=11)
-    fig.colorbar(sc, ax=axes, label="|u|", shrink=0.8)
+    fig.colorbar(sc, ax=axes, label=f"|u| ({plot.UNITS})", shrink=0.8)
     fig.savefig(out / f"deformed_{tag}.png", dpi=110)
     plot.plt.close(fig)
 
@@ -261,7 +271,7 @@ def figures(out: Path, summary, model, states, tag: str):
     a1.plot(c, f[:, 0], "o-", ms=3, label="$f_x$")
     a1.plot(c, f[:, 1], "s-", ms=3, label="$f_y$")
     a1.set_xlabel("paddle displacement (% of width)")
-    a1.set_ylabel("reaction force of the paddle on the body")
+    a1.set_ylabel(f"force of the paddle on the body\n({FORCE_UNITS})")
     a1.legend()
     a1.grid(alpha=0.3)
     a2.plot(c, summary["min_eig_rel"], "o-", ms=3, label="free tangent")
@@ -279,25 +289,22 @@ def figures(out: Path, summary, model, states, tag: str):
     plot.save(fig, out / f"reaction_{tag}.png")
 
 
+def result(s: dict) -> tuple[bool, str]:
+    """(at least one step converged, the result in words) of a compression summary: the
+    study looks for where the compression fails, so stopping is its finding."""
+    words = (f"{s['mode']} compression ({s['integration']}, {s['particles'][0]}x{s['particles'][1]} "
+             f"{s['material']['name']}): last converged step {100 * s['max_compression']:.0f}%; {s['reason']}")
+    if s.get("fold_estimate") is not None:
+        words += f"; limit point extrapolated at {100 * s['fold_estimate']:.1f}%"
+    return s["max_compression"] > 0, words
+
+
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--mode", choices=list(MODES), default="straight")
-    p.add_argument("--integration", choices=["gauss", "scni", "mscni"], default="gauss")
-    p.add_argument("--out", default="results/compress")
-    p.add_argument("--n", type=int, default=9)
-    p.add_argument("--max", type=float, default=0.9, help="largest compression tried (fraction)")
-    p.add_argument("--step", type=float, default=0.01)
-    p.add_argument("--material", choices=list(MATERIALS), default="fung")
-    p.add_argument("--paddle-half-width", type=float, default=PADDLE_HALF_WIDTH,
-                   help="paddle = right-edge particles with |y - 0.5| <= this (0.5: the whole edge, "
-                        "a homogeneous compression without punch corners)")
-    p.add_argument("--through", action="store_true",
-                   help="continue past the loss of positive definiteness until the solve fails")
-    a = p.parse_args(argv)
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    if not 0 < a.paddle_half_width <= 0.5:
-        p.error(f"--paddle-half-width must be in (0, 0.5], got {a.paddle_half_width}")
+    a = interface.parse("compress", argv)
+    if a.step > a.max:
+        interface.compress_parser().error(f"--step {a.step:g} is larger than --max {a.max:g}")
+    t0 = time.time()
+    out = interface.output_folder(a.out)
     summary, model, states = run(a.mode, a.integration, a.n, a.max, a.step, a.through, a.material,
                                  half_width=a.paddle_half_width)
     summary["fold_estimate"] = fold_estimate(summary)
@@ -307,12 +314,9 @@ def main(argv=None):
               else f"_hw{a.paddle_half_width:g}"))
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     figures(out, summary, model, states, tag)
-    brief = {k: summary[k] for k in ("mode", "integration", "particles", "max_compression", "reason",
-                                     "limit_state", "fold_estimate", "first_loss_of_ellipticity",
-                                     "median_step_s_excl_first")}
-    print(json.dumps(brief, indent=2))
+    interface.finish(out, t0, summary, result(summary)[1], a.json)
     return summary
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(cli.main(["compress", *sys.argv[1:]]))

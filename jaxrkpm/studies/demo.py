@@ -2,17 +2,19 @@
 (Algorithm 3) on the 9x9 Fung square (Table 5.2 tensors, alpha = beta = 1), Gauss
 integration, gain 0.05, increment clamp 0.01, tolerance 1e-4.
 
-Writes summary.json (waypoint errors, status, warm and compile time, ...), figures
-(control point path, error per iteration, manipulation point path, deformed snapshots) and
-ParaView files: final.vtu (the final state) and series.pvd (a frame per waypoint).
-The same run as ``jaxrkpm track --path box``."""
+Writes summary.json (waypoint errors, status, warm and compile time, ...), history.npz and
+figures (control point path, error per iteration, manipulation point path, deformed
+snapshots), ParaView files (final.vtu: the final state; series.pvd: a frame per
+waypoint) and prints one line: what it wrote, waypoints reached, the largest waypoint
+error, iterations and times. The same run as ``jaxrkpm track --path box``."""
 from __future__ import annotations
 
-import argparse
-import json
+import sys
+import time
 from pathlib import Path
 
-from jaxrkpm.studies import track
+from jaxrkpm import cli
+from jaxrkpm.studies import interface, track
 
 
 def run(out: Path, path: str = "box", integration: str = "gauss", **kw) -> dict:
@@ -20,19 +22,17 @@ def run(out: Path, path: str = "box", integration: str = "gauss", **kw) -> dict:
     return track.run(Path(out), path, dim=2, integration=integration, **kw)
 
 
+result = track.result   # (every waypoint reached, the result in words)
+
+
 def main(argv=None):
-    p = argparse.ArgumentParser(prog="jaxrkpm demo", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", default="results/demo")
-    a = p.parse_args(argv)
-    s = run(Path(a.out))
-    keys = ("experiment", "status", "message", "max_waypoint_error", "iterations", "wall_s",
-            "compile_s", "speedup_vs_thesis_gauss", "material", "integration", "particles",
-            "gain", "clamp", "tol", "figures", "vtu", "series")
-    print(json.dumps({k: s[k] for k in keys if k in s}, indent=2))
-    print(f"wrote {a.out}/summary.json")
+    a = interface.parse("demo", argv)
+    t0 = time.time()
+    out = interface.output_folder(a.out)
+    s = run(out)
+    interface.finish(out, t0, s, result(s)[1], a.json)
     return s
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(cli.main(["demo", *sys.argv[1:]]))

@@ -19,15 +19,17 @@ its docstring for why (the other reading of Figure 6.1 does not reproduce the th
 """
 from __future__ import annotations
 
-import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from matplotlib.patches import Patch
 
+from jaxrkpm import cli, plot
 from jaxrkpm import needle as nd
-from jaxrkpm import plot
+from jaxrkpm.studies import interface
 from jaxrkpm.thesis import INCLUSIONS, NEEDLE
 
 
@@ -35,18 +37,40 @@ def _inclusion_box(inclusion):
     return INCLUSIONS[inclusion]
 
 
+def deformed_outline(model, sol, box, per_side: int = 12) -> np.ndarray:
+    """The inclusion's rectangle ``((x0, x1), (y0, y1))`` carried by the displacement
+    field: (4 * per_side + 1, 2) points of the deformed outline, closed."""
+    (x0, x1), (y0, y1) = box
+    t = np.linspace(0.0, 1.0, per_side, endpoint=False)
+    P = np.concatenate([np.stack([x0 + (x1 - x0) * t, np.full_like(t, y0)], 1),
+                        np.stack([np.full_like(t, x1), y0 + (y1 - y0) * t], 1),
+                        np.stack([x1 - (x1 - x0) * t, np.full_like(t, y1)], 1),
+                        np.stack([np.full_like(t, x0), y1 - (y1 - y0) * t], 1)])
+    P = np.vstack([P, P[:1]])
+    return P + np.asarray(model.displacement(sol, P))
+
+
+def extent(*points, margin: float = 0.05):
+    """(xlim, ylim) covering every (n, 2) array of ``points`` with a margin."""
+    allp = np.concatenate([np.asarray(p).reshape(-1, 2) for p in points])
+    lo, hi = allp.min(0) - margin, allp.max(0) + margin
+    return (lo[0], hi[0]), (lo[1], hi[1])
+
+
 def draw_phantom(ax, phantom: nd.Phantom, model, sol, inclusion, paddle=None, paddle_u=None,
-                 title=None, vmax=None, paddle_points=None):
+                 title=None, vmax=None, paddle_points=None, limits=None):
     """Deformed particles with the needle line, needle particles, paddle, wall, target and
-    inclusion (reference configuration outlines). ``paddle_points``: the ends of a
-    continuous (spring) paddle instead of the essential set "paddle"."""
+    the deformed inclusion, over the reference outline. ``paddle_points``: the ends of a
+    continuous (spring) paddle instead of the essential set "paddle". ``limits``: (xlim,
+    ylim), by default the reference outline and every deformed particle. The legend is the
+    caller's (outside the axes: see :func:`legend_below`)."""
     X = model.body.X
     u = np.asarray(model.particle_displacements(sol))
     sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=22)
     x = X + u
     V = np.vstack([phantom.vertices, phantom.vertices[0]])
-    ax.plot(V[:, 0], V[:, 1], color="0.6", lw=0.8)
-    ax.axvline(phantom.needle_x, color="r", ls="--", lw=0.8)
+    ax.plot(V[:, 0], V[:, 1], color="0.6", lw=0.8, label="reference outline")
+    ax.axvline(phantom.needle_x, color="r", ls="--", lw=0.8, label="needle line")
     n = model.set_indices("needle")
     ax.plot(x[n, 0], x[n, 1], "r^", ms=6, label="needle")
     w = model.set_indices("wall")
@@ -62,20 +86,39 @@ def draw_phantom(ax, phantom: nd.Phantom, model, sol, inclusion, paddle=None, pa
     ax.plot(*t, "m*", ms=12, label="target")
     box = _inclusion_box(inclusion)
     if box is not None:
-        (x0, x1), (y0, y1) = box
-        ax.add_patch(plot.plt.Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="orange", lw=2,
-                                        label="inclusion x100"))
-    ax.set_xlim(-0.1, 1.1)
-    ax.set_ylim(-0.1, 1.1)
+        ax.plot(*deformed_outline(model, sol, box).T, color="orange", lw=2, label="inclusion (x100 stiffer)")
+    (x0, x1), (y0, y1) = limits or extent(V, x)
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
     if title:
         ax.set_title(title, fontsize=10)
     return sc
 
 
+def legend_below(fig, axes, ncol: int = 6):
+    """One legend for the figure, below the axes (never over the particles): the entries of
+    every axes, each label once, in ``ncol`` columns (fewer for a narrow figure)."""
+    seen = {}
+    for ax in np.atleast_1d(axes).ravel():
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            seen.setdefault(lab, h)
+    fig.legend(seen.values(), seen.keys(), loc="outside lower center", ncol=min(len(seen), ncol), fontsize=8)
+
+
+def phantom_limits(phantom, *states):
+    """Common (xlim, ylim) of phantom panels: the outline and every state's deformed
+    particles; ``states``: (model, solution) pairs."""
+    return extent(phantom.vertices, *[m.body.X + np.asarray(m.particle_displacements(s)) for m, s in states])
+
+
 def run_static(phantom, inclusion, increments, out: Path, n_devices=1):
+    stages = interface.progress(total=2, desc=f"needle static {inclusion}", unit="stage")
+    stages.set_postfix_str("sweep (one compiled call)")
     t0 = time.perf_counter()
     sw = nd.static_sweep(phantom, inclusion, increments, n_devices=n_devices)
     wall = time.perf_counter() - t0
+    stages.update()
+    stages.set_postfix_str("figures")
     free = float(sw.no_paddle[-1])
     summary = {
         "mode": "static", "inclusion": inclusion, "increments": increments,
@@ -96,32 +139,39 @@ def run_static(phantom, inclusion, increments, out: Path, n_devices=1):
                    "best": NEEDLE["best_static"][inclusion]},
     }
     static_figures(phantom, sw, summary, out)
+    stages.update()
+    stages.close()
     return summary
 
 
 def static_figures(phantom, sw, summary, out: Path):
     P = len(sw.final)
-    fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(11, 5))
     idx = np.arange(1, P + 1)
     ok = [all(s == "converged" for s in row) for row in summary["status"]]
     a1.bar(idx, np.abs(sw.final), color=["C0" if o else "0.6" for o in ok])
-    a1.axhline(abs(summary["no_paddle_deviation"]), color="r", ls="--", label="no paddle")
+    handles = [Patch(color="C0", label="reached full insertion")]
+    if not all(ok):
+        why = ", ".join(sorted({s for row in summary["status"] for s in row if s != "converged"}))
+        handles.append(Patch(color="0.6", label=f"stopped early ({why}): the deviation\n"
+                                                "at its last converged increment"))
+    handles.append(a1.axhline(abs(summary["no_paddle_deviation"]), color="r", ls="--", label="no paddle"))
     if sw.inclusion == "none":
-        a1.axhline(NEEDLE["no_paddle_deviation"], color="k", ls=":", label="no paddle (thesis)")
+        handles.append(a1.axhline(NEEDLE["no_paddle_deviation"], color="k", ls=":", label="no paddle (thesis)"))
     a1.set_yscale("log")
     a1.set_xticks(idx)
     a1.set_xlabel("paddle position (Table 6.2)")
-    a1.set_ylabel(f"|target x deviation| at {100 * phantom.insertion:.0f}% insertion")
+    a1.set_ylabel(f"|target x deviation| at {100 * phantom.insertion:.0f}% insertion ({plot.UNITS})")
     a1.set_title(f"inclusion: {sw.inclusion}; best paddle {sw.best} "
                  f"({summary['best_reduction']:.0f}x less than no paddle)", fontsize=10)
-    a1.legend(fontsize=8)
+    a1.legend(handles=handles, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2)
     a2.plot(100 * sw.depths, sw.no_paddle, "k--", label="no paddle")
     for p in range(P):
         a2.plot(100 * sw.depths, sw.deviation[p], "o-", ms=3, label=f"paddle {p + 1}"
-                + ("" if ok[p] else " (failed)"))
+                + ("" if ok[p] else " (stopped early)"))
     a2.axhline(0, color="0.5", lw=0.6)
     a2.set_xlabel("needle insertion (% of height)")
-    a2.set_ylabel("target x deviation")
+    a2.set_ylabel(f"target x deviation ({plot.UNITS})")
     a2.legend(fontsize=8)
     a2.grid(alpha=0.3)
     plot.save(fig, out / f"deviation_{sw.inclusion}.png")
@@ -130,24 +180,31 @@ def static_figures(phantom, sw, summary, out: Path):
     m0, s0 = nd.static_state(phantom, sw.inclusion, None, increments)
     m1, s1 = nd.static_state(phantom, sw.inclusion, sw.best, increments)
     vmax = float(max(np.linalg.norm(m.particle_displacements(s), axis=1).max() for m, s in ((m0, s0), (m1, s1))))
-    fig, axes = plot.plt.subplots(1, 2, figsize=(11, 5), layout="constrained")
-    draw_phantom(axes[0], phantom, m0, s0, sw.inclusion, title="no paddle", vmax=vmax)
+    limits = phantom_limits(phantom, (m0, s0), (m1, s1))
+    fig, axes = plot.plt.subplots(1, 2, figsize=(11, 6), layout="constrained")
+    draw_phantom(axes[0], phantom, m0, s0, sw.inclusion, title="no paddle", vmax=vmax, limits=limits)
     sc = draw_phantom(axes[1], phantom, m1, s1, sw.inclusion, paddle=sw.best,
-                      title=f"static paddle {sw.best}", vmax=vmax)
-    axes[1].legend(fontsize=7, loc="upper right")
-    fig.colorbar(sc, ax=axes, label="|u|", shrink=0.8)
+                      title=f"static paddle {sw.best}", vmax=vmax, limits=limits)
+    legend_below(fig, axes)
+    fig.colorbar(sc, ax=axes, label=f"|u| ({plot.UNITS})", shrink=0.8)
     fig.savefig(out / f"phantom_static_{sw.inclusion}.png", dpi=120)
     plot.plt.close(fig)
 
 
 def run_dynamic(phantom, inclusion, increments, out: Path, paddle=None, n_devices=1):
+    stages = interface.progress(total=3, desc=f"needle dynamic {inclusion}", unit="stage")
+    stages.set_postfix_str("sweep and controllability")
     t0 = time.perf_counter()
     sw = nd.static_sweep(phantom, inclusion, increments, n_devices=n_devices)
     ctrl = sw.controllability[:, 0]   # after the first increment, as the thesis
     best = int(np.argmin(ctrl)) + 1
     chosen = best if paddle is None else paddle
+    stages.update()
+    stages.set_postfix_str(f"closed loop on paddle {chosen}")
     run = nd.dynamic_paddle(phantom, chosen, inclusion, increments)
     wall = time.perf_counter() - t0
+    stages.update()
+    stages.set_postfix_str("figures")
     dev = np.abs(run.deviation)
     summary = {
         "mode": "dynamic", "inclusion": inclusion, "increments": increments,
@@ -169,6 +226,8 @@ def run_dynamic(phantom, inclusion, increments, out: Path, paddle=None, n_device
                    "best": NEEDLE["most_controllable"]},
     }
     dynamic_figures(phantom, sw, run, summary, out)
+    stages.update()
+    stages.close()
     return summary
 
 
@@ -194,13 +253,13 @@ def dynamic_figures(phantom, sw, run, summary, out: Path):
     axes[1].plot(d, summary["deviation"], "o-", ms=3, label="closed loop")
     axes[1].set_yscale("symlog", linthresh=1e-6)
     axes[1].set_xlabel("needle insertion (%)")
-    axes[1].set_ylabel("target x deviation")
+    axes[1].set_ylabel(f"target x deviation ({plot.UNITS})")
     axes[1].legend(fontsize=8)
     axes[1].grid(alpha=0.3)
     pu = np.vstack([np.zeros(2), np.asarray(run.paddle_u).reshape(-1, 2)])
     axes[2].plot(pu[:, 0], pu[:, 1], "o-", ms=3)
-    axes[2].set_xlabel("paddle x displacement")
-    axes[2].set_ylabel("paddle y displacement")
+    axes[2].set_xlabel(f"paddle x displacement ({plot.UNITS})")
+    axes[2].set_ylabel(f"paddle y displacement ({plot.UNITS})")
     axes[2].set_title(f"paddle {run.paddle} path, travel {run.travel:.4f}", fontsize=10)
     axes[2].set_aspect("equal", adjustable="datalim")
     axes[2].grid(alpha=0.3)
@@ -208,11 +267,11 @@ def dynamic_figures(phantom, sw, run, summary, out: Path):
 
     if run.solution is not None:
         model = phantom.model(sw.inclusion, run.paddle)
-        fig, ax = plot.plt.subplots(figsize=(6, 5.5), layout="constrained")
+        fig, ax = plot.plt.subplots(figsize=(6.5, 6.5), layout="constrained")
         sc = draw_phantom(ax, phantom, model, run.solution, sw.inclusion, paddle=run.paddle,
-                          title=f"dynamic paddle {run.paddle}, insertion {100 * (d[-1] if n else 0):.0f}%")
-        ax.legend(fontsize=7, loc="upper right")
-        fig.colorbar(sc, ax=ax, label="|u|", shrink=0.8)
+                          title=f"dynamic paddle {run.paddle}, insertion {d[-1] if n else 0:.0f}%")
+        legend_below(fig, ax, ncol=3)
+        fig.colorbar(sc, ax=ax, label=f"|u| ({plot.UNITS})", shrink=0.8)
         fig.savefig(out / f"phantom_dynamic_{sw.inclusion}.png", dpi=120)
         plot.plt.close(fig)
 
@@ -221,18 +280,27 @@ def run_optimize(phantom, inclusion, increments, out: Path, n_devices=1, start=N
     """The paddle position as a continuous variable q along the Table 6.2 chain (a stiff
     spring paddle), optimised with Adam through the differentiable solve, against the best
     discrete (essential) paddle of the static sweep; plus a scan of q for the figure."""
+    scan_q = np.linspace(1.0, len(phantom.paddles), 17)
+    # stages: the sweep, each scanned position, Adam, the figures
+    stages = interface.progress(total=len(scan_q) + 3, desc=f"needle optimize {inclusion}", unit="stage")
+    stages.set_postfix_str("sweep")
     t0 = time.perf_counter()
     sw = nd.static_sweep(phantom, inclusion, increments, n_devices=n_devices)
     model = phantom.spring_model(inclusion)
     depths = phantom.depths(increments)
-    scan_q = np.linspace(1.0, len(phantom.paddles), 17)
+    stages.update()
     scan = []
     for q in scan_q:
+        stages.set_postfix_str(f"scan q = {q:.2f}")
         _, dev, st = nd.spring_insertion(model, phantom, q, depths)
         scan.append(dev[-1] if st == nd.Status.CONVERGED else None)
+        stages.update()
     start = float(sw.best) if start is None else float(start)
+    stages.set_postfix_str(f"Adam, {iterations} iterations")
     opt = nd.optimize_paddle(phantom, inclusion, start=start, increments=increments, iterations=iterations)
     wall = time.perf_counter() - t0
+    stages.update()
+    stages.set_postfix_str("figures")
     best_dev = float(sw.final[sw.best - 1])
     summary = {
         "mode": "optimize", "inclusion": inclusion, "increments": increments,
@@ -251,6 +319,8 @@ def run_optimize(phantom, inclusion, increments, out: Path, n_devices=1, start=N
         "wall_s": wall,
     }
     optimize_figures(phantom, model, sw, summary, out)
+    stages.update()
+    stages.close()
     return summary
 
 
@@ -271,7 +341,7 @@ def optimize_figures(phantom, model, sw, summary, out: Path):
     a1.plot(o["q"], abs(o["deviation"]), "*", ms=14, color="C3", label=f"optimum q = {o['q']:.3f}")
     a1.axhline(abs(summary["no_paddle_deviation"]), color="r", ls="--", label="no paddle")
     a1.set_xlabel("paddle position q (Table 6.2 chain, continuous)")
-    a1.set_ylabel("|target x deviation| at full insertion")
+    a1.set_ylabel(f"|target x deviation| at full insertion ({plot.UNITS})")
     a1.set_title(f"inclusion: {sw.inclusion}; optimum {summary['improvement_over_discrete']:.1f}x below "
                  f"the best discrete paddle {summary['best_discrete']}", fontsize=10)
     a1.legend(fontsize=7)
@@ -280,38 +350,46 @@ def optimize_figures(phantom, model, sw, summary, out: Path):
     pts = np.asarray(phantom.paddle_points(o["q"]))
     sc = draw_phantom(a2, phantom, model, sol, sw.inclusion, paddle=o["q"], paddle_points=pts,
                       title=f"optimised paddle q = {o['q']:.3f} (arc length {o['arc_length']:.3f})")
-    a2.legend(fontsize=7, loc="upper right")
-    fig.colorbar(sc, ax=a2, label="|u|", shrink=0.8)
+    legend_below(fig, a2)
+    fig.colorbar(sc, ax=a2, label=f"|u| ({plot.UNITS})", shrink=0.8)
     fig.savefig(out / f"optimize_{sw.inclusion}.png", dpi=120)
     plot.plt.close(fig)
 
 
-BRIEF = {"static": ("inclusion", "no_paddle_deviation", "deviation", "best", "best_reduction", "converged", "wall_s"),
-         "dynamic": ("inclusion", "controllability", "best", "paddle", "max_deviation", "paddle_travel", "status",
-                     "wall_s"),
-         "optimize": ("inclusion", "optimum", "best_discrete", "best_discrete_deviation",
-                      "improvement_over_discrete", "status", "rejected_steps", "wall_s")}
+def result(s: dict) -> tuple[bool, str]:
+    """(goal reached, the result in words) of a needle summary. Static: the no-paddle run
+    and the best paddle reach full insertion (other paddles stopping early is a finding, and
+    is said); dynamic: the target held at every increment; optimize: Adam converged."""
+    mode, inc = s["mode"], s["inclusion"]
+    if mode == "static":
+        failed = {i + 1: sorted({x for x in row if x != "converged"}) for i, row in enumerate(s["status"])
+                  if any(x != "converged" for x in row)}
+        words = (f"needle static ({inc}): best paddle {s['best']} (thesis: {s['thesis']['best']}), deviation "
+                 f"{abs(s['no_paddle_deviation']):.4f} -> {abs(s['deviation'][s['best'] - 1]):.4f} "
+                 f"({s['best_reduction']:.0f}x less than no paddle)")
+        if failed:
+            why = "; ".join(f"{w}: {nd.Status[w.upper()].message}"
+                            for w in sorted({w for ws in failed.values() for w in ws}))
+            words += (f"; {len(failed)} of {len(s['status'])} paddles ({', '.join(map(str, failed))}) stopped "
+                      f"before full insertion ({why})")
+        ok = s["best"] not in failed and all(x == "converged" for x in s["no_paddle_status"])
+        return ok, words
+    if mode == "dynamic":
+        words = (f"needle dynamic ({inc}): most controllable paddle {s['best']}, closed loop on paddle "
+                 f"{s['paddle']}: max |deviation| {s['max_deviation']:.1e}, paddle travel "
+                 f"{s['paddle_travel']:.4f}; {s['status']}: {s['message']}")
+        return s["status"] == "converged", words
+    o = s["optimum"]
+    words = (f"needle optimize ({inc}): paddle q = {o['q']:.3f}, deviation {abs(o['deviation']):.1e}, "
+             f"{s['improvement_over_discrete']:.1f}x below the best discrete paddle {s['best_discrete']}; "
+             f"{s['status']}: {s['message']}")
+    return s["status"] == "converged", words
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(prog="jaxrkpm needle", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--mode", choices=["static", "dynamic", "optimize"], default="static")
-    p.add_argument("--inclusion", choices=list(INCLUSIONS), default="none")
-    p.add_argument("--increments", type=int, default=15, help="insertion increments up to 15%%")
-    p.add_argument("--paddle", type=int, default=None,
-                   help="dynamic mode: paddle to move (default: the most controllable)")
-    p.add_argument("--start", type=float, default=None,
-                   help="optimize mode: starting position q (default: the best discrete paddle)")
-    p.add_argument("--iterations", type=int, default=30, help="optimize mode: Adam iterations")
-    p.add_argument("--devices", type=int, default=None,
-                   help="shard the sweep over this many devices (default: all visible)")
-    p.add_argument("--out", default="results/needle")
-    a = p.parse_args(argv)
-    if a.increments < 1:
-        p.error(f"--increments must be >= 1, got {a.increments}")
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
+    a = interface.parse("needle", argv)
+    t0 = time.time()
+    out = interface.output_folder(a.out)
     phantom = nd.Phantom()
     if a.mode == "static":
         summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
@@ -320,9 +398,9 @@ def main(argv=None):
     else:
         summary = run_optimize(phantom, a.inclusion, a.increments, out, a.devices, a.start, a.iterations)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(json.dumps({k: summary[k] for k in BRIEF[a.mode]}, indent=2))
+    interface.finish(out, t0, summary, result(summary)[1], a.json)
     return summary
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(cli.main(["needle", *sys.argv[1:]]))

@@ -1,6 +1,6 @@
 """Chapter-5 Jacobian path tracking (thesis Algorithm 3, section 5.3).
 
-2D (``--dim 2``, default): the 9x9 Fung square of DESIGN.md (left edge immobile, the three
+2D (``--dim 2``, default): the 9x9 Fung unit square (left edge immobile, the three
 right-edge particles nearest (1, 0.5) moved rigidly, control point (0.5, 0.5)); paths
 ``setpoint`` (0,0)->(0.05,0.05), ``box`` (Table 5.3), ``figure8`` (Table 5.4), ``line``
 (Table 5.5), all control point displacements.
@@ -11,14 +11,14 @@ material eq 5.1. ``--model reduced`` (3x3x3, paddle on the bottom two layers) or
 (5x5x5, paddle on the whole face); ``--scheme reduced-to-refined`` computes the Jacobian on
 the reduced model and moves the refined one (the thesis' reduced->refined control).
 
-Writes ``summary.json`` and figures (desired vs achieved control point path, error per
-iteration on a log axis, manipulation point path, deformed snapshots at waypoints) to
-``--out`` and prints the summary.
+Writes ``summary.json``, ``history.npz`` and figures (desired vs achieved control point path,
+error per iteration on a log axis, manipulation point path, deformed snapshots at waypoints)
+to ``--out``. Lengths are in model units (the square's side is 1, the cube's edge 1).
 """
 from __future__ import annotations
 
-import argparse
 import json
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,13 +27,15 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxrkpm as jr
-from jaxrkpm import output, plot
+from jaxrkpm import cli, output, plot
 from jaxrkpm.control import TrackResult, path_deviation, track, waypoint_table
+from jaxrkpm.studies import interface
 from jaxrkpm.thesis import CP_2D, CP_3D, CUBES, CUBE_MAX_ERROR, PATHS, TRACKING_MINUTES, cube, cube_path, \
     planar_square
 
 PATH_NAMES_2D = tuple(PATHS)
 PATH_3D = "table5.1"
+UNITS = plot.UNITS
 
 
 # --------------------------------------------------------------------------- models
@@ -235,8 +237,8 @@ def fig_cp_path(exp, res, out):
         seen[key] = seen.get(key, []) + [str(w + 1)]
     for (x, y), names in seen.items():
         a.annotate(",".join(names), (x, y), textcoords="offset points", xytext=(6, 5), fontsize=8)
-    a.set_xlabel(f"{_labels(d)[0]}" + (" displacement" if d == 2 else " position"))
-    a.set_ylabel(f"{_labels(d)[1]}" + (" displacement" if d == 2 else " position"))
+    a.set_xlabel(f"{_labels(d)[0]}" + (" displacement" if d == 2 else " position") + f" ({UNITS})")
+    a.set_ylabel(f"{_labels(d)[1]}" + (" displacement" if d == 2 else " position") + f" ({UNITS})")
     a.set_aspect("equal", adjustable="datalim")
     a.grid(alpha=0.3)
     a.legend(fontsize=8, loc="best")
@@ -249,7 +251,7 @@ def fig_cp_path(exp, res, out):
         b.plot(it, res.cp[:, c], color=colors[c], lw=1.5, label=f"{names[c]} achieved")
         b.step(it, target[:, c], where="post", color=colors[c], ls="--", lw=1, label=f"{names[c]} desired")
     b.set_xlabel("iteration")
-    b.set_ylabel("control point displacement")
+    b.set_ylabel(f"control point displacement ({UNITS})")
     b.grid(alpha=0.3)
     b.legend(fontsize=8, ncol=d)
     b.set_title("control point coordinates per iteration")
@@ -270,7 +272,7 @@ def fig_cp_error(exp, res, tol, out):
     for k in res.reached[res.reached > 0]:
         ax.axvline(k, color="0.8", lw=0.6, zorder=0)
     ax.set_xlabel("iteration (vertical lines: a waypoint reached)")
-    ax.set_ylabel("control point error")
+    ax.set_ylabel(f"control point error ({UNITS})")
     ax.set_title(f"control point error per iteration; max error at the waypoints "
                  f"{res.max_waypoint_error:.2e}\n{_title(exp, res)}", fontsize=10)
     ax.grid(alpha=0.3, which="both")
@@ -292,8 +294,8 @@ def fig_mp_path(exp, res, out):
         if k >= 0:
             a.annotate(str(w + 1), (M[k, i], M[k, j]), textcoords="offset points", xytext=(5, 4), fontsize=8)
     a.plot([0], [0], "k+", ms=10, label="start")
-    a.set_xlabel(f"paddle {_labels(d)[0]} displacement")
-    a.set_ylabel(f"paddle {_labels(d)[1]} displacement")
+    a.set_xlabel(f"paddle {_labels(d)[0]} displacement ({UNITS})")
+    a.set_ylabel(f"paddle {_labels(d)[1]} displacement ({UNITS})")
     a.set_aspect("equal", adjustable="datalim")
     a.grid(alpha=0.3)
     a.legend(fontsize=8)
@@ -302,7 +304,7 @@ def fig_mp_path(exp, res, out):
     for c in range(d):
         b.plot(it, M[:, c], lw=1.5, label="xyz"[c])
     b.set_xlabel("iteration")
-    b.set_ylabel("paddle displacement")
+    b.set_ylabel(f"paddle displacement ({UNITS})")
     b.grid(alpha=0.3)
     b.legend(fontsize=8)
     b.set_title("manipulation point coordinates per iteration")
@@ -340,7 +342,7 @@ def fig_deformed_2d(exp, res, snaps, out):
         ax.set_ylim(lo[1] - 0.06, hi[1] + 0.06)
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
-    fig.colorbar(sc, ax=axes.ravel().tolist(), label="|u|", shrink=0.85)
+    fig.colorbar(sc, ax=axes.ravel().tolist(), label=f"|u| ({UNITS})", shrink=0.85)
     fig.legend(*axes.flat[0].get_legend_handles_labels(), loc="outside lower center", ncol=5, fontsize=9)
     fig.suptitle(_title(exp, res))
     fig.savefig(out / "deformed.png", dpi=120)
@@ -417,16 +419,16 @@ def fig_layers_3d(exp, res, snaps, out, sub: int = 4):
         ax.set_ylim(bl[1], bh[1])
         ax.set_zlim(bl[2], bh[2])
         ax.set_box_aspect(bh - bl)
-        ax.set_xlabel("x")
-        ax.set_ylabel("y")
-        ax.set_zlabel("z")
+        ax.set_xlabel(f"x ({UNITS})")
+        ax.set_ylabel(f"y ({UNITS})")
+        ax.set_zlabel(f"z ({UNITS})")
         ax.view_init(elev=24, azim=-55)
         if a == 0:
             handles, labels = ax.get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=9)
     fig.subplots_adjust(left=0.0, right=0.9, bottom=0.06, top=0.9, wspace=0.02, hspace=0.08)
     sm = cm.ScalarMappable(norm=norm, cmap=cmap)
-    fig.colorbar(sm, cax=fig.add_axes([0.92, 0.25, 0.015, 0.5]), label="|u|")
+    fig.colorbar(sm, cax=fig.add_axes([0.92, 0.25, 0.015, 0.5]), label=f"|u| ({UNITS})")
     fig.suptitle(_title(exp, res) + f"\nlayers z = const ({nz} layers) coloured by |u|")
     fig.savefig(out / "layers.png", dpi=110)
     plt.close(fig)
@@ -478,11 +480,20 @@ def run(out: Path, path: str | None = None, *, dim: int = 2, integration: str = 
     exp = experiment or build(path, dim, integration, model, scheme, n, alpha, beta)
     settings = {"gain": gain, "clamp": clamp, "tol": tol, "max_iter": max_iter,
                 "max_steps": max_steps, "window": window}
+    # the tracking loop is one compiled call: the bar counts its stages, and shows the time
+    stages = interface.progress(total=3 if make_figures else 1, desc=f"track {exp.name}", unit="stage")
+    stages.set_postfix_str("compile and track")
     res, timing = execute(exp, repeats=repeats, **settings)
+    stages.update()
+    stages.set_postfix_str("snapshots")
     snaps = snapshots(exp, res, snapshot_waypoints(exp, res)) if make_figures else []
     s = summarize(exp, res, timing, settings, snaps)
     if make_figures:
+        stages.update()
+        stages.set_postfix_str("figures")
         s["figures"] = figures(exp, res, snaps, out, tol)
+        stages.update()
+    stages.close()
     if mesh_output:
         s.update(write_mesh_outputs(exp, res, out))
     np.savez_compressed(out / "history.npz", mp=res.mp, cp=res.cp, error=res.error,
@@ -492,55 +503,44 @@ def run(out: Path, path: str | None = None, *, dim: int = 2, integration: str = 
     return s
 
 
-def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="jaxrkpm track", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--path", choices=[*PATH_NAMES_2D, PATH_3D], default=None,
-                   help="2D: setpoint|box|figure8|line (default box); 3D: table5.1 (default)")
-    p.add_argument("--integration", default="gauss", help="gauss | scni (as the Model accepts)")
-    p.add_argument("--dim", type=int, choices=(2, 3), default=2)
-    p.add_argument("--model", choices=tuple(CUBES), default="reduced", help="3D cube discretisation")
-    p.add_argument("--scheme", choices=("self", "reduced-to-refined"), default="self",
-                   help="3D refined: Jacobian from the model itself or from the reduced model")
-    p.add_argument("--n", type=int, default=9, help="2D particles per side (9: the thesis)")
-    p.add_argument("--alpha", type=float, default=1.0)
-    p.add_argument("--beta", type=float, default=1.0, help="Fung beta (2D)")
-    p.add_argument("--gain", type=float, default=0.05)
-    p.add_argument("--clamp", type=float, default=0.01, help="largest paddle increment per component")
-    p.add_argument("--tol", type=float, default=1e-4)
-    p.add_argument("--max-iter", type=int, default=2000, help="iterations per waypoint")
-    p.add_argument("--max-steps", type=int, default=20000, help="iterations in all")
-    p.add_argument("--window", type=int, default=300, help="iterations without progress before giving up")
-    p.add_argument("--repeats", type=int, default=1, help="timed warm runs (wall_s: their median)")
-    p.add_argument("--no-figures", action="store_true")
-    p.add_argument("--no-mesh", action="store_true", help="skip final.vtu and series.pvd (ParaView)")
-    p.add_argument("--out", default=None, help="output folder (default results/track/<name>)")
-    return p
+def result(s: dict) -> tuple[bool, str]:
+    """(every waypoint reached, the result in words) of a tracking summary."""
+    what = (f"{s['path']} path ({s['integration']}, {'x'.join(map(str, s['particles']))})" if s["dim"] == 2
+            else f"Table 5.1 on the {s['model']} cube" + (" (Jacobian from the reduced model)"
+                                                           if s.get("scheme") == "reduced-to-refined" else ""))
+    words = (f"{what}: {s['waypoints_reached']}/{s['waypoints_total']} waypoints reached, max waypoint error "
+             f"{s['max_waypoint_error']:.1e} (tolerance {s['tol']:.0e}), {s['iterations']} iterations, "
+             f"{s['wall_s']:.1f} s warm + {s['compile_s']:.1f} s compile")
+    if s.get("thesis_minutes_gauss"):
+        words += f" (thesis: {s['thesis_minutes_gauss']} min)"
+    if s.get("thesis_max_error") is not None:
+        words += f" (thesis max error {s['thesis_max_error']})"
+    if s["status"] != "DONE":
+        words += f"; stopped: {s['status']}: {s['message']}"
+    return s["status"] == "DONE", words
 
 
 def main(argv=None):
-    p = parser()
-    a = p.parse_args(argv)
+    a = interface.parse("track", argv)
+    p = interface.track_parser()
     if a.scheme == "reduced-to-refined" and (a.dim != 3 or a.model != "refined"):
         p.error("--scheme reduced-to-refined needs --dim 3 --model refined")
     if a.dim == 3 and a.path not in (None, PATH_3D):
         p.error(f"--dim 3 tracks Table 5.1 (--path {PATH_3D})")
     if a.dim == 2 and a.path == PATH_3D:
         p.error("--path table5.1 is the 3D cube's (--dim 3)")
+    t0 = time.time()
     try:
         exp = build(a.path, a.dim, a.integration, a.model, a.scheme, a.n, a.alpha, a.beta)
     except ValueError as e:
         p.error(f"cannot build the model: {e}")
-    out = Path(a.out or f"results/track/{exp.name}")
+    out = interface.output_folder(a.out or f"results/track/{exp.name}")
     s = run(out, gain=a.gain, clamp=a.clamp, tol=a.tol, max_iter=a.max_iter, max_steps=a.max_steps,
             window=a.window, repeats=a.repeats, make_figures=not a.no_figures,
             mesh_output=not a.no_mesh, experiment=exp)
-    brief = {k: v for k, v in s.items() if k not in ("waypoints", "snapshots", "warm_runs_s",
-                                                      "paddle_particles", "desired_positions")}
-    print(json.dumps(brief, indent=2))
-    print(f"wrote {out}/summary.json" + (f" and {', '.join(s.get('figures', []))}" if s.get("figures") else ""))
+    interface.finish(out, t0, s, result(s)[1], a.json)
     return s
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(cli.main(["track", *sys.argv[1:]]))
