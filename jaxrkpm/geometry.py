@@ -142,17 +142,17 @@ class Body:
         return Body(X, vol, float(spacing), V.min(0), V.max(0), V, False, cKDTree(X))
 
     @staticmethod
-    def from_mesh(source, dim: int | None = None) -> "Body":
+    def from_mesh(source, dim: int | None = None, refine: int = 0) -> "Body":
         """Body from a tetrahedral (3D) or triangular (2D) volume mesh: a path to any file
         meshio reads (VTU/VTK, Gmsh .msh, Abaqus .inp, Medit .mesh, ...) or a meshio.Mesh
         (e.g. from ``jaxrkpm.mesh.half_ellipsoid``). ``dim`` 3 or 2 (default: 3 if the mesh
         has tetrahedra). Particles at the mesh vertices; volumes are each vertex's share
         of its cells (summing to the mesh volume); ``tags`` from the mesh's named groups
-        (cell sets, point sets, Gmsh physical groups); spacing = mean edge length. For a
-        finer particle layout, mesh at a smaller spacing (the shapes and ``from_surface``
-        take one) rather than adding particles here. The mesh is checked: see
-        ``jaxrkpm.mesh.volume_mesh``."""
-        vm = mesh.volume_mesh(source, dim)
+        (cell sets, point sets, Gmsh physical groups); spacing = mean edge length.
+        ``refine`` > 0 first splits every cell uniformly that many times (Gmsh,
+        ``jaxrkpm.mesh.refine``: particles at the edge midpoints too, tags carried). The
+        mesh is checked: see ``jaxrkpm.mesh.volume_mesh``."""
+        vm = mesh.volume_mesh(mesh.refine(source, refine) if refine else source, dim)
         X = vm.points
         return Body(X, mesh.vertex_volumes(X, vm.cells), mesh.mean_edge_length(X, vm.cells),
                     X.min(0), X.max(0), None, False, cKDTree(X), vm.cells, vm.tags)

@@ -7,6 +7,7 @@ NumPy, outside jit, run once per body. The pieces:
 - ``volume_mesh(source, dim)``: the tetrahedra (3D) or triangles (2D) of a mesh, checked
   (zero-volume, inverted, coincident vertices, faces shared by more than two cells), with
   its named vertex sets (tags) from cell sets, point sets and Gmsh physical groups.
+- ``refine(source, times)``: every cell split uniformly by Gmsh, named groups carried.
 - ``tetrahedralise(points, triangles, spacing)``: a closed, manifold, non-self-intersecting
   triangle surface (checked here) meshed into tetrahedra by Gmsh at the requested spacing.
 - ``half_ellipsoid``, ``lobe``, ``cylinder``: shapes built with Gmsh's OpenCASCADE kernel at
@@ -26,10 +27,13 @@ import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import meshio
 import numpy as np
 from scipy.spatial import cKDTree
+
+if TYPE_CHECKING:
+    import meshio   # imported where used: it costs a second of every ``import jaxrkpm``
 
 SIMPLEX = {2: "triangle", 3: "tetra"}          # body dimension -> meshio cell type
 # second-order simplices are used through their corner nodes (straight-sided cells)
@@ -64,6 +68,8 @@ def gmsh_session(name: str = "jaxrkpm"):
 def _gmsh_to_meshio(gmsh) -> meshio.Mesh:
     """The current gmsh mesh through a temporary .msh file, read by meshio (cell sets and
     ``gmsh:physical`` data carry the physical group names)."""
+    import meshio
+
     fd, path = tempfile.mkstemp(suffix=".msh")
     os.close(fd)
     try:
@@ -78,6 +84,8 @@ def _gmsh_to_meshio(gmsh) -> meshio.Mesh:
 # ======================================================================== reading
 def read(source) -> meshio.Mesh:
     """A ``meshio.Mesh`` from a path (any format meshio reads) or the mesh itself."""
+    import meshio
+
     if isinstance(source, meshio.Mesh):
         return source
     if not isinstance(source, (str, os.PathLike)):
@@ -189,50 +197,108 @@ def _checked_cells(points, cells):
 
 
 # ------------------------------------------------------------------------ tags
-def _vertex_tags(mesh: meshio.Mesh) -> dict:
-    """name -> vertex indices of every named group of the mesh: its cell sets and point
-    sets, Gmsh physical groups (names in field_data), cell data written by meshio from cell
-    sets (key "a-b-c", values 0, 1, 2); if the mesh has no names, integer cell labels
-    (Medit refs, unnamed physical ids) as "<label><value>", e.g. "ref3"."""
-    tags = {}
+def _cell_groups(mesh: meshio.Mesh) -> dict:
+    """name -> {block: cell ids} of every named cell group: cell sets, Gmsh physical groups
+    (names in field_data), cell data written by meshio from cell sets (key "a-b-c", values
+    0, 1, 2); if the mesh has no names at all, integer cell labels (Medit refs, unnamed
+    physical ids) as "<label><value>", e.g. "ref3"."""
+    groups = {}
 
-    def add(name, vertices):
-        tags[name] = np.union1d(tags.get(name, np.zeros(0, np.int64)), np.asarray(vertices, np.int64))
-
-    def cells_vertices(block, ids):
-        return np.asarray(mesh.cells[block].data)[np.asarray(ids, np.int64)].ravel()
+    def add(name, block, ids):
+        ids = np.asarray(ids, np.int64).ravel()
+        if ids.size:
+            per_block = groups.setdefault(name, {})
+            per_block[block] = np.union1d(per_block.get(block, ids[:0]), ids)
 
     for name, per_block in mesh.cell_sets.items():
         if not name.startswith("gmsh:"):
             for b, ids in enumerate(per_block):
-                if ids is not None and len(ids):
-                    add(name, cells_vertices(b, ids))
-    for name, ids in mesh.point_sets.items():
-        add(name, ids)
+                if ids is not None:
+                    add(name, b, ids)
     physical = mesh.cell_data.get("gmsh:physical")
     if physical is not None and mesh.field_data:
         for name, (tag, dim) in ((k, np.asarray(v).ravel()[:2]) for k, v in mesh.field_data.items()):
             for b, data in enumerate(physical):
                 if mesh.cells[b].dim == dim:
-                    add(name, cells_vertices(b, np.flatnonzero(np.asarray(data) == tag)))
-    labels = {k: v for k, v in mesh.cell_data.items()
-              if all(np.asarray(x).dtype.kind in "iu" for x in v) and k not in ("gmsh:geometrical",)}
+                    add(name, b, np.flatnonzero(np.asarray(data) == tag))
+    labels = {k: [np.asarray(x).ravel() for x in v] for k, v in mesh.cell_data.items()
+              if k != "gmsh:geometrical" and all(np.asarray(x).dtype.kind in "iu" for x in v)}
     for key, data in labels.items():
         names = list(dict.fromkeys(key.split("-")))
-        values = np.unique(np.concatenate([np.asarray(x).ravel() for x in data]))
+        values = np.unique(np.concatenate(data))
         values = values[values >= 0]
-        if ":" not in key and len(names) == len(values):          # meshio's cell_sets_to_data
+        if ":" not in key and len(names) == len(values):           # meshio's cell_sets_to_data
             for name, value in zip(names, values):
                 for b, x in enumerate(data):
-                    add(name, cells_vertices(b, np.flatnonzero(np.asarray(x) == value)))
-    if not tags:
+                    add(name, b, np.flatnonzero(x == value))
+    if not groups and not mesh.point_sets:
         for key, data in labels.items():
-            label = key.split(":")[-1]
             for b, x in enumerate(data):
-                x = np.asarray(x).ravel()
                 for value in np.unique(x[x >= 0]):
-                    add(f"{label}{value}", cells_vertices(b, np.flatnonzero(x == value)))
-    return tags
+                    add(f"{key.split(':')[-1]}{value}", b, np.flatnonzero(x == value))
+    return groups
+
+
+def _vertex_tags(mesh: meshio.Mesh) -> dict:
+    """name -> vertex indices of the named cell groups (``_cell_groups``) and point sets."""
+    tags = {name: np.unique(np.concatenate([np.asarray(mesh.cells[b].data)[ids].ravel()
+                                            for b, ids in per_block.items()]))
+            for name, per_block in _cell_groups(mesh).items()}
+    for name, ids in mesh.point_sets.items():
+        tags[name] = np.union1d(tags.get(name, np.zeros(0, np.int64)), np.asarray(ids, np.int64))
+    return {k: v.astype(np.int64) for k, v in tags.items()}
+
+
+def refine(source, times: int = 1) -> meshio.Mesh:
+    """The mesh with every simplex split uniformly ``times`` times by Gmsh (tetrahedra into
+    8, triangles into 4; new vertices at the edge midpoints, so a curved surface keeps its
+    chords), its named cell groups carried along as physical groups. Point sets cannot be
+    carried (a new vertex belongs to no listed point): such a mesh is refused."""
+    if not (isinstance(times, (int, np.integer)) and times >= 0):
+        raise ValueError(f"refine must be a whole number of refinements >= 0, got {times!r}")
+    mesh = read(source)
+    if times == 0:
+        return mesh
+    if mesh.point_sets:
+        raise ValueError(f"refine cannot carry the point sets {sorted(mesh.point_sets)} to the new "
+                         "vertices: tag cells instead (cell sets / physical groups)")
+    dim = 3 if {b.type for b in mesh.cells} & {"tetra", "tetra10"} else 2
+    blocks = [b for b, blk in enumerate(mesh.cells) if CORNERS.get(blk.type) == dim + 1]
+    sizes = [len(mesh.cells[b].data) for b in blocks]
+    first = dict(zip(blocks, np.cumsum([0] + sizes[:-1])))
+    simplices = np.concatenate([np.asarray(mesh.cells[b].data)[:, :dim + 1] for b in blocks])
+    groups = _cell_groups(mesh)
+    owner = np.full(len(simplices), -1)              # gmsh: one entity per simplex
+    for g, per_block in enumerate(groups.values()):
+        for b, ids in per_block.items():
+            if b in first:
+                mine = first[b] + ids
+                owner[mine[owner[mine] < 0]] = g
+    gmsh_type = {1: 1, 2: 2, 3: 4}                   # line, triangle, tetrahedron
+    with gmsh_session("refine") as gmsh:
+        def entity(d, cells):
+            tag = gmsh.model.addDiscreteEntity(d)
+            gmsh.model.mesh.addElementsByType(tag, gmsh_type[d], [], (cells[:, :d + 1] + 1).ravel())
+            return tag
+
+        holder = gmsh.model.addDiscreteEntity(dim)  # every node; the simplices of no group
+        xyz = np.zeros((len(mesh.points), 3))
+        xyz[:, :mesh.points.shape[1]] = mesh.points
+        gmsh.model.mesh.addNodes(dim, holder, np.arange(1, len(xyz) + 1), xyz.ravel())
+        if np.any(owner < 0):
+            gmsh.model.mesh.addElementsByType(holder, gmsh_type[dim], [], (simplices[owner < 0] + 1).ravel())
+        for g, (name, per_block) in enumerate(groups.items()):
+            entities = {dim: [entity(dim, simplices[owner == g])]} if np.any(owner == g) else {}
+            for b, ids in per_block.items():
+                d = mesh.cells[b].dim
+                if b not in first and d in gmsh_type and d < dim:
+                    entities.setdefault(d, []).append(entity(d, np.asarray(mesh.cells[b].data)[ids]))
+            for d, tags in entities.items():
+                gmsh.model.addPhysicalGroup(d, tags, name=name)
+        gmsh.option.setNumber("Mesh.SaveAll", 1)     # also the simplices in no group
+        for _ in range(times):
+            gmsh.model.mesh.refine()
+        return _gmsh_to_meshio(gmsh)
 
 
 # ======================================================================== topology
@@ -495,8 +561,8 @@ def tetrahedralise(points, triangles, spacing: float, name: str = "surface") -> 
 
 # ======================================================================== shapes
 def _occ_shape(build, spacing: float, name: str) -> meshio.Mesh:
-    """Mesh an OpenCASCADE solid: ``build(occ)`` returns its volume tag; ``groups(gmsh,
-    surfaces)`` names its boundary surfaces (name -> surface tags)."""
+    """Mesh an OpenCASCADE solid: ``build(occ)`` makes it and returns (volume tag,
+    classify), ``classify(centre of mass)`` names each boundary surface's physical group."""
     with gmsh_session(name) as gmsh:
         occ = gmsh.model.occ
         volume, classify = build(occ)

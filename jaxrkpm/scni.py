@@ -90,6 +90,7 @@ class _Builder:
         self.pts, self.wts, self.nrm, self.bnd = [], [], [], []
         self.inc_row, self.inc_pt, self.inc_sign = [], [], []
         self.face = []     # per facet point: the mesh surface face it lies on, else -1
+        self.mesh_faces = None   # (M, d) surface faces of a mesh body, indexed by ``face``
         self.npts = 0
 
     def row(self, point, level, owner):
