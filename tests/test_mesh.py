@@ -88,7 +88,11 @@ def test_half_ellipsoid_body(breast):
 
 
 def test_cylinder_and_lobe_shapes():
-    cyl = jr.Body.from_mesh(mesh.cylinder(0.5, 1.0, 0.25))
+    from concurrent.futures import ThreadPoolExecutor
+    with ThreadPoolExecutor(2) as pool:                  # gmsh's global state, off the main thread
+        cyl_mesh, again = pool.map(lambda _: mesh.cylinder(0.5, 1.0, 0.25), range(2))
+    cyl = jr.Body.from_mesh(cyl_mesh)
+    assert np.array_equal(jr.Body.from_mesh(again).cells, cyl.cells)
     assert set(cyl.tags) == {"bottom", "top", "side", "volume"}
     assert np.abs(cyl.X[cyl.tagged("bottom"), 2]).max() < 1e-12
     assert np.abs(cyl.X[cyl.tagged("top"), 2] - 1).max() < 1e-12
