@@ -6,6 +6,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from . import mesh  # noqa: E402  (meshio / gmsh: reading, checking, shapes; jr.mesh.half_ellipsoid)
 from .boundary import Springs  # noqa: E402
 from .geometry import Body  # noqa: E402
 from .materials import (Fung, Material, NeoHookean, Quadratic,  # noqa: E402
@@ -13,6 +14,6 @@ from .materials import (Fung, Material, NeoHookean, Quadratic,  # noqa: E402
 from .model import Model, SolveError  # noqa: E402
 from .solve import Solution, Status  # noqa: E402
 
-__all__ = ["Body", "Model", "Springs", "Solution", "Status", "SolveError", "Material", "Quadratic", "Fung",
+__all__ = ["mesh", "Body", "Model", "Springs", "Solution", "Status", "SolveError", "Material", "Quadratic", "Fung",
            "SaintVenantKirchhoff", "NeoHookean", "pk2", "green_lagrange"]
 __version__ = "0.1.0"

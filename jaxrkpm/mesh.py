@@ -125,10 +125,9 @@ def volume_mesh(source, dim: int | None = None) -> VolumeMesh:
     wanted = [t for t in CORNERS if CORNERS[t] == dim + 1]
     blocks = [i for i, b in enumerate(mesh.cells) if b.type in wanted]
     if not blocks:
-        found = ", ".join(sorted(kinds)) or "no cells"
-        what = ("a 2D or surface mesh (triangles, no tetrahedra)" if dim == 3 and "triangle" in kinds
-                else f"a mesh of {found}")
-        raise ValueError(f"a {dim}D body needs {SIMPLEX[dim]} cells, but the mesh is {what}")
+        what = ("is a 2D or surface mesh (triangles, no tetrahedra)" if dim == 3 and "triangle" in kinds
+                else f"has {', '.join(sorted(kinds)) or 'no'} cells")
+        raise ValueError(f"a {dim}D body needs {SIMPLEX[dim]} cells, but the mesh {what}")
     cells = np.concatenate([np.asarray(mesh.cells[i].data)[:, :dim + 1] for i in blocks]).astype(np.int64)
     points = _coordinates(np.asarray(mesh.points, float), dim)
     used, cells = np.unique(cells, return_inverse=True)
@@ -545,9 +544,11 @@ def tetrahedralise(points, triangles, spacing: float, name: str = "surface") -> 
         s = gmsh.model.addDiscreteEntity(2)
         gmsh.model.mesh.addNodes(2, s, np.arange(1, len(P) + 1), P.ravel())
         gmsh.model.mesh.addElementsByType(s, 2, [], (T + 1).ravel())
-        # patches split at 40 deg creases; each patch re-parametrised for remeshing
-        gmsh.model.mesh.classifySurfaces(math.radians(40), True, True, math.pi)
-        gmsh.model.mesh.createGeometry()
+        try:   # patches split at 40 deg creases; each patch re-parametrised for remeshing
+            gmsh.model.mesh.classifySurfaces(math.radians(40), True, True, math.pi)
+            gmsh.model.mesh.createGeometry()
+        except Exception as err:
+            raise ValueError(f"gmsh could not re-parametrise the surface {name}: {err}") from err
         surfaces = [t for _, t in gmsh.model.getEntities(2)]
         loop = gmsh.model.geo.addSurfaceLoop(surfaces)
         volume = gmsh.model.geo.addVolume([loop])

@@ -348,9 +348,11 @@ def test_bad_meshes_get_named_errors(breast_mesh, tmp_path):
                         [("tetra", np.r_[tets[:7], [[len(breast_mesh.points), *tets[0, 1:]]]])])
     with pytest.raises(ValueError, match="coincide"):
         jr.Body.from_mesh(twice)
-    with pytest.raises(ValueError, match="tetra cells, but the mesh is a 2D or surface mesh"):
+    with pytest.raises(ValueError, match="3D body needs tetra cells, but the mesh is a 2D or surface mesh"):
         jr.Body.from_mesh(square_mesh(), dim=3)
     assert jr.Body.from_mesh(square_mesh()).dim == 2          # the same mesh as a 2D body
+    with pytest.raises(ValueError, match="2D body needs triangle cells, but the mesh has hexahedron cells"):
+        jr.Body.from_mesh(meshio.Mesh(np.eye(8, 3), [("hexahedron", np.arange(8)[None])]))
     with pytest.raises(ValueError, match="does not exist"):
         jr.Body.from_mesh(tmp_path / "missing.vtu")
     body = jr.Body.from_mesh(breast_mesh)
