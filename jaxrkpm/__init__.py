@@ -27,7 +27,7 @@ _PUBLIC = {
     "Model": "model", "SolveError": "model", "Solution": "solve", "Status": "solve",
 }
 
-__all__ = ["Body", "Model", "Springs", "Solution", "Status", "SolveError", "Material", "Quadratic", "Fung",
+__all__ = ["mesh", "Body", "Model", "Springs", "Solution", "Status", "SolveError", "Material", "Quadratic", "Fung",
            "SaintVenantKirchhoff", "NeoHookean", "pk2", "green_lagrange"]
 
 
