@@ -547,11 +547,14 @@ class RobotClient:
         mid = self._new_id()
         self._send({"v": PROTOCOL_VERSION, "id": mid, "op": "hello",
                     "versions": [PROTOCOL_VERSION], "client": self.client_name})
-        reply = self._await_reply(mid, time.monotonic() + self.timeout_s)
-        if not isinstance(reply.get("server"), str) or type(reply.get("version")) is not int:
-            raise ProtocolError(f"hello reply from {self.host}:{self.port} lacks 'server' (str) and "
-                                f"'version' (int): {reply}")
-        self.server_info = reply
+        self.server_info = self._checked_hello(self._await_reply(mid, time.monotonic() + self.timeout_s))
+
+    def _checked_hello(self, reply: dict) -> dict:
+        if not isinstance(reply.get("server"), str) or reply.get("version") != PROTOCOL_VERSION \
+                or type(reply.get("version")) is not int:
+            raise ProtocolError(f"hello reply from {self.host}:{self.port} needs 'server' (str) and "
+                                f"'version' {PROTOCOL_VERSION}: {str(reply)[:200]}")
+        return reply
 
     def _ensure_connected(self):
         if self._sock is None:
@@ -650,7 +653,7 @@ class RobotClient:
 
     # -- ops
     def hello(self) -> dict:
-        return self.request("hello", versions=[PROTOCOL_VERSION], client=self.client_name)
+        return self._checked_hello(self.request("hello", versions=[PROTOCOL_VERSION], client=self.client_name))
 
     def _field(self, reply: dict, name: str, parse=_vec3) -> np.ndarray:
         """A validated reply field; ProtocolError if it is missing or malformed."""

@@ -77,12 +77,13 @@ class _Lying(SimulatedRobotServer):
     ("force_n", ["a", 0, 0], "read_force"),
     ("position_m", [0, 0], "move_paddle"),
     ("ok", "yes", "read_force"),
+    ("server", None, "hello"),
 ])
 def test_client_validates_every_reply_field(field, value, call):
     with _Lying(field, value) as srv:
         with RobotClient(port=srv.port, timeout_s=2.0) as c:
             srv.lying = True       # after the handshake and the pose read of connect()
-            fn = {"read_pose": c.read_pose, "read_force": c.read_force,
+            fn = {"read_pose": c.read_pose, "read_force": c.read_force, "hello": c.hello,
                   "move_paddle": lambda: c.move_paddle([0.0, 0.0, 0.001])}[call]
             with pytest.raises(ProtocolError, match=repr(field)) as err:
                 fn()
