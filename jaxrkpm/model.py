@@ -173,11 +173,9 @@ class Model:
             {k: jnp.asarray(v) for k, v in material.point_params(self.volume.points).items()},
             {k: jnp.asarray(v) for k, v in material.global_params(d).items()}, sp_params)
         material.check_energy(d, {k: v[0] for k, v in self.params.point.items()})
-        if len(self.sets.bnd) == 0 and not np.any(np.asarray(sp_params["k"]) > 0):
-            raise ValueError("unconstrained: rigid-body modes. The model has no essential set and no "
-                             "springs, so it can translate and rotate freely and no solve has a unique "
-                             "equilibrium; hold part of it (essential={'wall': body.select(...)}) or "
-                             "add Springs")
+        # no essential set and no springs: the body may translate and rotate freely. Such a
+        # model is fine for its tangent (its rigid-body modes) and energy; a solve is refused
+        self.unconstrained = len(self.sets.bnd) == 0 and not np.any(np.asarray(sp_params["k"]) > 0)
 
     # ----------------------------------------------------------------------- internals
     def _springs(self, springs):
@@ -390,6 +388,11 @@ class Model:
                 initial: Solution | None = None, throw: bool = True, max_iter: int = 25,
                 max_cuts: int = 10, **options) -> Solution:
         """``solve`` with all prescribed values as one (Nb, d) array (see ``prescribed``)."""
+        if self.unconstrained:
+            raise ValueError("unconstrained: rigid-body modes. The model has no essential set and no "
+                             "springs, so it can translate and rotate freely and no solve has a unique "
+                             "equilibrium; hold part of it (essential={'wall': body.select(...)}) or "
+                             "add Springs")
         start = self.initial() if initial is None else self.check_solution(initial, "initial")
         g = self._check_g(g)
         if _is_concrete(loads) and not np.isfinite(loads):
