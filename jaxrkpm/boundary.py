@@ -37,14 +37,22 @@ class EssentialSets:
         for name, idx in essential.items():
             if not isinstance(name, str):
                 raise ValueError(f"essential set names must be strings, got {name!r}")
-            idx = np.asarray(idx)
+            try:
+                idx = np.asarray(idx)
+            except (TypeError, ValueError):
+                raise ValueError(f"essential set {name!r} must be particle indices or a boolean mask") from None
             if idx.dtype == bool:
                 if idx.shape != (body.n,):
                     raise ValueError(f"essential set {name!r}: boolean mask must have shape ({body.n},)")
                 idx = np.flatnonzero(idx)
-            idx = idx.astype(np.int64).ravel()
             if idx.size == 0:
                 raise ValueError(f"essential set {name!r} is empty (check the selection predicate)")
+            if not np.issubdtype(idx.dtype, np.integer):
+                # astype(int) would truncate 1.7 to 1 and hold the wrong particle
+                raise TypeError(f"essential set {name!r} must hold integer particle indices (or a "
+                                f"boolean mask), got {idx.dtype} values such as {idx.ravel()[0]!r}; "
+                                "use body.select(...) or an int array")
+            idx = idx.astype(np.int64).ravel()
             if idx.min() < 0 or idx.max() >= body.n:
                 raise ValueError(f"essential set {name!r} has indices outside 0..{body.n - 1}")
             if len(np.unique(idx)) != len(idx):

@@ -210,13 +210,19 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
         moved = ~hit
         ok = reached_equilibrium(st.c.status) & reached_equilibrium(st.p.status)
         k = s.k + moved
-        e_new = jnp.linalg.norm(desired[s.wp] - st.cp)
+        # a failed solve keeps the last converged states: the history row of that iteration
+        # holds them (with the failed solve's status), never the attempted, unbalanced move
+        c = jax.tree.map(lambda a, b: jnp.where(ok, a, b), st.c, s.c)
+        p = jax.tree.map(lambda a, b: jnp.where(ok, a, b), st.p, s.p)
+        mp = jnp.where(ok, st.mp, s.mp)
+        cp = jnp.where(ok, st.cp, s.cp)
+        e_new = jnp.linalg.norm(desired[s.wp] - cp)
         improved = e_new < 0.99 * s.best
         best = jnp.where(improved, e_new, s.best)
         since = jnp.where(improved, 0, s.since_best + 1)
         at = jnp.where(moved, k, H)    # out of range: dropped (no history row for a waypoint hit)
         h = s.hist
-        h = dict(mp=h["mp"].at[at].set(st.mp, mode="drop"), cp=h["cp"].at[at].set(st.cp, mode="drop"),
+        h = dict(mp=h["mp"].at[at].set(mp, mode="drop"), cp=h["cp"].at[at].set(cp, mode="drop"),
                  error=h["error"].at[at].set(e_new, mode="drop"),
                  waypoint=h["waypoint"].at[at].set(s.wp, mode="drop"),
                  newton=h["newton"].at[at].set(st.newton, mode="drop"),
@@ -225,11 +231,6 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
                            jnp.where(s.it_wp + 1 >= max_iter, TrackStatus.ITERATION_CAP,
                                      jnp.where(since >= window, TrackStatus.NO_PROGRESS,
                                                jnp.where(k >= max_steps, TrackStatus.HISTORY_FULL, -1))))
-        # a failed solve keeps the last converged states
-        c = jax.tree.map(lambda a, b: jnp.where(ok, a, b), st.c, s.c)
-        p = jax.tree.map(lambda a, b: jnp.where(ok, a, b), st.p, s.p)
-        mp = jnp.where(ok, st.mp, s.mp)
-        cp = jnp.where(ok, st.cp, s.cp)
         # a waypoint hit moves on to the next one: no solve ran, the states and history stay
         at_wp = jnp.where(hit, s.wp, n_wp)
         return s._replace(
@@ -257,11 +258,18 @@ def track(model: Model, path, driven: str, control_points, *, plant: Model | Non
     whole history."""
     path = np.atleast_2d(np.asarray(path, float))
     cps = np.atleast_2d(np.asarray(control_points, float))
-    if path.shape[1] != cps.size:
+    if path.ndim != 2 or path.shape[1] != cps.size or len(path) == 0:
         raise ValueError(f"path must have {cps.size} columns (control points x dimensions), got {path.shape}")
+    if not np.all(np.isfinite(path)):
+        raise ValueError(f"path has non-finite waypoints (rows {np.flatnonzero(~np.isfinite(path).all(1)).tolist()})")
     for name, v in (("gain", gain), ("clamp", clamp), ("tol", tol)):
         if not (np.isfinite(v) and v > 0):
             raise ValueError(f"{name} must be positive, got {v}")
+    if not (np.isfinite(damping) and damping >= 0):
+        raise ValueError(f"damping must be a finite number >= 0, got {damping}")
+    for name, v in (("max_iter", max_iter), ("max_steps", max_steps), ("window", window)):
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise ValueError(f"{name} must be an int >= 1, got {v!r}")
     ctrl = ControlledModel.of(model, driven, cps, params)
     same = plant is None
     plant_model = model if same else plant

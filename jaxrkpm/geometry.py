@@ -15,6 +15,24 @@ from scipy.spatial import cKDTree
 from . import mesh, polygons, rk
 
 
+def _check_spacing(spacing) -> float:
+    """The particle spacing as a float; a clear error for a string, NaN, inf or <= 0."""
+    if isinstance(spacing, (bool, np.bool_)) or not isinstance(spacing, (int, float, np.integer, np.floating)):
+        raise TypeError(f"spacing must be a positive number, got {spacing!r} ({type(spacing).__name__})")
+    if not (np.isfinite(spacing) and spacing > 0):
+        raise ValueError(f"spacing must be positive and finite, got {spacing}")
+    return float(spacing)
+
+
+def _check_origin(origin, d: int) -> np.ndarray:
+    origin = np.asarray(origin, float)
+    if origin.shape != (d,):
+        raise ValueError(f"origin must have shape ({d},), got {origin.shape}")
+    if not np.all(np.isfinite(origin)):
+        raise ValueError(f"origin must be finite, got {origin.tolist()}")
+    return origin
+
+
 @dataclass(frozen=True, eq=False)
 class Body:
     """A body in its reference configuration.
@@ -66,17 +84,17 @@ class Body:
     @staticmethod
     def grid(shape, spacing: float, origin=None) -> "Body":
         """Regular lattice of particles, ``shape`` = (nx, ny) or (nx, ny, nz)."""
+        if any(isinstance(s, (bool, np.bool_)) or not isinstance(s, (int, np.integer)) for s in shape):
+            # int(2.7) would silently build a 2-particle row
+            raise TypeError(f"grid shape must be whole particle counts (ints), got {tuple(shape)}")
         shape = tuple(int(s) for s in shape)
         if len(shape) not in (2, 3):
             raise ValueError(f"grid shape must have 2 or 3 entries, got {shape}")
         if min(shape) < 2:
             raise ValueError(f"grid shape needs at least 2 particles per direction, got {shape}")
-        if not (np.isfinite(spacing) and spacing > 0):
-            raise ValueError(f"spacing must be positive and finite, got {spacing}")
+        spacing = _check_spacing(spacing)
         d = len(shape)
-        origin = np.zeros(d) if origin is None else np.asarray(origin, float)
-        if origin.shape != (d,):
-            raise ValueError(f"origin must have shape ({d},), got {origin.shape}")
+        origin = np.zeros(d) if origin is None else _check_origin(origin, d)
         axes = [origin[i] + spacing * np.arange(shape[i]) for i in range(d)]
         X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, d)
         # Trapezoid weights per axis: boundary particles own half a cell.
@@ -102,10 +120,9 @@ class Body:
         every edge at (at most) ``spacing``. Volumes are the particles' Voronoi cells clipped to
         the polygon, so they sum to its area.
         """
-        V = polygons.as_ccw(np.asarray(vertices, float))
-        if not (np.isfinite(spacing) and spacing > 0):
-            raise ValueError(f"spacing must be positive and finite, got {spacing}")
-        origin = V[0] if origin is None else np.asarray(origin, float)
+        V = polygons.simple_ccw(vertices)
+        spacing = _check_spacing(spacing)
+        origin = V[0] if origin is None else _check_origin(origin, 2)
         edge_pts = []
         for a, b in zip(V, np.roll(V, -1, axis=0)):
             m = max(1, int(np.ceil(np.linalg.norm(b - a) / spacing - 1e-9)))
@@ -131,9 +148,10 @@ class Body:
         X = np.asarray(X, float)
         if X.ndim != 2 or X.shape[1] != 2:
             raise ValueError(f"particle positions must have shape (N, 2), got {X.shape}")
-        if not (np.isfinite(spacing) and spacing > 0):
-            raise ValueError(f"spacing must be positive and finite, got {spacing}")
-        V = polygons.as_ccw(np.asarray(vertices, float))
+        if not np.all(np.isfinite(X)):
+            raise ValueError("particle positions contain non-finite coordinates")
+        spacing = _check_spacing(spacing)
+        V = polygons.simple_ccw(vertices)
         outside = ~(polygons.contains(V, X) | (polygons.distance_to_boundary(V, X) <= 1e-9 * spacing))
         if outside.any():
             i = int(np.flatnonzero(outside)[0])
@@ -260,9 +278,14 @@ class Body:
         return polygons.contains(self.vertices, P) | (polygons.distance_to_boundary(self.vertices, P) <= tol)
 
     def check_inside(self, points, what: str = "point") -> np.ndarray:
-        P = np.atleast_2d(np.asarray(points, float))
+        try:
+            P = np.atleast_2d(np.asarray(points, float))
+        except (TypeError, ValueError):
+            raise ValueError(f"{what}s must be a (P, {self.dim}) array of numbers") from None
         if P.ndim != 2 or P.shape[1] != self.dim:
             raise ValueError(f"{what}s must have shape (P, {self.dim}), got {np.shape(points)}")
+        if P.shape[0] == 0:
+            raise ValueError(f"no {what}s given (shape {P.shape}): pass at least one (P >= 1)")
         if not np.all(np.isfinite(P)):
             raise ValueError(f"{what}s contain non-finite coordinates")
         out = ~self.contains(P)

@@ -7,7 +7,7 @@ the integration points when a model is built (an inclusion is data, not code).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Mapping
 
 import jax
 import jax.numpy as jnp
@@ -35,13 +35,59 @@ class Material:
     tensors: Callable | None = None
 
     def __post_init__(self):
+        if not callable(self.W):
+            raise TypeError(f"{self.name}: W must be a strain energy function W(E, params) -> scalar, "
+                            f"got {self.W!r}")
+        if not isinstance(self.params, Mapping):
+            raise TypeError(f"{self.name}: params must be a dict name -> value (e.g. {{'alpha': 1.0}}), "
+                            f"got {type(self.params).__name__} {self.params!r}")
         for k, v in self.params.items():
+            if not isinstance(k, str):
+                raise TypeError(f"{self.name}: parameter names must be strings, got {k!r}")
             if callable(v):
                 continue
             arr = np.asarray(v, float)
             if not np.all(np.isfinite(arr)):
                 raise ValueError(f"{self.name}: parameter {k!r} is not finite: {v}")
             self._check_sign(k, arr)
+        errors = {}
+        for dim in (2, 3):   # the body's dimension is not known yet: W must work in one of them
+            try:
+                self.check_energy(dim)
+                return
+            except ValueError as e:
+                errors[dim] = e
+        raise errors[2]
+
+    def check_energy(self, dim: int, point: Mapping | None = None) -> None:
+        """Call W once on a small (dim, dim) test strain and check that it returns a finite
+        scalar, traced as in the solver (so a W that returns a vector, reads a parameter it
+        is not given or needs concrete values fails here, named, not inside a solve).
+        ``point``: the scalar parameters at one point (default: the plain values, 1.0 for
+        fields)."""
+        if point is None:
+            point = {k: 1.0 if callable(v) else self._one(v) for k, v in self.params.items()}
+        E = 0.01 * (np.arange(dim)[:, None] + np.arange(dim)[None, :] + 1.0) / dim
+        try:
+            p = {**{k: jnp.asarray(v, jnp.float64) for k, v in point.items()},
+                 **{k: jnp.asarray(v) for k, v in self.global_params(dim).items()}}
+            shape = jax.eval_shape(self.W, jnp.asarray(E), p).shape
+            value = None if shape != () else float(jax.jit(self.W)(jnp.asarray(E), p))
+        except Exception as e:   # any failure of user code: name it and where it happened
+            raise ValueError(f"{self.name}: the strain energy W(E, params) fails on a {dim}D test "
+                             f"strain with parameters {sorted(p) if 'p' in locals() else sorted(point)}: "
+                             f"{type(e).__name__}: {e}") from e
+        if shape != ():
+            raise ValueError(f"{self.name}: the strain energy W(E, params) must return a scalar, "
+                             f"got shape {shape} (sum it, e.g. jnp.sum(...))")
+        if not np.isfinite(value):
+            raise ValueError(f"{self.name}: the strain energy W(E, params) is not finite ({value}) "
+                             f"at a small {dim}D test strain")
+
+    @staticmethod
+    def _one(v):
+        arr = np.asarray(v, float)
+        return arr if arr.ndim == 0 else arr.reshape(-1)[0]
 
     def _check_sign(self, k, arr):
         if k in self.positive and np.any(arr <= 0):
@@ -129,9 +175,16 @@ def Quadratic(alpha: float = 1.0) -> Material:
 def Fung(alpha: float = 1.0, beta: float = 1.0, A=None, C=None) -> Material:
     """W = alpha (exp(E:C:E) - 1) + beta E:A:E (thesis eq 5.2; the constant -alpha makes
     W(0) = 0). A and C default to Table 5.2 (2D) and its 3D pattern."""
+    def given(name, T, dim):
+        T = np.asarray(T, float)
+        if T.shape != (dim,) * 4 or not np.all(np.isfinite(T)):
+            raise ValueError(f"Fung: {name} must be a finite 4th-order tensor of shape {(dim,) * 4} "
+                             f"for a {dim}D body, got shape {T.shape}")
+        return T
+
     def tensors(dim):
-        return {"A": fung_tensor(dim, 1020.0, 254.0, 383.0) if A is None else A,
-                "C": fung_tensor(dim, 3.5, 0.5, 1.5) if C is None else C}
+        return {"A": fung_tensor(dim, 1020.0, 254.0, 383.0) if A is None else given("A", A, dim),
+                "C": fung_tensor(dim, 3.5, 0.5, 1.5) if C is None else given("C", C, dim)}
     return Material(_fung, {"alpha": alpha, "beta": beta}, "Fung", positive=("alpha", "beta"),
                     tensors=tensors)
 

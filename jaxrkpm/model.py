@@ -22,6 +22,7 @@ from .solve import (Config, Limits, Ops, Params, Solution, Status, coefficients,
                     solve_path_jit)
 
 _point_values_jit = jax.jit(point_values)   # FD evaluates it per re-solve: one dispatch, not ~10 eager ops
+MAX_SUPPORT_DIAMETERS = 2.0   # kernel support (support x spacing) allowed, in body diameters
 DENSE_LIMIT = 2500  # free DOFs up to which the dense factorisation is used ("auto")
 
 
@@ -60,6 +61,17 @@ def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
+def _concrete(x):
+    """x as a NumPy array, or None where its value is not known (inside jit or vmap). Under
+    jax.jacfwd / jax.grad outside jit the value is known: the tracer carries it."""
+    while isinstance(x, jax.core.Tracer):
+        value = getattr(x, "to_concrete_value", lambda: None)()
+        if value is None:
+            return None
+        x = value
+    return np.asarray(x)
+
+
 class Model:
     """Total-Lagrangian RKPM hyperelastic model.
 
@@ -89,8 +101,20 @@ class Model:
             raise ValueError(f"body must be a jaxrkpm Body, got {type(body).__name__}")
         if not isinstance(material, Material):
             raise ValueError(f"material must be a jaxrkpm Material, got {type(material).__name__}")
+        if essential is not None and not isinstance(essential, Mapping):
+            raise TypeError(f"essential must be a dict name -> particle indices (e.g. "
+                            f"{{'wall': body.select(...)}}), got {type(essential).__name__}")
         if not (np.isfinite(support) and support > 0):
             raise ValueError(f"support must be a positive number (x spacing), got {support}")
+        diameter = float(np.linalg.norm(body.upper - body.lower))
+        if support * body.spacing > MAX_SUPPORT_DIAMETERS * diameter:
+            # every window covers the whole body many times over: the shape functions
+            # degenerate towards the global linear basis and K_ff towards singular (the
+            # solve then fails with MAX_ITERATIONS or LINE_SEARCH at 0%, naming neither)
+            raise ValueError(f"support {support:g} x spacing {body.spacing:g} = {support * body.spacing:g} "
+                             f"exceeds {MAX_SUPPORT_DIAMETERS:g} x the body's diameter {diameter:.3g}: "
+                             "every shape function would cover the whole body; use a support of a "
+                             "few spacings (e.g. 2.01 .. 4)")
         if integration not in ("gauss", *scni.SCHEMES):
             raise ValueError(f"unknown integration {integration!r}: choose 'gauss', "
                              + ", ".join(repr(k) for k in scni.SCHEMES))
@@ -172,6 +196,10 @@ class Model:
         self.params = Params(
             {k: jnp.asarray(v) for k, v in material.point_params(self.volume.points).items()},
             {k: jnp.asarray(v) for k, v in material.global_params(d).items()}, sp_params)
+        material.check_energy(d, {k: v[0] for k, v in self.params.point.items()})
+        # no essential set and no springs: the body may translate and rotate freely. Such a
+        # model is fine for its tangent (its rigid-body modes) and energy; a solve is refused
+        self.unconstrained = len(self.sets.bnd) == 0 and not np.any(np.asarray(sp_params["k"]) > 0)
 
     # ----------------------------------------------------------------------- internals
     def _springs(self, springs):
@@ -261,16 +289,51 @@ class Model:
         if name not in self.sets.slices:
             raise ValueError(f"unknown essential set {name!r}; this model has {list(self.sets.names)}")
 
+    def _check_g(self, g, what: str = "g"):
+        """All prescribed values (Nb, d) as a float array: the right shape for THIS model
+        (a g of another model is named, not a broadcasting error) and finite."""
+        shape = (len(self.sets.bnd), self.dim)
+        try:
+            g = jnp.asarray(g, jnp.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{what} must be a {shape} array of prescribed values") from None
+        if g.shape != shape:
+            raise ValueError(f"{what} has shape {g.shape}, but this model has {shape[0]} essential "
+                             f"particles in {shape[1]}D: shape {shape} (from model.prescribed(...) of "
+                             "this model)")
+        if _is_concrete(g) and not np.all(np.isfinite(np.asarray(g))):
+            raise ValueError(f"{what} has non-finite prescribed values (NaN/inf) at essential "
+                             f"particles {np.flatnonzero(~np.isfinite(np.asarray(g)).all(1))[:5].tolist()}")
+        return g
+
+    def check_solution(self, sol, what: str = "solution") -> Solution:
+        """``sol`` if it is a Solution of this model's shapes (u (Nf, d), g (Nb, d)); a
+        ValueError naming the mismatch for one of another model (or not a Solution)."""
+        if not isinstance(sol, Solution):
+            raise TypeError(f"{what} must be a jaxrkpm Solution (from model.solve), got {type(sol).__name__}")
+        want_u, want_g = (len(self.sets.free), self.dim), (len(self.sets.bnd), self.dim)
+        if jnp.shape(sol.u) != want_u or jnp.shape(sol.g) != want_g:
+            raise ValueError(f"{what} does not belong to this model: its u, g have shapes "
+                             f"{jnp.shape(sol.u)}, {jnp.shape(sol.g)}; this model's are {want_u}, "
+                             f"{want_g} (a Solution of another model, or a batched one: index it)")
+        return sol
+
     def prescribed(self, values: Mapping | None = None, base=None):
         """(Nb, d) prescribed displacements from name -> (d,) rigid translation or (n_set, d);
         sets not named keep ``base`` (default: zero)."""
         d = self.dim
-        g = jnp.zeros((len(self.sets.bnd), d)) if base is None else jnp.asarray(base)
+        g = jnp.zeros((len(self.sets.bnd), d)) if base is None else self._check_g(base, "base")
+        if values is not None and not isinstance(values, Mapping):
+            raise TypeError(f"prescribed values must be a dict set name -> value, got {type(values).__name__}")
         for name, v in (values or {}).items():
             self._check_set(name)
             sl = self.sets.slices[name]
             n = sl.stop - sl.start
-            v = jnp.asarray(v, dtype=jnp.float64)
+            try:
+                v = jnp.asarray(v, dtype=jnp.float64)
+            except (TypeError, ValueError):
+                raise ValueError(f"prescribed value for {name!r} must be numbers of shape ({d},) (rigid) "
+                                 f"or ({n}, {d}) (per particle), got {v!r}") from None
             if v.shape == (d,):
                 v = jnp.broadcast_to(v, (n, d))
             elif v.shape != (n, d):
@@ -333,12 +396,15 @@ class Model:
         named keep the values of ``initial`` (default: zero).
         ``initial`` warm-starts from a previous Solution (the path starts at its prescribed
         values and load). ``steps`` is the initial number of load steps (halved on failure,
-        grown when easy). With ``throw`` a failed solve raises SolveError (carrying the last
-        converged state); under jit/vmap the status is returned instead.
+        grown when easy; at most jaxrkpm.solve.MAX_STEPS). With ``throw`` a failed solve raises
+        SolveError (carrying the last converged state), also under jax.jacfwd / jax.grad;
+        under jit/vmap the status is returned instead.
 
         Differentiable (jax.jacfwd / jax.grad) in the prescribed values, ``loads`` and
-        ``params`` by implicit differentiation of the converged equilibrium."""
-        start = self.initial() if initial is None else initial
+        ``params`` by implicit differentiation of the converged equilibrium. The derivative
+        of a FAILED solve (``throw=False``, or inside jit) is NaN: the kept state is not the
+        equilibrium asked for, so it has no derivative to give."""
+        start = self.initial() if initial is None else self.check_solution(initial, "initial")
         return self.solve_g(self.prescribed(prescribed, base=start.g), loads=loads, params=params,
                             steps=steps, initial=start, throw=throw, max_iter=max_iter, **options)
 
@@ -346,14 +412,22 @@ class Model:
                 initial: Solution | None = None, throw: bool = True, max_iter: int = 25,
                 max_cuts: int = 10, **options) -> Solution:
         """``solve`` with all prescribed values as one (Nb, d) array (see ``prescribed``)."""
-        start = self.initial() if initial is None else initial
+        if self.unconstrained:
+            raise ValueError("unconstrained: rigid-body modes. The model has no essential set and no "
+                             "springs, so it can translate and rotate freely and no solve has a unique "
+                             "equilibrium; hold part of it (essential={'wall': body.select(...)}) or "
+                             "add Springs")
+        start = self.initial() if initial is None else self.check_solution(initial, "initial")
+        g = self._check_g(g)
         if _is_concrete(loads) and not np.isfinite(loads):
             raise ValueError(f"loads must be finite, got {loads}")
         sol = solve_path_jit(self.ops, self.params_with(params), self.config(**options),
-                             Limits.of(steps, max_iter, max_cuts), start.u, start.g, jnp.asarray(g, jnp.float64),
+                             Limits.of(steps, max_iter, max_cuts), start.u, start.g, g,
                              jnp.asarray(start.load, jnp.float64), jnp.asarray(loads, jnp.float64))
-        if throw and _is_concrete(sol.status) and not Status.of(sol.status).equilibrium:
-            raise SolveError(sol)
+        status = _concrete(sol.status)
+        if throw and status is not None and not Status.of(status).equilibrium:
+            # under jax.jacfwd / jax.grad the fields are tracers: the error carries their values
+            raise SolveError(Solution(*(_concrete(x) for x in sol)))
         return sol
 
     def directions(self, name: str, rigid: bool = True):
@@ -400,6 +474,7 @@ class Model:
             raise ValueError(f"unknown Jacobian method {method!r}: choose 'implicit' or 'fd'")
         if scheme not in ("forward", "central"):
             raise ValueError(f"unknown difference scheme {scheme!r}: choose 'forward' or 'central'")
+        self.check_solution(sol)
         idx, psi, G = self._jacobian_tables(points, driven, rigid)
         P = idx.shape[0]
         if method == "implicit":
@@ -425,6 +500,7 @@ class Model:
     # ------------------------------------------------------------------ post-processing
     def coefficients(self, sol: Solution):
         """(N, d) RK coefficients of a solution (essential ones by eq 3.22)."""
+        self.check_solution(sol)
         return coefficients(self.ops, sol.u, sol.g)
 
     def shape_functions(self, points, gradients=True):

@@ -123,6 +123,9 @@ class Phantom:
         needle = np.sort(line[np.argsort(X[line, 1], kind="stable")[:self.needle_particles]])
         out = {"wall": wall, "needle": needle}
         if paddle is not None:
+            if isinstance(paddle, (bool, np.bool_)) or not isinstance(paddle, (int, np.integer)):
+                raise TypeError(f"paddle must be a 1-based int index into the {len(self.paddles)} "
+                                f"paddle positions (or None), got {paddle!r}")
             if not 1 <= paddle <= len(self.paddles):
                 raise ValueError(f"paddle index {paddle} out of range 1..{len(self.paddles)}")
             out["paddle"] = np.array(sorted(self.particle(p) for p in self.paddles[paddle - 1]))
@@ -263,16 +266,17 @@ class Insertion(NamedTuple):
     jacobian: jax.Array
 
 
-@partial(jax.jit, static_argnames=("with_jacobian", "chunk"))
-def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, with_jacobian, chunk=None):
+@partial(jax.jit, static_argnames=("with_jacobian",))
+def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, with_jacobian):
     """prob: the batched problems; G (B, n+1, Nb, d) prescribed values per increment (G[:, 0]
     the start); dG (B, m, Nb, d) the paddle directions for the Jacobian; idx, psi (P, K) the
     target's shape functions.
 
-    The configurations run through ``lax.map``: sequentially, or vmapped ``chunk`` at a time.
-    Sequential is the default on CPU: vmapped members run their Newton while-loops in lock
-    step (every member iterates until the slowest converges), and XLA:CPU in jax 0.10.2
-    deadlocks (all threads idle) on vmapped solves of 5 configurations x 15 increments."""
+    The configurations run through ``lax.map`` one at a time. There is deliberately no
+    vmapped batch (the former ``chunk`` parameter): vmapped members run their Newton
+    while-loops in lock step (every member iterates until the slowest converges), and
+    XLA:CPU in jax 0.10.2 deadlocks (all threads idle) on vmapped solves of 5
+    configurations x 15 increments."""
 
     def one(prob, G, dG):
         def step(carry, g1):
@@ -289,24 +293,27 @@ def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, with_jacobian, chunk=N
         _, out = jax.lax.scan(step, (u0, G[0]), G[1:])
         return out
 
-    return Insertion(*jax.lax.map(lambda a: one(*a), (prob, G, dG), batch_size=chunk))
+    return Insertion(*jax.lax.map(lambda a: one(*a), (prob, G, dG)))
 
 
 def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None = "paddle",
-           n_devices: int | None = 1, max_iter: int = 25, steps: int = 1,
-           chunk: int | None = None) -> Insertion:
+           n_devices: int | None = 1, max_iter: int = 25, steps: int = 1) -> Insertion:
     """Insert the needle of every model through ``depths`` (n,) in one compiled, batched call
     and record the displacement of ``point`` (2,) at every increment; with ``jacobian_set``,
     also the implicit Jacobian of the point w.r.t. a rigid translation of that set.
-    ``chunk``: configurations vmapped together per device (default: one at a time; see
-    ``_insert_batch``). ``n_devices``: shard the configurations over that many devices.
+    The configurations run one at a time on each device (see ``_insert_batch``);
+    ``n_devices``: shard them over that many devices.
 
     Each model keeps its other sets fixed (zero). Failed solves do not raise: their status
     is recorded and the next increment starts from the last converged state."""
+    if len(models) == 0:
+        raise ValueError("insert needs at least one model")
+    depths = np.asarray(depths, float)
+    if depths.ndim != 1 or len(depths) == 0 or not np.all(np.isfinite(depths)):
+        raise ValueError(f"depths must be a non-empty 1D array of finite needle depths, got {depths!r}")
     ref = models[0]
     prob = stack_models(models)
     prob = prob.with_config(linear=prob.config.linear.batched())
-    depths = np.asarray(depths, float)
     G, dG = [], []
     for m in models:
         rows = [m.prescribed({"needle": [0.0, 0.0]})]
@@ -314,7 +321,7 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
         G.append(jnp.stack(rows))
         dG.append(m.directions(jacobian_set) if jacobian_set else jnp.zeros((1,) + rows[0].shape))
     sf = ref.shape_functions(np.atleast_2d(point), gradients=False)
-    fn = partial(_insert_batch, with_jacobian=jacobian_set is not None, chunk=chunk)
+    fn = partial(_insert_batch, with_jacobian=jacobian_set is not None)
     lim = Limits.of(steps, max_iter)
     idx, psi = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
     return run_batched(lambda pr, g, dg: fn(pr, g, dg, lim, idx, psi),
@@ -374,6 +381,11 @@ def static_sweep(phantom: Phantom, inclusion: str = "none", increments: int = 15
                  paddles: Sequence[int] | None = None, n_devices: int | None = 1) -> StaticSweep:
     """Every paddle position x every increment in one batched call, plus the no-paddle run."""
     paddles = list(range(1, len(phantom.paddles) + 1)) if paddles is None else list(paddles)
+    if not paddles:
+        raise ValueError(f"paddles is empty: give 1-based paddle indices in 1..{len(phantom.paddles)} "
+                         "(or None for all)")
+    for p in paddles:   # a clear error before anything is built (Phantom.sets checks each)
+        phantom.sets(p)
     depths = phantom.depths(increments)
     runs = insert([phantom.model(inclusion, p) for p in paddles], depths, phantom.target,
                   n_devices=n_devices)

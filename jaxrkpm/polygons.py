@@ -30,17 +30,66 @@ def centroid(P: np.ndarray) -> np.ndarray:
 
 def as_ccw(V: np.ndarray) -> np.ndarray:
     """Validated counter-clockwise copy of a simple polygon's vertices (V, 2)."""
-    V = np.asarray(V, float)
+    V = _vertices(V)
+    a = signed_area(V)
+    if abs(a) < 1e-14:
+        raise ValueError("polygon has zero area")
+    return V if a > 0 else V[::-1].copy()
+
+
+def _vertices(V) -> np.ndarray:
+    """(V, 2) float vertices, finite, without a repeated closing vertex."""
+    try:
+        V = np.asarray(V, float)
+    except (TypeError, ValueError):
+        raise ValueError("polygon vertices must be a (V, 2) array of numbers") from None
     if V.ndim != 2 or V.shape[1] != 2 or len(V) < 3:
         raise ValueError(f"polygon vertices must have shape (V>=3, 2), got {V.shape}")
     if not np.all(np.isfinite(V)):
         raise ValueError("polygon vertices contain non-finite values")
     if np.allclose(V[0], V[-1]):
         V = V[:-1]
-    a = signed_area(V)
-    if abs(a) < 1e-14:
-        raise ValueError("polygon has zero area")
-    return V if a > 0 else V[::-1].copy()
+    return V
+
+
+def simple_ccw(V) -> np.ndarray:
+    """``as_ccw`` for a domain outline, which must also be a SIMPLE polygon: no vertex
+    listed twice and no two edges that cross or touch (both break the clipped Voronoi
+    volumes and the inside test, with errors that name neither)."""
+    V = _vertices(V)
+    scale = max(float(np.abs(V).max()), 1.0)
+    tol = 1e-12 * scale
+    n = len(V)
+    for i in range(n):
+        same = np.flatnonzero(np.linalg.norm(V[i + 1:] - V[i], axis=1) <= tol)
+        if len(same):
+            raise ValueError(f"polygon vertex {i + 1 + int(same[0])} repeats vertex {i} "
+                             f"({V[i].tolist()}): list every corner once")
+    a, b = V, np.roll(V, -1, axis=0)
+    for i in range(n - 2):
+        j = np.arange(i + 2, n - 1 if i == 0 else n)   # edges not adjacent to edge i
+        meet = _segments_meet(a[i], b[i], a[j], b[j], tol) if len(j) else np.zeros(0, bool)
+        if meet.any():
+            k = int(j[meet][0])
+            raise ValueError(f"polygon is self-intersecting: edge {i} ({a[i].tolist()} -> "
+                             f"{b[i].tolist()}) meets edge {k} ({a[k].tolist()} -> {b[k].tolist()}); "
+                             "give the outline of a simple polygon")
+    return as_ccw(V)
+
+
+def _segments_meet(p, q, A, B, tol):
+    """(m,) bool: segment p -> q touches or crosses each segment A[k] -> B[k] (``tol``: a
+    length below which coordinates count as equal)."""
+    area_tol = tol * max(float(np.linalg.norm(q - p)), 1.0)
+
+    def side(x):   # orientation sign, zero within the tolerance
+        return np.where(np.abs(x) <= area_tol, 0.0, np.sign(x))
+    d1, d2 = side(cross2(q - p, A - p)), side(cross2(q - p, B - p))
+    d3, d4 = side(cross2(B - A, p - A)), side(cross2(B - A, q - A))
+    # collinear pieces pass the sign test without meeting: their boxes must overlap too
+    overlap = np.all(np.maximum(np.minimum(A, B), np.minimum(p, q))
+                     <= np.minimum(np.maximum(A, B), np.maximum(p, q)) + tol, axis=1)
+    return (d1 * d2 <= 0) & (d3 * d4 <= 0) & overlap
 
 
 def contains(V: np.ndarray, P: np.ndarray) -> np.ndarray:

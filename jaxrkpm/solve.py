@@ -106,6 +106,11 @@ class Config:
             raise ValueError("line_search and easy must be >= 0")
 
 
+MAX_STEPS = 1000   # initial load steps of one solve (Limits.of)
+MAX_ITER = 1000    # Newton iterations per load step
+MAX_CUTS = 50      # halvings of the load step (2**-50 of the increment: below round-off)
+
+
 class Limits(NamedTuple):
     """Dynamic solver limits (arrays, so changing them does not recompile)."""
 
@@ -115,11 +120,16 @@ class Limits(NamedTuple):
 
     @staticmethod
     def of(steps=1, max_iter=25, max_cuts=10) -> "Limits":
-        for name, v in (("steps", steps), ("max_iter", max_iter)):
-            if int(v) < 1:
-                raise ValueError(f"{name} must be >= 1, got {v}")
-        if int(max_cuts) < 0:
-            raise ValueError(f"max_cuts must be >= 0, got {max_cuts}")
+        """Validated limits: 1 <= steps <= MAX_STEPS, 1 <= max_iter <= MAX_ITER,
+        0 <= max_cuts <= MAX_CUTS (each step costs an assembly and a factorisation, so a
+        bigger count only buys minutes of run time; the adaptive stepping refines where
+        needed)."""
+        for name, v, lo, hi in (("steps", steps, 1, MAX_STEPS), ("max_iter", max_iter, 1, MAX_ITER),
+                                ("max_cuts", max_cuts, 0, MAX_CUTS)):
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
+                raise TypeError(f"{name} must be an int, got {v!r}")
+            if not lo <= int(v) <= hi:
+                raise ValueError(f"{name} must lie in {lo}..{hi}, got {v}")
         return Limits(jnp.asarray(int(steps)), jnp.asarray(int(max_iter)), jnp.asarray(int(max_cuts)))
 
 
@@ -233,6 +243,28 @@ def internal_force_scale(ops, params, W, d):
     return jnp.linalg.norm(jnp.zeros_like(d).at[ops.idx].add(contrib)) + jnp.linalg.norm(ops.f_ext)
 
 
+ROUNDOFF_FACTOR = 100.0   # the convergence floor in units of eps x stiffness scale (see roundoff_floor);
+#                           the round-off actually left in |r| is ~0.05-0.5 of one unit
+
+
+def roundoff_floor(ops, params, W, d):
+    """The residual norm below which |r| carries no information: ROUNDOFF_FACTOR x machine
+    epsilon x || sum_q w |grad Psi| |dP/dF : F| ||, the force that rounding the strain
+    E = (F^T F - I)/2 to machine precision produces (dP/dF : F is the stress change of a unit
+    relative stretch: a stiffness). Without it, a tiny load step (steps=10**6, or a 1e-9
+    prescribed displacement) asks for |r| <= rtol x (a tiny force) and never converges."""
+    F = deformation_gradients(ops.idx, ops.dpsi, d)
+    p, axes = _merged(params)
+
+    def stiffness(F, p):
+        return jax.jvp(lambda G: jax.grad(_point_energy(W))(G, p), (F,), (F,))[1]
+
+    dP = jax.vmap(stiffness, in_axes=(0, axes))(F, p)
+    contrib = jnp.einsum("qkj,qij->qki", jnp.abs(ops.dpsi), jnp.abs(dP)) * ops.w[:, None, None]
+    eps = jnp.finfo(d.dtype).eps
+    return ROUNDOFF_FACTOR * eps * jnp.linalg.norm(jnp.zeros_like(d).at[ops.idx].add(contrib))
+
+
 _BLOCK_BUDGET = 2**25  # doubles of (chunk, K, K, d, d) tangent blocks held at once
 
 
@@ -311,7 +343,8 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
 
     The first linear solve is the predictor: it carries the prescribed increment,
     K_ff(u, g0) du = -(r(u, g0, l1) + K_fg (g1 - g0)); later ones are Newton steps at g1.
-    Converged when |r| <= rtol max(|r + K_fg dg|, internal force scale).
+    Converged when |r| <= max(rtol max(|r + K_fg dg|, internal force scale), round-off
+    floor) (``roundoff_floor`` at the start of the step).
 
     ``chord=False``: every iteration assembles the tangent and solves through
     ``cfg.linear.newton_solve`` (which may reuse ``state``, e.g. as a preconditioner), then a
@@ -324,6 +357,7 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
     r_pred, kfg_dg = jax.jvp(lambda g: res(u, g, l1), (g0,), (g1 - g0,))
     rhs0 = r_pred + kfg_dg
     r_ref = jnp.linalg.norm(rhs0)
+    floor = roundoff_floor(ops, params, W, coefficients(ops, u, g0))
     halvings = 0 if chord else cfg.line_search
 
     def evaluate(v):
@@ -382,7 +416,7 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
         ok, v, Pi_v, r_v, why = line_search(u, Pi, r, -dx, first)
         rn = jnp.linalg.norm(r_v)
         scale = internal_force_scale(ops, params, W, coefficients(ops, v, g1))
-        converged = ok & (rn <= cfg.rtol * jnp.maximum(r_ref, scale))
+        converged = ok & (rn <= jnp.maximum(cfg.rtol * jnp.maximum(r_ref, scale), floor))
         # stability from the last factorised tangent (at the iterate before the converged one)
         if cfg.check_stability:
             done = jnp.where(stab == Stability.STABLE, Status.CONVERGED,
@@ -413,7 +447,11 @@ def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l
     dt_min = dt0 * 0.5 ** lim.max_cuts
 
     def at(t):
-        return g0 + t * (g1 - g0), l0 + t * (l1 - l0)
+        # exactly g0 before the first converged step (a NaN in g1 must not leak into the
+        # kept state: 0 * NaN is NaN) and exactly g1 at the end
+        def lerp(a, b):
+            return jnp.where(t >= 1.0, b, jnp.where(t > 0.0, a + t * (b - a), a))
+        return lerp(g0, g1), lerp(l0, l1)
 
     def cond(c):
         t, dt, u, status, *_ = c
@@ -484,10 +522,13 @@ def _solve_path_jvp(cfg, primals, tangents):
     ops, params, lim, u0, g0, g1, l0, l1 = primals
     _, dparams, _, _, _, dg1, _, dl1 = tangents
     sol = solve_path_diff(ops, params, cfg, lim, u0, g0, g1, l0, l1)
-    dg, dl = sol.t * dg1, sol.t * dl1
+    # a failed solve has no derivative: NaN, never the finite derivative of the kept state
+    # (a factor, not a select, so the tangent stays linear and reverse mode transposes it)
+    valid = jnp.where(reached_equilibrium(sol.status), 1.0, jnp.nan)
+    dg, dl = sol.t * valid * dg1, sol.t * valid * dl1
     _, dr = jax.jvp(lambda g, l, p: residual(ops, p, cfg.W, sol.u, g, l),
                     (sol.g, sol.load, params), (dg, dl, dparams))
-    du = -sensitivity(ops, params, cfg, sol.u, sol.g, sol.load, dr)
+    du = -sensitivity(ops, params, cfg, sol.u, sol.g, sol.load, dr) * valid
     dsol = Solution(du, dg, dl, *(_zero_tangent(x) for x in sol[3:]))
     return sol, dsol
 

@@ -29,6 +29,7 @@ from .link import (
     LinkError,
     LinkTimeout,
     Pose,
+    ProtocolError,
     RemoteError,
     RobotClient,
     SafetyError,
@@ -61,6 +62,6 @@ __all__ = [
     "register_from_three_touches",
     # link
     "PROTOCOL_VERSION", "MAX_LINE_BYTES", "LinkError", "LinkTimeout", "LinkClosed",
-    "RemoteError", "SafetyError", "SafetyLimits", "Pose", "encode_message", "decode_message",
+    "RemoteError", "ProtocolError", "SafetyError", "SafetyLimits", "Pose", "encode_message", "decode_message",
     "SimulatedRobotServer", "RobotClient",
 ]

@@ -45,6 +45,7 @@ __all__ = [
     "LinkTimeout",
     "LinkClosed",
     "RemoteError",
+    "ProtocolError",
     "SafetyError",
     "SafetyLimits",
     "Pose",
@@ -84,6 +85,10 @@ class RemoteError(LinkError):
         self.reply = reply
 
 
+class ProtocolError(LinkError):
+    """The server's reply breaks the protocol (a missing, mistyped or non-finite field)."""
+
+
 class SafetyError(ValueError):
     """A motion command was refused on the model side, before anything was sent."""
 
@@ -104,8 +109,12 @@ def encode_message(msg: dict, max_line_bytes: int = MAX_LINE_BYTES) -> bytes:
 
 
 def decode_message(line: bytes) -> dict:
-    """One line (without or with its ``\\n``) -> dict. ValueError if not a JSON object."""
-    obj = json.loads(line.decode("utf-8"), parse_constant=_reject_constant)
+    """One line (without or with its ``\\n``) -> dict. ValueError if not a JSON object
+    (also for nesting too deep for the parser: ``"[" * 60000`` fits in one line)."""
+    try:
+        obj = json.loads(line.decode("utf-8"), parse_constant=_reject_constant)
+    except RecursionError:
+        raise ValueError("JSON nested too deeply") from None
     if not isinstance(obj, dict):
         raise ValueError(f"a message must be a JSON object, got {type(obj).__name__}")
     return obj
@@ -115,10 +124,19 @@ def _vec3(value, name: str) -> np.ndarray:
     if (not isinstance(value, (list, tuple)) or len(value) != 3
             or not all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in value)):
         raise ValueError(f"{name} must be a list of 3 numbers")
-    v = np.asarray(value, dtype=np.float64)
+    try:
+        v = np.array([float(c) for c in value])
+    except OverflowError:   # a JSON integer of hundreds of digits is no float
+        raise ValueError(f"{name} must be finite numbers (an integer is too large)") from None
     if not np.all(np.isfinite(v)):
         raise ValueError(f"{name} must be finite")
     return v
+
+
+def _matrix3(value, name: str) -> np.ndarray:
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        raise ValueError(f"{name} must be 3 rows of 3 numbers")
+    return np.stack([_vec3(row, f"{name} row {i}") for i, row in enumerate(value)])
 
 
 # ----------------------------------------------------------------------------- safety
@@ -272,7 +290,7 @@ class SimulatedRobotServer:
     def _reply_for_line(self, line: bytes) -> dict:
         try:
             msg = decode_message(line)
-        except (ValueError, UnicodeDecodeError) as e:
+        except Exception as e:  # any line a client can send is refused, never fatal
             return {"v": PROTOCOL_VERSION, "id": None, "ok": False, "code": "bad_json",
                     "error": f"malformed JSON line: {e}"}
         with self._log_lock:
@@ -290,7 +308,13 @@ class SimulatedRobotServer:
 
         async def send(reply: dict):
             if not self.silent:
-                writer.write(encode_message(reply, self.max_line_bytes))
+                try:
+                    line = encode_message(reply, self.max_line_bytes)
+                except ValueError as e:  # e.g. an error text quoting a huge field
+                    line = encode_message({"v": PROTOCOL_VERSION, "id": reply.get("id"), "ok": False,
+                                           "code": reply.get("code", "internal"),
+                                           "error": f"reply not sendable: {e}"[:1000]})
+                writer.write(line)
                 await writer.drain()
 
         too_long = {"v": PROTOCOL_VERSION, "id": None, "ok": False, "code": "too_long",
@@ -479,7 +503,15 @@ class RobotClient:
         """Open the connection, do the hello handshake and read the current pose (so the
         first step is checked against where the paddle really is). Returns hello's reply."""
         with self._lock:
-            self._ensure_connected()
+            try:
+                self._ensure_connected()
+            except LinkError:
+                raise
+            except socket.timeout as e:
+                raise LinkTimeout(f"connecting to {self.host}:{self.port} timed out after "
+                                  f"{self.connect_timeout_s} s") from e
+            except OSError as e:  # refused, unreachable, reset during the handshake
+                raise LinkClosed(f"cannot connect to {self.host}:{self.port}: {e}") from e
         if self.last_commanded_m is None:
             self.last_commanded_m = self.read_pose().position_m
         assert self.server_info is not None
@@ -515,8 +547,14 @@ class RobotClient:
         mid = self._new_id()
         self._send({"v": PROTOCOL_VERSION, "id": mid, "op": "hello",
                     "versions": [PROTOCOL_VERSION], "client": self.client_name})
-        reply = self._await_reply(mid, time.monotonic() + self.timeout_s)
-        self.server_info = reply
+        self.server_info = self._checked_hello(self._await_reply(mid, time.monotonic() + self.timeout_s))
+
+    def _checked_hello(self, reply: dict) -> dict:
+        if not isinstance(reply.get("server"), str) or reply.get("version") != PROTOCOL_VERSION \
+                or type(reply.get("version")) is not int:
+            raise ProtocolError(f"hello reply from {self.host}:{self.port} needs 'server' (str) and "
+                                f"'version' {PROTOCOL_VERSION}: {str(reply)[:200]}")
+        return reply
 
     def _ensure_connected(self):
         if self._sock is None:
@@ -575,7 +613,9 @@ class RobotClient:
                 continue  # stale reply to an earlier, timed-out request
             if reply.get("v") != PROTOCOL_VERSION:
                 raise LinkError(f"server replied with protocol version {reply.get('v')!r}")
-            if not reply.get("ok", False):
+            if not isinstance(reply.get("ok"), bool):
+                raise ProtocolError(f"reply has no boolean 'ok' field: {str(reply)[:200]}")
+            if not reply["ok"]:
                 raise RemoteError(f"server refused the request: {reply.get('error')}",
                                   reply.get("code"), reply)
             return reply
@@ -613,16 +653,24 @@ class RobotClient:
 
     # -- ops
     def hello(self) -> dict:
-        return self.request("hello", versions=[PROTOCOL_VERSION], client=self.client_name)
+        return self._checked_hello(self.request("hello", versions=[PROTOCOL_VERSION], client=self.client_name))
+
+    def _field(self, reply: dict, name: str, parse=_vec3) -> np.ndarray:
+        """A validated reply field; ProtocolError if it is missing or malformed."""
+        try:
+            return parse(reply[name], name)
+        except (KeyError, ValueError) as e:
+            what = "missing" if isinstance(e, KeyError) else str(e)
+            raise ProtocolError(f"reply to {reply.get('id')!r} from {self.host}:{self.port}: "
+                                f"field {name!r} {what}") from None
 
     def read_pose(self) -> Pose:
         r = self.request("read_pose")
-        return Pose(np.asarray(r["position_m"], dtype=np.float64),
-                    np.asarray(r["rotation"], dtype=np.float64))
+        return Pose(self._field(r, "position_m"), self._field(r, "rotation", _matrix3))
 
     def read_force(self) -> np.ndarray:
         """(3,) contact force in newtons."""
-        return np.asarray(self.request("read_force")["force_n"], dtype=np.float64)
+        return self._field(self.request("read_force"), "force_n")
 
     def move_paddle(self, target_m) -> np.ndarray:
         """Command the paddle to displacement ``target_m`` (3,) metres from its reference.
@@ -642,4 +690,4 @@ class RobotClient:
             self.safety.check(t, self.last_commanded_m)
         r = self.request("move_paddle", target_m=t.tolist())
         self.last_commanded_m = t.copy()
-        return np.asarray(r["position_m"], dtype=np.float64)
+        return self._field(r, "position_m")

@@ -118,15 +118,32 @@ class StereoFrame:
 # ----------------------------------------------------------------------------- detection
 
 
+_BGR_WEIGHTS = np.array([0.114, 0.587, 0.299])   # cv2.COLOR_BGR2GRAY's
+
+
 def _to_gray(image: np.ndarray) -> np.ndarray:
+    """(H, W) grey image of any real dtype; a clear error for an empty image, a non-numeric
+    one or non-finite pixels (a NaN would silently remove every blob)."""
     img = np.asarray(image)
+    if img.dtype == bool or not (np.issubdtype(img.dtype, np.integer) or np.issubdtype(img.dtype, np.floating)):
+        raise TypeError(f"image must hold real pixel values (uint8, uint16, float ...), got dtype {img.dtype}")
     if img.ndim == 3:
         if img.shape[2] == 1:
             img = img[:, :, 0]
-        else:
-            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        elif img.shape[2] in (3, 4) and img.dtype in (np.uint8, np.uint16, np.float32):
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+        elif img.shape[2] in (3, 4):   # dtypes cv2.cvtColor refuses (float64, int32 ...)
+            img = img[:, :, :3].astype(np.float64) @ _BGR_WEIGHTS
     if img.ndim != 2:
-        raise ValueError(f"image must be (H, W) or (H, W, C); got shape {np.shape(image)}")
+        raise ValueError(f"image must be (H, W) or (H, W, C) with C in 1, 3, 4; got shape {np.shape(image)}")
+    if img.size == 0:
+        raise ValueError(f"image is empty (shape {np.shape(image)})")
+    if np.issubdtype(img.dtype, np.floating):
+        bad = ~np.isfinite(img)
+        if bad.any():
+            r, c = (int(x[0]) for x in np.nonzero(bad))
+            raise ValueError(f"image has {int(bad.sum())} NaN/inf pixels (first at row {r}, column {c}): "
+                             "replace them (e.g. np.nan_to_num) before blob detection")
     return img
 
 
