@@ -6,12 +6,13 @@ configuration never changes).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Callable
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import polygons, rk
+from . import mesh, polygons, rk
 
 
 @dataclass(frozen=True, eq=False)
@@ -27,6 +28,10 @@ class Body:
              from a mesh; None for grid and polygon bodies
     tags     name -> particle indices: named sets that came with the body (mesh physical
              groups / tags); empty for grid and polygon bodies
+
+    A mesh body (``from_mesh``, ``from_surface``) has its particles at the mesh vertices,
+    volumes = each vertex's share of its cells, spacing = the mean edge length, and no
+    ``vertices`` polygon (its boundary is the mesh surface).
     """
 
     X: np.ndarray
@@ -51,6 +56,8 @@ class Body:
     @property
     def measure(self) -> float:
         """Domain area (2D) or volume (3D)."""
+        if self.cells is not None:
+            return float(np.abs(mesh.simplex_volumes(self.X, self.cells)).sum())
         if self.vertices is not None and not self.is_box:
             return polygons.area(self.vertices)
         return float(np.prod(self.upper - self.lower))
@@ -134,6 +141,41 @@ class Body:
         vol = polygons.voronoi_areas(X, V)
         return Body(X, vol, float(spacing), V.min(0), V.max(0), V, False, cKDTree(X))
 
+    @staticmethod
+    def from_mesh(source, dim: int | None = None) -> "Body":
+        """Body from a tetrahedral (3D) or triangular (2D) volume mesh: a path to any file
+        meshio reads (VTU/VTK, Gmsh .msh, Abaqus .inp, Medit .mesh, ...) or a meshio.Mesh
+        (e.g. from ``jaxrkpm.mesh.half_ellipsoid``). ``dim`` 3 or 2 (default: 3 if the mesh
+        has tetrahedra). Particles at the mesh vertices; volumes are each vertex's share
+        of its cells (summing to the mesh volume); ``tags`` from the mesh's named groups
+        (cell sets, point sets, Gmsh physical groups); spacing = mean edge length. For a
+        finer particle layout, mesh at a smaller spacing (the shapes and ``from_surface``
+        take one) rather than adding particles here. The mesh is checked: see
+        ``jaxrkpm.mesh.volume_mesh``."""
+        vm = mesh.volume_mesh(source, dim)
+        X = vm.points
+        return Body(X, mesh.vertex_volumes(X, vm.cells), mesh.mean_edge_length(X, vm.cells),
+                    X.min(0), X.max(0), None, False, cKDTree(X), vm.cells, vm.tags)
+
+    @staticmethod
+    def from_surface(source, spacing: float) -> "Body":
+        """3D body inside a closed triangle surface (STL, OBJ, PLY or any meshio format, or a
+        meshio.Mesh), tetrahedralised by Gmsh at ``spacing`` (``jaxrkpm.mesh.tetrahedralise``).
+        A surface that is open, not manifold, inconsistently oriented or self-intersecting,
+        or a spacing too coarse for it, raises a ValueError naming the problem. Tags:
+        "volume" (every particle) and "surface"."""
+        points, triangles = mesh.read_surface(source)
+        return Body.from_mesh(mesh.tetrahedralise(points, triangles, spacing, mesh.source_name(source)))
+
+    @cached_property
+    def _mesh_boundary(self):
+        """Surface faces (M, d) of a mesh body, outward ordered (``mesh.boundary_faces``)."""
+        return mesh.boundary_faces(self.X, self.cells)[0]
+
+    @cached_property
+    def _locator(self) -> mesh.Locator:
+        return mesh.Locator(self.X, self.cells)
+
     # ------------------------------------------------------------------ queries
     def select(self, predicate: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """Indices of the particles where ``predicate(X) -> (N,) bool`` is true."""
@@ -141,6 +183,51 @@ class Body:
         if mask.shape != (self.n,):
             raise ValueError(f"predicate must return a ({self.n},) boolean array, got shape {mask.shape}")
         return np.flatnonzero(mask)
+
+    def tagged(self, name: str) -> np.ndarray:
+        """Indices of the particles of the named set ``name`` that came with the body (a
+        mesh tag / physical group)."""
+        if name not in self.tags:
+            have = sorted(self.tags) or "none (only mesh bodies carry tags)"
+            raise ValueError(f"the body has no tag {name!r}; its tags: {have}")
+        return np.asarray(self.tags[name])
+
+    def surface_particles(self) -> np.ndarray:
+        """Indices of the particles on the domain boundary (mesh surface vertices, box
+        faces, polygon edges)."""
+        tol = 1e-9 * self.spacing
+        if self.cells is not None:
+            return np.unique(self._mesh_boundary)
+        if self.is_box:
+            return self.select(lambda X: np.any((X <= self.lower + tol) | (X >= self.upper - tol), 1))
+        return self.select(lambda X: polygons.distance_to_boundary(self.vertices, X) <= tol)
+
+    def surface_near(self, point, radius: float) -> np.ndarray:
+        """Surface particles within ``radius`` of ``point`` (d,): e.g. a paddle's contact
+        patch."""
+        p = self._point(point, "point")
+        r = self._radius(radius)
+        S = self.surface_particles()
+        return S[np.linalg.norm(self.X[S] - p, axis=1) <= r]
+
+    def near_segment(self, a, b, radius: float) -> np.ndarray:
+        """Particles within ``radius`` of the segment a -> b (each (d,)): e.g. a needle
+        track."""
+        a, b = self._point(a, "segment start a"), self._point(b, "segment end b")
+        r = self._radius(radius)
+        return np.flatnonzero(polygons.distance_to_segment(self.X, a, b) <= r)
+
+    def _point(self, p, what):
+        p = np.asarray(p, float)
+        if p.shape != (self.dim,) or not np.all(np.isfinite(p)):
+            raise ValueError(f"{what} must be {self.dim} finite coordinates, got {p.tolist()}")
+        return p
+
+    @staticmethod
+    def _radius(radius):
+        if not (np.isfinite(radius) and radius > 0):
+            raise ValueError(f"radius must be positive and finite, got {radius}")
+        return float(radius)
 
     def nearest(self, points, k: int = 1) -> np.ndarray:
         """Indices of the k particles nearest to each point: (P,) or (P, k)."""
@@ -154,17 +241,20 @@ class Body:
 
     def shape_functions(self, points, a: float, *, gradients: bool = True,
                         support_factor: float | None = None,
-                        capacity: int | None = None) -> rk.ShapeFunctions:
+                        capacity: int | None = None, groups=None) -> rk.ShapeFunctions:
         """RK shape functions of this body's particles with dilation ``a`` at ``points``
-        (``rk.shape_functions``; ``support_factor`` only names the support in errors)."""
+        (``rk.shape_functions``; ``support_factor`` only names the support in errors;
+        ``groups`` (P,): points that share one neighbour list)."""
         return rk.shape_functions(self.X, self.volumes, self._tree, points, a,
                                   capacity=capacity, gradients=gradients,
-                                  support_factor=support_factor)
+                                  support_factor=support_factor, groups=groups)
 
     def contains(self, points, tol: float | None = None) -> np.ndarray:
         """(P,) bool: points inside the closed domain (with a small tolerance)."""
         P = np.atleast_2d(np.asarray(points, float))
         tol = 1e-9 * self.spacing if tol is None else tol
+        if self.cells is not None:      # barycentric tolerance ~ distance / spacing
+            return self._locator.locate(P, tol / self.spacing) >= 0
         if self.is_box:
             return np.all((P >= self.lower - tol) & (P <= self.upper + tol), axis=1)
         return polygons.contains(self.vertices, P) | (polygons.distance_to_boundary(self.vertices, P) <= tol)
@@ -184,7 +274,12 @@ class Body:
 
     def boundary_facets(self, n_per_edge: float | None = None):
         """Boundary pieces of size <= spacing: 2D segments (M, 2, 2) with outward normals (M, 2);
-        3D quads (M, 4, 3) with outward normals (M, 3). Counter-clockwise ordering in 2D."""
+        3D quads (M, 4, 3) with outward normals (M, 3). Counter-clockwise ordering in 2D.
+        A mesh body gives its own surface: triangles (M, 3, 3) in 3D, edges (M, 2, 2) in 2D
+        (``n_per_edge`` does not apply)."""
+        if self.cells is not None:
+            faces = self._mesh_boundary
+            return self.X[faces], mesh.facet_normals(self.X[faces])[0]
         h = self.spacing if n_per_edge is None else n_per_edge
         if self.dim == 2:
             segs = []

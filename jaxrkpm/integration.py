@@ -6,8 +6,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import roots_jacobi
 
-from . import polygons
+from . import mesh, polygons
 from .geometry import Body
 
 
@@ -62,14 +63,54 @@ def triangle_rule(a: np.ndarray, b: np.ndarray, c: np.ndarray, order: int):
     return pts, ws * s * jac
 
 
+def simplex_rule(order: int, d: int):
+    """Collapsed (Stroud conical product) Gauss rule on the d-simplex, d = 1, 2, 3, with
+    ``order`` points per direction: barycentric coordinates (order^d, d+1) and weights
+    (order^d,) as fractions of the simplex measure (they sum to 1). Gauss-Jacobi points
+    absorb the collapse's Jacobian, so the rule is exact for polynomials of total degree
+    2 * order - 1 (as ``order`` Gauss-Legendre points per direction on a box)."""
+    if d not in (1, 2, 3):
+        raise ValueError(f"simplex rules are for d = 1, 2, 3, got {d}")
+    if order < 1:
+        raise ValueError(f"Gauss order must be >= 1, got {order}")
+    axes = []
+    for k in range(d):   # collapsed direction k carries the weight s^(d-1-k) on [0, 1]
+        x, w = roots_jacobi(order, 0.0, float(d - 1 - k))
+        axes.append(((x + 1) / 2, w / w.sum()))
+    grids = np.meshgrid(*[x for x, _ in axes], indexing="ij")
+    wts = np.prod(np.meshgrid(*[w for _, w in axes], indexing="ij"), axis=0).ravel()
+    s = [g.ravel() for g in grids]
+    # barycentric coordinates: peel one coordinate per collapsed direction
+    lam, rest = [], np.ones_like(s[0])
+    for k in range(d):
+        lam.append(rest * (1 - s[k]))
+        rest = rest * s[k]
+    lam.append(rest)
+    return np.stack(lam, 1), wts
+
+
+def mesh_gauss_points(body: Body, order: int = 2):
+    """Gauss points (C * order^d, d) and weights on the cells of a mesh body
+    (``simplex_rule``: exact for degree 2 * order - 1 on every cell)."""
+    lam, w = simplex_rule(order, body.dim)
+    vol = np.abs(mesh.simplex_volumes(body.X, body.cells))
+    pts = np.einsum("qk,ckd->cqd", lam, body.X[body.cells]).reshape(-1, body.dim)
+    return pts, (vol[:, None] * w[None]).ravel()
+
+
 def gauss_points(body: Body, order: int = 2, cell_size: float | None = None):
     """Gauss points and weights over the domain on a background grid of cells.
 
     Cells are squares/cubes of ``cell_size`` (default: the particle spacing) covering the
     bounding box; in a polygon, cells crossing the boundary are cut to the domain and the
-    cut piece is triangulated."""
+    cut piece is triangulated. A mesh body is integrated on its own cells instead
+    (``mesh_gauss_points``; ``cell_size`` does not apply)."""
     if order < 1:
         raise ValueError(f"Gauss order must be >= 1, got {order}")
+    if body.cells is not None:
+        if cell_size is not None:
+            raise ValueError("cell_size does not apply to a mesh body: it is integrated on its cells")
+        return mesh_gauss_points(body, order)
     h = body.spacing if cell_size is None else float(cell_size)
     if not h > 0:
         raise ValueError(f"cell_size must be positive, got {cell_size}")
@@ -108,7 +149,8 @@ def gauss_points(body: Body, order: int = 2, cell_size: float | None = None):
 
 def boundary_points(body: Body, order: int = 2):
     """Gauss points on the domain boundary: points (B, d), weights (B,) (length / area),
-    outward normals (B, d)."""
+    outward normals (B, d): ``order`` points per direction on each of the body's
+    ``boundary_facets`` (segments, box quads, or mesh surface triangles)."""
     x, w = gauss_1d(order)
     facets, normals = body.boundary_facets()
     if body.dim == 2:
@@ -118,6 +160,11 @@ def boundary_points(body: Body, order: int = 2):
         wts = (L[:, None] * w[None]).ravel()
         nrm = np.repeat(normals, order, axis=0)
         return pts, wts, nrm
+    if facets.shape[1] == 3:                       # triangles of a mesh surface
+        lam, wl = simplex_rule(order, 2)
+        pts = np.einsum("qk,mkd->mqd", lam, facets).reshape(-1, 3)
+        areas = np.linalg.norm(np.cross(facets[:, 1] - facets[:, 0], facets[:, 2] - facets[:, 0]), axis=1) / 2
+        return pts, (areas[:, None] * wl[None]).ravel(), np.repeat(normals, len(wl), axis=0)
     uv, wuv = tensor_rule(order, 2)
     q0, q1, q3 = facets[:, 0], facets[:, 1], facets[:, 3]
     e1, e2 = q1 - q0, q3 - q0
@@ -128,6 +175,21 @@ def boundary_points(body: Body, order: int = 2):
     return pts, wts, nrm
 
 
-def table(body: Body, points, weights, a: float, normals=None, support_factor=None) -> Table:
-    sf = body.shape_functions(points, a, support_factor=support_factor)
+def table(body: Body, points, weights, a: float, normals=None, support_factor=None,
+          groups=None) -> Table:
+    """The Table of given points and weights (``groups`` (Q,): points that share one
+    neighbour list, e.g. the Gauss points of one mesh cell)."""
+    sf = body.shape_functions(points, a, support_factor=support_factor, groups=groups)
     return Table(np.asarray(points), np.asarray(weights), sf.idx, sf.psi, sf.dpsi, normals)
+
+
+def gauss_table(body: Body, a: float, order: int = 2, cell_size: float | None = None,
+                support_factor=None) -> Table:
+    """The integration Table for ``Model(integration="gauss")``: ``gauss_points`` with their
+    shape functions; on a mesh body the Gauss points of a cell share one neighbour list
+    (the model sums their tangent contributions per cell before the scatter)."""
+    pts, wts = gauss_points(body, order, cell_size)
+    groups = None
+    if body.cells is not None:
+        groups = np.repeat(np.arange(len(body.cells)), len(wts) // len(body.cells))
+    return table(body, pts, wts, a, support_factor=support_factor, groups=groups)

@@ -33,6 +33,29 @@ class SolveError(RuntimeError):
         self.solution = solution
 
 
+def _pair_keys(lists, N):
+    """Sorted unique keys i * N + j of the particle pairs (i, j) that share a row of
+    ``lists`` (R, K): the pattern of S^T S for the row-particle incidence S (a sparse
+    product; sorting all R K^2 pairs took most of the set-up of large 3D models). Float
+    ones: the counts must never wrap to 0, which the sparse product would drop."""
+    R, K = lists.shape
+    S = sp.csr_matrix((np.ones(R * K), (np.repeat(np.arange(R), K), lists.ravel())),
+                      shape=(R, N))
+    P = (S.T @ S).tocoo()
+    return np.unique(P.row.astype(np.int64) * N + P.col)
+
+
+def _split_groups(grp_of, counts, size):
+    """Group ids (Q,) and counts with every group cut into consecutive pieces of at most
+    ``size`` points."""
+    srt = np.argsort(grp_of, kind="stable")
+    rank = np.empty(len(grp_of), np.int64)
+    rank[srt] = np.arange(len(grp_of)) - np.repeat(np.r_[0, np.cumsum(counts)[:-1]], counts)
+    _, grp_of, counts = np.unique(np.stack([grp_of, rank // size], 1), axis=0,
+                                  return_inverse=True, return_counts=True)
+    return grp_of.ravel(), counts
+
+
 def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
@@ -80,11 +103,10 @@ class Model:
         d = body.dim
 
         if integration == "gauss":
-            pts, wts = integ.gauss_points(body, order, cell_size)
-            self.volume = integ.table(body, pts, wts, self.a, support_factor=self.support)
+            self.volume = integ.gauss_table(body, self.a, order, cell_size, support_factor=self.support)
         else:
             self.volume = scni.table(body, self.a, integration, order, support_factor=self.support)
-            wts = self.volume.weights
+        wts = self.volume.weights
         bp, bw, bn = integ.boundary_points(body, order)
         self.surface = integ.table(body, bp, bw, self.a, normals=bn, support_factor=self.support)
 
@@ -100,6 +122,10 @@ class Model:
         # whose tangent contributions are summed before the scatter (see pair_blocks)
         _, grp_of, counts = np.unique(idx, axis=0, return_inverse=True, return_counts=True)
         grp_of = grp_of.ravel()
+        if counts.max() > np.median(counts):
+            # lists shared beyond one cell (neighbouring mesh cells with the same union list):
+            # split such groups into pieces of the typical size, so groups need little padding
+            grp_of, counts = _split_groups(grp_of, counts, int(np.median(counts)))
         if len(counts) * counts.max() <= 1.25 * Q:
             srt = np.argsort(grp_of, kind="stable")
             S = counts.max()
@@ -112,11 +138,9 @@ class Model:
         # particle pairs that share an integration point or a spring: the tangent's pattern,
         # from one neighbour list per group (per point it would be Q K^2 keys: GBs in 3D)
         rep = idx[groups[:, 0]]
-        key = (rep[:, :, None] * N + rep[:, None, :]).ravel()
-        sp_key = (sp_idx[:, :, None] * N + sp_idx[:, None, :]).astype(np.int64)
-        uniq, inverse = np.unique(np.concatenate([key, sp_key.ravel()]), return_inverse=True)
-        pair_id = inverse.ravel()[:key.size].reshape(rep.shape[0], K, K)
-        sp_pair = np.searchsorted(uniq, sp_key)
+        uniq = _pair_keys(rep, N) if len(sp_idx) == 0 else np.union1d(_pair_keys(rep, N), _pair_keys(sp_idx, N))
+        pair_id = np.searchsorted(uniq, rep[:, :, None] * N + rep[:, None, :])
+        sp_pair = np.searchsorted(uniq, (sp_idx[:, :, None] * N + sp_idx[:, None, :]).astype(np.int64))
         pair_i, pair_j = uniq // N, uniq % N
 
         Nf = len(self.sets.free)

@@ -37,10 +37,14 @@ class Neighbours:
 
 
 def neighbours(tree: cKDTree, points: np.ndarray, radius: float,
-               capacity: int | None = None) -> Neighbours:
+               capacity: int | None = None, groups: np.ndarray | None = None) -> Neighbours:
     """Particles whose (box-shaped) window covers each point. ``capacity`` fixes K; a point
-    with more neighbours than that raises instead of being silently truncated."""
+    with more neighbours than that raises instead of being silently truncated. ``groups``
+    (P,) ints: points of one group (the Gauss points of one mesh cell) get the union of
+    their lists, so they share one neighbour list (extra entries have zero kernel weight)."""
     lists = tree.query_ball_point(points, r=radius * (1 - 1e-12), p=np.inf)
+    if groups is not None:
+        lists = _group_union(lists, np.asarray(groups))
     counts = np.array([len(l) for l in lists])
     K = int(counts.max()) if capacity is None else int(capacity)
     if counts.max() > K:
@@ -56,6 +60,19 @@ def neighbours(tree: cKDTree, points: np.ndarray, radius: float,
     return Neighbours(idx, mask)
 
 
+def _group_union(lists, groups):
+    """Per point, the union of the lists of all points in its group."""
+    counts = np.array([len(l) for l in lists])
+    group = np.repeat(groups, counts)
+    part = np.fromiter((i for l in lists for i in l), np.int64, counts.sum())
+    n = int(part.max()) + 1 if len(part) else 1
+    keys = np.unique(group.astype(np.int64) * n + part)
+    g_of, members = keys // n, keys % n
+    starts = np.searchsorted(g_of, groups)
+    ends = np.searchsorted(g_of, groups, side="right")
+    return [members[a:b] for a, b in zip(starts, ends)]
+
+
 @dataclass(frozen=True)
 class ShapeFunctions:
     """Shape function values and gradients at P points over K padded neighbours.
@@ -69,10 +86,12 @@ class ShapeFunctions:
 
 def shape_functions(X: np.ndarray, volumes: np.ndarray, tree: cKDTree, points: np.ndarray,
                     a: float, capacity: int | None = None, gradients: bool = True,
-                    support_factor: float | None = None) -> ShapeFunctions:
-    """RK shape functions of the particles (X, volumes) with dilation ``a`` at ``points``."""
+                    support_factor: float | None = None,
+                    groups: np.ndarray | None = None) -> ShapeFunctions:
+    """RK shape functions of the particles (X, volumes) with dilation ``a`` at ``points``
+    (``groups``: points sharing one neighbour list, see ``neighbours``)."""
     points = np.atleast_2d(np.asarray(points, float))
-    nb = neighbours(tree, points, a, capacity)
+    nb = neighbours(tree, points, a, capacity, groups)
     P, K = nb.idx.shape
     d = X.shape[1]
     psi = np.zeros((P, K))

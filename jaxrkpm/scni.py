@@ -12,9 +12,17 @@ opposite signs, so interior facets cancel exactly and the integration constraint
 
 holds to round-off: that is what makes nodal integration pass the patch test.
 
+Mesh bodies (``Body.from_mesh``, 2D or 3D): the cells are the median-dual cells, each
+particle's 1/(d+1) share of every adjacent simplex (their measures are the particles'
+volumes). Inside a tetrahedron every edge (i, j) gives two triangles (edge midpoint, the
+centroid of a face holding the edge, the tetrahedron's centroid) separating i's share from
+j's (a triangle gives one segment, edge midpoint to centroid); each is evaluated once and
+used with +n for i and -n for j. A surface face splits into its vertices' shares.
+
 Boundary facets. With ``boundary="nodal"`` (default) Psi_I on a domain-boundary facet is
 replaced by its piecewise-linear (2D) / bilinear (3D) interpolant between the boundary
-particles. The boundary term of the constraint is then a combination of Psi_I(X_b) at
+particles (on a mesh body: the P1 interpolant on each surface face). The boundary term of
+the constraint is then a combination of Psi_I(X_b) at
 boundary particles, which the nodal essential BCs of the transformation method (eq 3.22)
 can balance exactly: the affine patch test passes to round-off. ``boundary="gauss"``
 integrates Psi_I itself on the boundary facets (more accurate gradients near the boundary,
@@ -41,16 +49,21 @@ so the stabilisation is Puso's modified-SCNI penalty on the sub-cell gradient ju
 current material tangent C, parameter beta; but it is written with true deformation
 gradients only: frame-invariant, non-negative for a non-negative W, and it lives in the same
 gather -> F -> W pipeline (no code change in the solver). beta = 1 is pure sub-cell smoothing.
+On a mesh body the sub-cells are each particle's piece of each adjacent simplex (the dual
+facets inside the simplex bound two pieces; a face shared by two simplices separates the
+particle's two pieces there).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import combinations
 
 import numpy as np
+import scipy.sparse as sp
 
-from . import polygons
+from . import mesh, polygons
 from .geometry import Body
-from .integration import Table, segment_rule, tensor_rule, triangle_rule
+from .integration import Table, segment_rule, simplex_rule, tensor_rule, triangle_rule
 
 # integration name accepted by Model -> (stabilisation beta, boundary rule)
 SCHEMES = {
@@ -76,6 +89,7 @@ class _Builder:
         self.row_pts, self.row_level, self.row_owner = [], [], []
         self.pts, self.wts, self.nrm, self.bnd = [], [], [], []
         self.inc_row, self.inc_pt, self.inc_sign = [], [], []
+        self.face = []     # per facet point: the mesh surface face it lies on, else -1
         self.npts = 0
 
     def row(self, point, level, owner):
@@ -91,11 +105,38 @@ class _Builder:
         self.wts.append(wts)
         self.nrm.append(np.broadcast_to(normal, (g, self.d)))
         self.bnd.append(np.full(g, boundary))
+        self.face.append(np.full(g, -1))
         for r, s in uses:
             self.inc_row.append(np.full(g, r))
             self.inc_pt.append(ids)
             self.inc_sign.append(np.full(g, float(s)))
         self.npts += g
+
+    def rows(self, points, level, owners):
+        """Many rows at once: points (R, d), owners (R,); returns their row indices (R,)."""
+        start = len(self.row_pts)
+        self.row_pts.extend(np.asarray(points, float))
+        self.row_level.extend([level] * len(points))
+        self.row_owner.extend(np.asarray(owners).tolist())
+        return start + np.arange(len(points))
+
+    def facets(self, pts, wts, normals, rows, signs, boundary=False, face=None):
+        """Many facets at once: points (F, g, d), weights (F, g), normals (F, d); facet f is
+        used by rows[f, u] with sign signs[u] (rows (F, U), -1: no use); ``face`` (F,) the
+        mesh surface face of each (boundary) facet."""
+        F, g = wts.shape
+        ids = self.npts + np.arange(F * g).reshape(F, g)
+        self.pts.append(pts.reshape(-1, self.d))
+        self.wts.append(wts.ravel())
+        self.nrm.append(np.repeat(normals, g, axis=0))
+        self.bnd.append(np.full(F * g, boundary))
+        self.face.append(np.full(F * g, -1) if face is None else np.repeat(face, g))
+        for u in range(rows.shape[1]):
+            use = rows[:, u] >= 0
+            self.inc_row.append(np.repeat(rows[use, u], g))
+            self.inc_pt.append(ids[use].ravel())
+            self.inc_sign.append(np.full(use.sum() * g, float(signs[u])))
+        self.npts += F * g
 
 
 def _rect_rule(lo, hi, ax, val, order):
@@ -239,6 +280,102 @@ def _build_3d(body: Body, order, stabilised):
     return B
 
 
+# ============================================================ mesh bodies: median dual
+# barycentric coordinate of a simplex vertex at the centroid of its median-dual piece: the
+# mean of the largest of d+1 uniform barycentric coordinates, H_{d+1} / (d+1)
+_PIECE_OWN = {2: 11 / 18, 3: 25 / 48}
+
+
+def _facet_rule(S, order, towards):
+    """Gauss points (F, g, d), weights (F, g) and unit normals (F, d) on facet simplices
+    S (F, d, d) (segments in 2D, triangles in 3D), normals turned along ``towards`` (F, d)."""
+    lam, w = simplex_rule(order, S.shape[2] - 1)
+    n, size = mesh.facet_normals(S)
+    n = np.where(np.sum(n * towards, 1, keepdims=True) < 0, -n, n)
+    return np.einsum("gk,fkd->fgd", lam, S), size[:, None] * w[None], n
+
+
+def _face_shares(V, fc):
+    """Each face vertex's share of a face: face vertices V (M, d, d), centroids fc (M, d) ->
+    per vertex j a list of facet simplices (M, d, d) (3D: two triangles vertex - edge
+    midpoint - face centroid; 2D: the half edge vertex - midpoint)."""
+    d = V.shape[1]
+    shares = []
+    for j in range(d):
+        p = V[:, j]
+        mids = [(p + V[:, k]) / 2 for k in range(d) if k != j]
+        if d == 2:
+            shares.append([np.stack([p, mids[0]], 1)])
+        else:
+            shares.append([np.stack([p, mids[0], fc], 1), np.stack([p, fc, mids[1]], 1)])
+    return shares
+
+
+def _build_mesh(body: Body, order, stabilised):
+    """Median-dual smoothing cells of a mesh body (see the module docstring)."""
+    X, cells = body.X, body.cells
+    C, n = cells.shape
+    d = n - 1
+    B = _Builder(d)
+    B.rows(X, 0, np.arange(body.n))
+    V = X[cells]                                            # (C, n, d)
+    g = V.mean(1)
+    sub = None
+    if stabilised:                                          # (C, n): row of vertex k's piece of cell c
+        lam = np.full((n, n), (1 - _PIECE_OWN[d]) / d)
+        np.fill_diagonal(lam, _PIECE_OWN[d])
+        sub = B.rows(np.einsum("kj,cjd->ckd", lam, V).reshape(-1, d), 1, cells.ravel()).reshape(C, n)
+    signs = (1, -1, 1, -1)
+    for a, b in combinations(range(n), 2):                  # dual facets inside the cells
+        m = (V[:, a] + V[:, b]) / 2
+        if d == 2:
+            pieces = [np.stack([m, g], 1)]
+        else:
+            pieces = [np.stack([m, (V[:, a] + V[:, b] + V[:, k]) / 3, g], 1)
+                      for k in range(n) if k not in (a, b)]
+        rows = [cells[:, a], cells[:, b]] + ([sub[:, a], sub[:, b]] if stabilised else [])
+        for S in pieces:
+            B.facets(*_facet_rule(S, order, V[:, b] - V[:, a]), np.stack(rows, 1), signs)
+
+    faces, fcell, flocal = mesh.boundary_faces(X, cells)    # surface: each vertex's share
+    fV = X[faces]
+    outward = mesh.facet_normals(fV)[0]
+    local = np.argmax(cells[fcell][:, None, :] == faces[:, :, None], axis=2)   # (M, d)
+    for j, share in enumerate(_face_shares(fV, fV.mean(1))):
+        rows = [faces[:, j]] + ([sub[fcell, local[:, j]]] if stabilised else [])
+        for S in share:
+            B.facets(*_facet_rule(S, order, outward), np.stack(rows, 1), (1, 1), boundary=True,
+                     face=np.arange(len(faces)))
+    B.mesh_faces = faces
+    if stabilised:                                          # interior faces between two pieces
+        _, face_id, counts = mesh.face_counts(cells)
+        shared = np.flatnonzero(counts[face_id.ravel()] == 2)
+        shared = shared[np.argsort(face_id.ravel()[shared], kind="stable")].reshape(-1, 2)
+        c1, k1 = np.divmod(shared[:, 0], n)
+        c2 = shared[:, 1] // n
+        F = cells[c1][np.arange(n)[None] != k1[:, None]].reshape(-1, d)   # the face, as in c1
+        fV = X[F]
+        fc = fV.mean(1)
+        towards = fc - X[cells[c1, k1]]                     # out of c1, into c2
+        l1 = np.argmax(cells[c1][:, None, :] == F[:, :, None], axis=2)
+        l2 = np.argmax(cells[c2][:, None, :] == F[:, :, None], axis=2)
+        for j, share in enumerate(_face_shares(fV, fc)):
+            rows = np.stack([sub[c1, l1[:, j]], sub[c2, l2[:, j]]], 1)
+            for S in share:
+                B.facets(*_facet_rule(S, order, towards), rows, signs)
+    return B
+
+
+def _boundary_stencils_mesh(X, faces, face_of_point, P):
+    """P1 interpolation on the mesh surface face holding each boundary point P (G, d): the
+    face's vertices (G, d) and the point's barycentric coordinates there (G, d)."""
+    idx = faces[face_of_point]
+    V = X[idx]
+    E = V[:, 1:] - V[:, :1]                                 # (G, d-1, d)
+    lam = np.linalg.solve(E @ np.swapaxes(E, 1, 2), np.einsum("gkd,gd->gk", E, P - V[:, 0])[..., None])[..., 0]
+    return idx, np.concatenate([1 - lam.sum(1, keepdims=True), lam], 1)
+
+
 # ===================================================== nodal (interpolated) boundary rule
 def _lagrange_window(t_nodes, t, degree):
     """For sorted node parameters (m,) and points t (G,): the (G, p+1) indices of the p+1
@@ -353,7 +490,9 @@ def build(body: Body, a: float, stab: float = DEFAULT_STAB, boundary: str = "nod
     if order < 1:
         raise ValueError(f"facet Gauss order must be >= 1, got {order}")
     d, N = body.dim, body.n
-    if d == 2:
+    if body.cells is not None:
+        Bd = _build_mesh(body, order, stab > 0)
+    elif d == 2:
         if body.vertices is None:
             raise ValueError("SCNI in 2D needs the domain polygon (Body.grid or Body.polygon)")
         Bd = _build_2d(body, order, stab > 0)
@@ -383,8 +522,12 @@ def build(body: Body, a: float, stab: float = DEFAULT_STAB, boundary: str = "nod
     ent_v = [s_in.psi.ravel()]
     if boundary == "nodal" and isb.any():
         bpts = np.flatnonzero(isb)
-        st_idx, st_w = (_boundary_stencils_2d if d == 2 else _boundary_stencils_3d)(
-            body, pts[bpts], NODAL_DEGREE)
+        if body.cells is not None:
+            st_idx, st_w = _boundary_stencils_mesh(body.X, Bd.mesh_faces, np.concatenate(Bd.face)[bpts],
+                                                   pts[bpts])
+        else:
+            st_idx, st_w = (_boundary_stencils_2d if d == 2 else _boundary_stencils_3d)(
+                body, pts[bpts], NODAL_DEGREE)
         nodes = np.unique(st_idx)
         s_nodes = sf(body.X[nodes])
         where = np.searchsorted(nodes, st_idx)            # (Gb, S) rows of s_nodes
@@ -404,30 +547,25 @@ def build(body: Body, a: float, stab: float = DEFAULT_STAB, boundary: str = "nod
     if abs(total - body.measure) > 1e-9 * body.measure:
         raise ValueError(f"SCNI cells cover {total} of the domain measure {body.measure}")
 
-    # (row, particle) -> oint Psi n: expand incidences x facet-point entries
-    order_pt = np.argsort(ent_pt, kind="stable")
-    ent_pt, ent_I, ent_v = ent_pt[order_pt], ent_I[order_pt], ent_v[order_pt]
-    start = np.searchsorted(ent_pt, np.arange(len(pts)))
-    count = np.searchsorted(ent_pt, np.arange(len(pts)), side="right") - start
-    c_inc = count[inc_pt]
-    rep_row = np.repeat(inc_row, c_inc)
-    offs = np.arange(c_inc.sum()) - np.repeat(np.cumsum(c_inc) - c_inc, c_inc)
-    e = np.repeat(start[inc_pt], c_inc) + offs
-    coef = np.repeat(inc_sign * wts[inc_pt], c_inc)[:, None] * ent_v[e][:, None] * nrm[np.repeat(inc_pt, c_inc)]
-    key_g = rep_row * N + ent_I[e]
+    # (row, particle) -> oint Psi n as sparse products: incidences (R, points) x Psi at the
+    # facet points (points, N), one product per normal component
+    Psi = sp.csr_matrix((ent_v, (ent_pt, ent_I)), shape=(len(pts), N))
+    A = sp.csr_matrix((inc_sign * wts[inc_pt], (inc_row, inc_pt)), shape=(R, len(pts)))
+    G = [(A @ sp.diags(nrm[:, k]) @ Psi).tocoo() for k in range(d)]
 
     # boundary integral oint_Gamma Psi_I n (the constraint's right-hand side)
-    bsel = isb[ent_pt]
-    bint = np.zeros((N, d))
-    np.add.at(bint, ent_I[bsel], (wts[ent_pt[bsel]] * ent_v[bsel])[:, None] * nrm[ent_pt[bsel]])
+    bint = np.stack([Psi.T @ np.where(isb, wts * nrm[:, k], 0.0) for k in range(d)], 1)
 
-    # shape values at the row points
+    # shape values at the row points; the table's pattern is the union of both
     s_row = sf(row_pts)
+    key_g = np.concatenate([g.row.astype(np.int64) * N + g.col for g in G])
     key_p = (np.arange(R)[:, None] * N + s_row.idx).ravel()
-    keys = np.concatenate([key_g, key_p])
-    uniq, inv = np.unique(keys, return_inverse=True)
+    uniq, inv = np.unique(np.concatenate([key_g, key_p]), return_inverse=True)
     grad = np.zeros((len(uniq), d))
-    np.add.at(grad, inv[:len(key_g)], coef)
+    pos = 0
+    for k, g in enumerate(G):
+        np.add.at(grad[:, k], inv[pos:pos + g.nnz], g.data)
+        pos += g.nnz
     val = np.zeros(len(uniq))
     np.add.at(val, inv[len(key_g):], s_row.psi.ravel())
     rows, parts = uniq // N, uniq % N
