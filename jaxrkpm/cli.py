@@ -11,6 +11,7 @@ COMMANDS = {
     "track": "jaxrkpm.studies.track",
     "compress": "jaxrkpm.studies.compress",
     "needle": "jaxrkpm.studies.needle",
+    "needle3d": "jaxrkpm.studies.needle3d",
     "rig-sim": "jaxrkpm.studies.rig_sim",
     "reproduce": "jaxrkpm.studies.reproduce",
 }
