@@ -138,3 +138,20 @@ def test_bad_input():
         Phantom3D(insertion=0.6)
     with pytest.raises(ValueError, match="start"):
         nd.optimize_paddle(Phantom3D(), start=[0.5])
+
+
+def test_cli_static(tmp_path, phantom, sweep):
+    """``jaxrkpm needle3d --mode static``: summary, figures and .vtu files (its report on
+    the module's sweep, so no second sweep is compiled and run)."""
+    import json
+    from jaxrkpm.studies import needle3d as cli
+    s = cli.static_report(phantom, sweep, tmp_path)
+    (tmp_path / "summary.json").write_text(json.dumps(s))
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    assert saved["patches"] == 24 and saved["converged"] and saved["best_reduction"] >= 3.0
+    assert len(saved["controllability"]) == 24 and 1 <= saved["most_controllable"] <= 24
+    for name in ("patches_none.png", "deviation_none.png", "phantom_static_none.png"):
+        assert (tmp_path / name).stat().st_size > 10_000
+    assert all((tmp_path / p).name.endswith(".vtu") and (tmp_path / p).exists() for p in saved["vtu"])
+    with pytest.raises(SystemExit):
+        cli.main(["--increments", "0", "--out", str(tmp_path)])

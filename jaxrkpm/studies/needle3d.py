@@ -98,7 +98,12 @@ def write_vtu(out: Path, name: str, model, sol) -> str:
 def run_static(phantom, inclusion, increments, out: Path, n_devices=1):
     t0 = time.perf_counter()
     sw = nd.static_sweep(phantom, inclusion, increments, n_devices=n_devices)
-    wall = time.perf_counter() - t0
+    return static_report(phantom, sw, out, wall=time.perf_counter() - t0)
+
+
+def static_report(phantom, sw, out: Path, wall=None):
+    """The static mode's summary, figures and .vtu files from a sweep ``sw``."""
+    inclusion, increments = sw.inclusion, len(sw.depths)
     free = float(sw.no_paddle[-1])
     final = sw.final
     best = sw.best
