@@ -17,6 +17,8 @@ COMMANDS = {
     "track": ("jaxrkpm.studies.track", "chapter-5 Jacobian path tracking: 2D paths, the 3D cube of Table 5.1"),
     "compress": ("jaxrkpm.studies.compress", "compression to failure, Gauss vs nodal integration (Figs 5.10-5.18)"),
     "needle": ("jaxrkpm.studies.needle", "chapter 6: needle insertion, static/dynamic/optimised paddle"),
+    "needle3d": ("jaxrkpm.studies.needle3d", "chapter 6 lifted to 3D: a half-ellipsoid phantom from a mesh, "
+                                            "paddle patches on its skin"),
     "rig-sim": ("jaxrkpm.studies.rig_sim", "the simulated rig of section 5.3.2: vision, robot link, "
                                            "an object the model does not know"),
     "cantilever": ("jaxrkpm.studies.cantilever", "Timoshenko cantilever: error and convergence rate (verification)"),

@@ -36,8 +36,42 @@ from .thesis import NEEDLE as THESIS  # noqa: F401  (re-exported: needle.THESIS,
 IMMOBILE = ("bottom", "top")
 
 
+def lateral_deviation(e):
+    """(..., L) lateral components -> (...): the signed component when there is one lateral
+    direction (2D: the thesis' x deviation), else their length (3D)."""
+    if e.shape[-1] == 1:
+        return e[..., 0]
+    return jnp.sqrt(jnp.sum(e * e, axis=-1)) if isinstance(e, jax.Array) else np.linalg.norm(e, axis=-1)
+
+
+class NeedleTrack:
+    """What the generic needle functions need of a phantom besides its models: the needle
+    direction (d,) (a unit vector), the lateral basis (L, d) (orthonormal rows perpendicular
+    to the needle), the target (d,) and the insertion depth. Mixed into the phantoms, which
+    define ``needle_direction``, ``lateral``, ``target`` and ``insertion``."""
+
+    def needle_at(self, depth) -> np.ndarray:
+        """(d,) the needle particles' prescribed translation at insertion ``depth``."""
+        return float(depth) * np.asarray(self.needle_direction, float)
+
+    def lateral_components(self, u):
+        """(..., d) target displacements -> (..., L) their components across the needle."""
+        return u @ jnp.asarray(self.lateral, jnp.float64).T if isinstance(u, jax.Array) \
+            else np.asarray(u) @ np.asarray(self.lateral, float).T
+
+    def deviation_of(self, u):
+        """(..., d) target displacements -> (...) lateral deviation (``lateral_deviation``)."""
+        return lateral_deviation(self.lateral_components(u))
+
+    def depths(self, increments: int) -> np.ndarray:
+        """Needle depth after each of ``increments`` equal increments: (increments,)."""
+        if increments < 1:
+            raise ValueError(f"increments must be >= 1, got {increments}")
+        return self.insertion * np.arange(1, increments + 1) / increments
+
+
 @dataclass(frozen=True)
-class Phantom:
+class Phantom(NeedleTrack):
     """The Figure 6.1 phantom: unit square with the corner x + y < 0.5 cut away, lattice
     particles at ``spacing``, the ``needle_particles`` particles on the needle line nearest
     the entry (0.5, 0) pushed along +y by ``insertion`` (15%), target (0.5, 0.4), Fung
@@ -85,6 +119,21 @@ class Phantom:
             keep = polygons.contains(V, L) | (polygons.distance_to_boundary(V, L) <= 1e-9 * h)
             self._cache["body"] = Body.points(L[keep], V, h)
         return self._cache["body"]
+
+    @property
+    def needle_direction(self) -> np.ndarray:
+        """The needle advances along +y (Figure 6.1)."""
+        return np.array([0.0, 1.0])
+
+    @property
+    def lateral(self) -> np.ndarray:
+        """(1, 2): the lateral deviation is the target's x displacement (section 6.3)."""
+        return np.array([[1.0, 0.0]])
+
+    @property
+    def paddle_bounds(self):
+        """(lower, upper) of the continuous paddle position q: the Table 6.2 chain, 1..P."""
+        return 1.0, float(len(self.paddles))
 
     def material(self, inclusion: str = "none"):
         """Fung (eq 6.1); inside the inclusion square alpha and beta are x stiffness_ratio."""
@@ -185,12 +234,6 @@ class Phantom:
             self._cache[key] = Model(self.body, self.material(inclusion), self.integration,
                                      essential=self.sets(None), support=self.support, springs=springs)
         return self._cache[key]
-
-    def depths(self, increments: int) -> np.ndarray:
-        """Needle depth after each of ``increments`` equal increments: (increments,)."""
-        if increments < 1:
-            raise ValueError(f"increments must be >= 1, got {increments}")
-        return self.insertion * np.arange(1, increments + 1) / increments
 
 
 def inclusion_field(box, ratio: float):
@@ -297,10 +340,12 @@ def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, with_jacobian):
 
 
 def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None = "paddle",
-           n_devices: int | None = 1, max_iter: int = 25, steps: int = 1) -> Insertion:
+           n_devices: int | None = 1, max_iter: int = 25, steps: int = 1, direction=None) -> Insertion:
     """Insert the needle of every model through ``depths`` (n,) in one compiled, batched call
-    and record the displacement of ``point`` (2,) at every increment; with ``jacobian_set``,
+    and record the displacement of ``point`` (d,) at every increment; with ``jacobian_set``,
     also the implicit Jacobian of the point w.r.t. a rigid translation of that set.
+    ``direction`` (d,): the needle's unit direction (default: the last coordinate axis, +y
+    in 2D as in Figure 6.1; pass ``phantom.needle_direction``).
     The configurations run one at a time on each device (see ``_insert_batch``);
     ``n_devices``: shard them over that many devices.
 
@@ -314,10 +359,15 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
     ref = models[0]
     prob = stack_models(models)
     prob = prob.with_config(linear=prob.config.linear.batched())
+    depths = np.asarray(depths, float)
+    d = ref.dim
+    direction = np.eye(d)[-1] if direction is None else np.asarray(direction, float)
+    if direction.shape != (d,) or not np.isclose(np.linalg.norm(direction), 1.0):
+        raise ValueError(f"direction must be a unit vector of shape ({d},), got {np.asarray(direction).tolist()}")
     G, dG = [], []
     for m in models:
-        rows = [m.prescribed({"needle": [0.0, 0.0]})]
-        rows += [m.prescribed({"needle": [0.0, float(t)]}) for t in depths]
+        rows = [m.prescribed({"needle": np.zeros(d)})]
+        rows += [m.prescribed({"needle": float(t) * direction}) for t in depths]
         G.append(jnp.stack(rows))
         dG.append(m.directions(jacobian_set) if jacobian_set else jnp.zeros((1,) + rows[0].shape))
     sf = ref.shape_functions(np.atleast_2d(point), gradients=False)
@@ -328,12 +378,19 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
                        (prob, jnp.stack(G), jnp.stack(dG)), n_devices)
 
 
-def controllability(J) -> np.ndarray:
-    """delta x_min = ||J^-1 [1 0]^T||: paddle travel per unit lateral target correction
-    (section 6.3.2). J (..., 2, 2) -> (...)."""
+def controllability(J, lateral=((1.0, 0.0),)) -> np.ndarray:
+    """delta x_min: the paddle travel per unit lateral target correction (section 6.3.2),
+    J = d target / d paddle translation (..., d, d), ``lateral`` (L, d) the orthonormal rows
+    across the needle -> (...).
+
+    The paddle move that shifts the target by a lateral e (and not along the needle) is
+    J^-1 e; delta x_min is its largest length over unit lateral e, the largest singular value
+    of J^-1 lateral^T. With one lateral direction (2D) that is the thesis' ||J^-1 [1 0]^T||
+    (the same quantity; equal to round-off)."""
     J = np.asarray(J)
-    return np.linalg.norm(np.linalg.solve(J, np.broadcast_to([1.0, 0.0], J.shape[:-1])[..., None])[..., 0],
-                          axis=-1)
+    B = np.asarray(lateral, float).T                                  # (d, L)
+    M = np.linalg.solve(J, np.broadcast_to(B, J.shape[:-1] + B.shape[-1:]))
+    return np.linalg.svd(M, compute_uv=False)[..., 0]
 
 
 # ---------------------------------------------------------------------- sweeps
@@ -343,11 +400,14 @@ class StaticSweep:
 
     inclusion: str
     depths: np.ndarray            # (n,)
-    deviation: np.ndarray         # (P, n) target x displacement per paddle and increment
-    no_paddle: np.ndarray         # (n,)
+    deviation: np.ndarray         # (P, n) lateral target deviation per paddle and increment
+    no_paddle: np.ndarray         # (n,)   (NeedleTrack.deviation_of: signed x in 2D, a length in 3D)
     status: np.ndarray            # (P, n)
     no_paddle_status: np.ndarray  # (n,)
-    jacobian: np.ndarray          # (P, n, 2, 2)
+    jacobian: np.ndarray          # (P, n, d, d) d target / d paddle translation
+    target_u: np.ndarray          # (P, n, d) target displacement
+    no_paddle_u: np.ndarray       # (n, d)
+    lateral: np.ndarray           # (L, d) the phantom's lateral basis
 
     @property
     def final(self) -> np.ndarray:
@@ -370,7 +430,7 @@ class StaticSweep:
     @property
     def controllability(self) -> np.ndarray:
         """(P, n) delta x_min at every increment (the thesis computes it after the first)."""
-        return controllability(self.jacobian)
+        return controllability(self.jacobian, self.lateral)
 
     @property
     def converged(self) -> bool:
@@ -379,7 +439,9 @@ class StaticSweep:
 
 def static_sweep(phantom: Phantom, inclusion: str = "none", increments: int = 15,
                  paddles: Sequence[int] | None = None, n_devices: int | None = 1) -> StaticSweep:
-    """Every paddle position x every increment in one batched call, plus the no-paddle run."""
+    """Every paddle position x every increment in one batched call, plus the no-paddle run.
+    ``phantom``: a :class:`Phantom` or any phantom with the same interface (``NeedleTrack``,
+    ``model(inclusion, paddle)``, ``paddles``), e.g. the 3D :class:`jaxrkpm.phantom3d.Phantom3D`."""
     paddles = list(range(1, len(phantom.paddles) + 1)) if paddles is None else list(paddles)
     if not paddles:
         raise ValueError(f"paddles is empty: give 1-based paddle indices in 1..{len(phantom.paddles)} "
@@ -387,12 +449,15 @@ def static_sweep(phantom: Phantom, inclusion: str = "none", increments: int = 15
     for p in paddles:   # a clear error before anything is built (Phantom.sets checks each)
         phantom.sets(p)
     depths = phantom.depths(increments)
+    direction = phantom.needle_direction
     runs = insert([phantom.model(inclusion, p) for p in paddles], depths, phantom.target,
-                  n_devices=n_devices)
-    free = insert([phantom.model(inclusion, None)], depths, phantom.target, jacobian_set=None)
-    return StaticSweep(inclusion, depths, np.asarray(runs.target_u[..., 0]),
-                       np.asarray(free.target_u[0, :, 0]), np.asarray(runs.status),
-                       np.asarray(free.status[0]), np.asarray(runs.jacobian))
+                  n_devices=n_devices, direction=direction)
+    free = insert([phantom.model(inclusion, None)], depths, phantom.target, jacobian_set=None,
+                  direction=direction)
+    tu, fu = np.asarray(runs.target_u), np.asarray(free.target_u[0])
+    return StaticSweep(inclusion, depths, phantom.deviation_of(tu), phantom.deviation_of(fu),
+                       np.asarray(runs.status), np.asarray(free.status[0]), np.asarray(runs.jacobian),
+                       tu, fu, np.asarray(phantom.lateral, float))
 
 
 class HoldStatus(Outcome):
@@ -417,9 +482,9 @@ class DynamicRun:
 
     paddle: int
     depths: np.ndarray        # (n,)
-    deviation: np.ndarray     # (n,) target x displacement after the correction
-    uncorrected: np.ndarray   # (n,) target x displacement after the feed-forward move only
-    paddle_u: np.ndarray      # (n, 2) paddle translation
+    deviation: np.ndarray     # (n,) lateral target deviation after the correction
+    uncorrected: np.ndarray   # (n,) lateral target deviation after the feed-forward move only
+    paddle_u: np.ndarray      # (n, d) paddle translation
     iterations: np.ndarray    # (n,) correction solves per increment
     status: HoldStatus
     message: str
@@ -429,8 +494,16 @@ class DynamicRun:
     @property
     def travel(self) -> float:
         """Path length of the paddle from rest."""
-        p = np.vstack([np.zeros(2), self.paddle_u])
+        p = np.vstack([np.zeros(self.paddle_u.shape[1]), self.paddle_u])
         return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
+
+
+def cancelling_move(Jp, lateral, e) -> np.ndarray:
+    """The minimum-norm paddle translation (d,) that moves the target by -e across the needle
+    (e (L,) lateral components), from J = d target / d paddle translation (d, d): the
+    lateral rows A = lateral J, dp = -A^T (A A^T)^-1 e (2D: the x-row of J)."""
+    A = np.asarray(lateral, float) @ np.asarray(Jp)
+    return -A.T @ np.linalg.solve(A @ A.T, np.asarray(e, float))
 
 
 def dynamic_paddle(phantom: Phantom, paddle: int, inclusion: str = "none", increments: int = 15,
@@ -438,54 +511,58 @@ def dynamic_paddle(phantom: Phantom, paddle: int, inclusion: str = "none", incre
     """Move the paddle during insertion so the target stays on the needle line.
 
     Each increment: a feed-forward paddle move cancels the lateral target motion the implicit
-    Jacobians predict for the needle increment (minimum-norm move: the paddle's x-row of
-    d target/d paddle); then corrections with the Jacobian at the new equilibrium until
-    |x deviation| < tol. A failed solve stops the loop with its status; what was computed
-    is kept."""
+    Jacobians predict for the needle increment (``cancelling_move``: minimum norm, from the
+    lateral rows of d target/d paddle); then corrections with the Jacobian at the new
+    equilibrium until |lateral deviation| < tol. A failed solve stops the loop with its
+    status; what was computed is kept. Any phantom with the ``NeedleTrack`` interface."""
     model = phantom.model(inclusion, paddle)
     target = np.atleast_2d(phantom.target)
     depths = phantom.depths(increments)
+    B, direction = np.asarray(phantom.lateral, float), np.asarray(phantom.needle_direction, float)
+    d = model.dim
     sol = model.initial()
-    p = np.zeros(2)
+    p = np.zeros(d)
     dev, pre, pu, its = [], [], [], []
     status, message, solve_status = HoldStatus.CONVERGED, HoldStatus.CONVERGED.message, Status.CONVERGED
     depth_prev = 0.0
 
     def solve_at(depth, p, start):
-        return model.solve({"needle": [0.0, depth], "paddle": p}, initial=start, throw=False)
+        return model.solve({"needle": phantom.needle_at(depth), "paddle": p}, initial=start, throw=False)
+
+    def lateral_error(s):
+        return B @ np.asarray(model.displacement(s, target)[0])          # (L,)
 
     for depth in depths:
-        Jp = np.asarray(model.jacobian(sol, "paddle", target))          # (2, 2)
-        Jn = np.asarray(model.jacobian(sol, "needle", target))[:, 1]    # (2,)
-        row = Jp[0]
-        p = p - row * (Jn[0] * (depth - depth_prev)) / (row @ row)
+        Jp = np.asarray(model.jacobian(sol, "paddle", target))           # (d, d)
+        Jn = np.asarray(model.jacobian(sol, "needle", target)) @ direction   # (d,)
+        p = p + cancelling_move(Jp, B, B @ Jn * (depth - depth_prev))
         new = solve_at(depth, p, sol)
         k = 0
         if int(new.status) == Status.CONVERGED:
-            e = float(model.displacement(new, target)[0, 0])
-            pre.append(e)
-            while abs(e) >= tol and k < max_corrections:
-                row = np.asarray(model.jacobian(new, "paddle", target))[0]
-                p = p - row * e / (row @ row)
+            e = lateral_error(new)
+            pre.append(float(lateral_deviation(e)))
+            while np.linalg.norm(e) >= tol and k < max_corrections:
+                p = p + cancelling_move(model.jacobian(new, "paddle", target), B, e)
                 new = solve_at(depth, p, new)
                 k += 1
                 if int(new.status) != Status.CONVERGED:
                     break
-                e = float(model.displacement(new, target)[0, 0])
+                e = lateral_error(new)
         if int(new.status) != Status.CONVERGED:
             status, message, solve_status = HoldStatus.SOLVE_FAILED, new.message, new.outcome
             break
         sol, depth_prev = new, depth
-        dev.append(e)
+        dev.append(float(lateral_deviation(e)))
         pu.append(p.copy())
         its.append(k)
-        if abs(e) >= tol:
+        if np.linalg.norm(e) >= tol:
             status = HoldStatus.NOT_HELD
-            message = f"|x deviation| {abs(e):.2e} >= {tol:g} after {k} corrections at depth {depth:.4f}"
+            message = (f"|lateral deviation| {np.linalg.norm(e):.2e} >= {tol:g} after {k} corrections "
+                       f"at depth {depth:.4f}")
             break
     n = len(dev)
     return DynamicRun(paddle, depths[:n], np.array(dev), np.array(pre[:n]),
-                      np.array(pu).reshape(n, 2), np.array(its, int), status, message, sol, solve_status)
+                      np.array(pu).reshape(n, d), np.array(its, int), status, message, sol, solve_status)
 
 
 def static_state(phantom: Phantom, inclusion: str = "none", paddle: int | None = None,
@@ -496,7 +573,7 @@ def static_state(phantom: Phantom, inclusion: str = "none", paddle: int | None =
     model = phantom.model(inclusion, paddle)
     sol = model.initial()
     for depth in phantom.depths(increments):
-        new = model.solve({"needle": [0.0, float(depth)]}, initial=sol, throw=False)
+        new = model.solve({"needle": phantom.needle_at(depth)}, initial=sol, throw=False)
         if int(new.status) != Status.CONVERGED:
             break
         sol = new
@@ -506,14 +583,15 @@ def static_state(phantom: Phantom, inclusion: str = "none", paddle: int | None =
 # ------------------------------------------------- optimised placement (beyond the thesis)
 @dataclass
 class PaddleOptimum:
-    """The paddle position q (continuous, 1..P along the Table 6.2 chain) minimising the
-    squared final lateral target deviation, found by optax (Adam) through the solve."""
+    """The continuous paddle position q minimising the squared final lateral target
+    deviation, found by optax (Adam) through the solve. q: the phantom's paddle coordinates
+    (``paddle_points``): a scalar 1..P along the Table 6.2 chain in 2D, two surface
+    coordinates in 3D."""
 
     inclusion: str
-    q: float                    # optimum
-    arc_length: float           # of the optimum's centre along the boundary
-    deviation: float            # final x deviation there
-    history: np.ndarray         # (iterations, 3): q, deviation, d(deviation^2)/dq per iteration
+    q: float | np.ndarray       # optimum
+    deviation: float            # final lateral deviation there
+    history: np.ndarray         # (iterations, 2k + 1): q (k), deviation, d(deviation^2)/dq (k)
     rejected: int               # steps whose insertion failed (det F <= 0 ...), undone and shortened
     status: OptimizeStatus
     message: str
@@ -522,70 +600,79 @@ class PaddleOptimum:
 
 def spring_insertion(model: Model, phantom: Phantom, q, depths):
     """Insert the needle through ``depths`` with the spring paddle at position q, each
-    increment warm-started from the last: (last Solution, target x deviation per increment,
-    status). A failed increment stops there (the last converged state is returned)."""
+    increment warm-started from the last: (last Solution, lateral target deviation per
+    increment, status). A failed increment stops there (the last converged state is returned)."""
     springs = {"springs": model.springs_at(phantom.paddle_points(q))}
     target = np.atleast_2d(phantom.target)
     sol, dev = model.initial(), []
     for depth in depths:
-        new = model.solve({"needle": [0.0, float(depth)]}, params=springs, initial=sol, throw=False)
+        new = model.solve({"needle": phantom.needle_at(depth)}, params=springs, initial=sol, throw=False)
         if int(new.status) != Status.CONVERGED:
             return sol, np.array(dev), new.outcome
         sol = new
-        dev.append(float(model.displacement(sol, target)[0, 0]))
+        dev.append(float(phantom.deviation_of(model.displacement(sol, target)[0])))
     return sol, np.array(dev), Status.CONVERGED
 
 
-def final_deviation_and_gradient(model: Model, phantom: Phantom, q: float, depths):
-    """(x deviation at full insertion, d(deviation)/dq, status): the insertion path selects
-    the equilibrium; the derivative is the implicit one at the final state (the solve is
-    differentiable in the spring points)."""
+def final_deviation_and_gradient(model: Model, phantom: Phantom, q, depths):
+    """(lateral deviation at full insertion, d(deviation)/dq (the shape of q), status): the
+    insertion path selects the equilibrium; the derivative is the implicit one at the final
+    state (the solve is differentiable in the spring points)."""
     sol, dev, status = spring_insertion(model, phantom, q, depths[:-1])
     if status != Status.CONVERGED:
-        return np.nan, np.nan, status
+        return np.nan, np.full(np.shape(q), np.nan) if np.ndim(q) else np.nan, status
     sf = model.shape_functions(np.atleast_2d(phantom.target), gradients=False)
     idx, psi = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
 
     def final(q):
-        s = model.solve({"needle": [0.0, float(depths[-1])]}, initial=sol, throw=False,
+        s = model.solve({"needle": phantom.needle_at(depths[-1])}, initial=sol, throw=False,
                         params={"springs": model.springs_at(phantom.paddle_points(q))})
-        return point_values(model.ops, idx, psi, s.u, s.g)[0, 0], s.status
+        return phantom.deviation_of(point_values(model.ops, idx, psi, s.u, s.g)[0]), s.status
 
-    (d, st), g = jax.value_and_grad(final, has_aux=True)(jnp.float64(q))
-    return float(d), float(g), Status.of(st)
+    (d, st), g = jax.value_and_grad(final, has_aux=True)(jnp.asarray(q, jnp.float64))
+    return float(d), (np.asarray(g) if np.ndim(q) else float(g)), Status.of(st)
 
 
-def optimize_paddle(phantom: Phantom, inclusion: str = "none", start: float = 4.0,
+def optimize_paddle(phantom: Phantom, inclusion: str = "none", start=None,
                     increments: int = 15, iterations: int = 30, learning_rate: float = 0.1,
                     decay: float = 0.9, stiffness: float = 1e6, tol: float = 1e-7,
                     step_tol: float = 1e-4) -> PaddleOptimum:
-    """Adam on q in [1, P] for min deviation(q)^2 at full insertion, the learning rate
-    decaying by ``decay`` per iteration (plain Adam circles a minimum at a fixed step). A
-    step into a position whose insertion fails (the material inverts near the needle tip)
-    is undone and the steps halved: the optimum may sit on that feasibility edge. Stops
-    when |deviation| < tol, a step is below ``step_tol``, or after ``iterations``; returns
-    the best iterate."""
+    """Adam on the paddle coordinates q within ``phantom.paddle_bounds`` for min
+    deviation(q)^2 at full insertion, from ``start`` (default: the middle of the bounds),
+    the learning rate decaying by ``decay`` per iteration (plain Adam circles a minimum at a
+    fixed step). A step into a position whose insertion fails (the material inverts near the
+    needle tip) is undone and the steps halved: the optimum may sit on that feasibility
+    edge. Stops when |deviation| < tol, a step is below ``step_tol`` (largest coordinate),
+    or after ``iterations``; returns the best iterate."""
     import optax
+    lo, hi = (np.asarray(b, float) for b in phantom.paddle_bounds)
+    q = 0.5 * (lo + hi) if start is None else np.asarray(start, float)
+    if q.shape != lo.shape or not np.all(np.isfinite(q)):
+        raise ValueError(f"start must be {lo.size} finite paddle coordinate(s) of shape {lo.shape}, "
+                         f"got {np.asarray(start).tolist()}")
     model = phantom.spring_model(inclusion, stiffness)
     depths = phantom.depths(increments)
-    P = len(phantom.paddles)
     opt = optax.adam(optax.exponential_decay(learning_rate, transition_steps=1, decay_rate=decay))
-    q = float(start)
-    state = opt.init(jnp.float64(q))
+    state = opt.init(jnp.asarray(q))
     d, g, st = final_deviation_and_gradient(model, phantom, q, depths)
+    k = q.size
     if st != Status.CONVERGED:
-        return PaddleOptimum(inclusion, q, phantom.arc_length(q), np.nan, np.zeros((0, 3)), 0,
-                             OptimizeStatus.START_FAILED,
-                             f"the insertion fails at the start position q = {q} ({st.name})", st)
-    hist, rejected, scale = [(q, d, 2 * d * g)], 0, 1.0
+        return PaddleOptimum(inclusion, _coordinates(q), np.nan, np.zeros((0, 2 * k + 1)),
+                             0, OptimizeStatus.START_FAILED,
+                             f"the insertion fails at the start position q = {q.tolist()} ({st.name})", st)
+
+    def row(q, d, g):
+        return [*np.ravel(q), d, *np.ravel(2 * d * np.asarray(g))]
+
+    hist, rejected, scale = [row(q, d, g)], 0, 1.0
     status, message = OptimizeStatus.MAX_ITERATIONS, f"{iterations} iterations"
     for _ in range(iterations):
         if abs(d) < tol:
             status, message = OptimizeStatus.CONVERGED, f"|deviation| < {tol:g}"
             break
-        upd, new_state = opt.update(jnp.float64(2 * d * g), state)
-        q_new = float(np.clip(q + scale * float(upd), 1.0, P))
-        if abs(q_new - q) < step_tol:
+        upd, new_state = opt.update(jnp.asarray(2 * d * np.asarray(g)), state)
+        q_new = np.clip(q + scale * np.asarray(upd), lo, hi)
+        if np.max(np.abs(q_new - q)) < step_tol:
             status, message = OptimizeStatus.CONVERGED, f"step below {step_tol:g}"
             break
         d_new, g_new, st = final_deviation_and_gradient(model, phantom, q_new, depths)
@@ -594,10 +681,16 @@ def optimize_paddle(phantom: Phantom, inclusion: str = "none", start: float = 4.
             scale *= 0.5          # stay on the feasible side: undo, shorten the steps
             continue
         q, d, g, state = q_new, d_new, g_new, new_state
-        hist.append((q, d, 2 * d * g))
+        hist.append(row(q, d, g))
     hist = np.array(hist)
-    best = int(np.argmin(np.abs(hist[:, 1])))
+    best = int(np.argmin(np.abs(hist[:, k])))
     if rejected:
         message += f"; {rejected} steps into infeasible positions (insertion fails) undone"
-    return PaddleOptimum(inclusion, float(hist[best, 0]), phantom.arc_length(hist[best, 0]),
-                         float(hist[best, 1]), hist, rejected, status, message)
+    return PaddleOptimum(inclusion, _coordinates(hist[best, :k].reshape(lo.shape)), float(hist[best, k]),
+                         hist, rejected, status, message)
+
+
+def _coordinates(q):
+    """A scalar paddle coordinate as a float, several as an array."""
+    q = np.asarray(q, float)
+    return float(q) if q.ndim == 0 else q

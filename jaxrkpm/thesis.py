@@ -21,7 +21,7 @@ import jaxrkpm as jr
 __all__ = [
     "planar_square", "cube", "cube_path", "CP_2D", "CP_3D", "CUBE_ORIGIN", "CUBES", "PATHS",
     "TABLE_5_1", "TABLE_6_2", "INCLUSIONS", "PHANTOM_OUTLINE", "PADDLE_HALF_WIDTH", "CUBE_MAX_ERROR", "TRACKING_MINUTES",
-    "COMPRESSION_BREAKDOWN", "RIG_MODEL_BETA", "RIG_SETTLE_MM", "NEEDLE",
+    "COMPRESSION_BREAKDOWN", "RIG_MODEL_BETA", "RIG_SETTLE_MM", "NEEDLE", "PHANTOM_3D", "INCLUSIONS_3D",
 ]
 
 # ================================================================== chapter 5: planar square
@@ -141,6 +141,31 @@ TABLE_6_2 = (((0.4, 0.1), (0.3, 0.2)),
 # section 6.3.1: inclusions given by the four nodes at their corners, (x range, y range);
 # the stiffness (x100) is carried by those nodes, i.e. by their cells (half a spacing around)
 INCLUSIONS = {"none": None, "right": ((0.6, 0.7), (0.3, 0.4)), "left": ((0.3, 0.4), (0.4, 0.5))}
+# ================================================================== beyond the thesis: 3D phantom
+# Chapter 6 lifted to 3D (:class:`jaxrkpm.phantom3d.Phantom3D`; our choices, not the thesis'):
+# a half-ellipsoid "breast" on the chest wall z = 0 (held fixed: "base"), a horizontal needle
+# entering through the skin from x < 0 along +x on the line y = 0.1, z = 0.2 (off the planes of
+# symmetry, so the target is pushed off the line in both lateral directions), the target at
+# 40% of the needle's chord through the phantom (as the thesis' target at 40% of the height). Paddle patches: centres on an angle grid of the upper skin,
+# theta (polar angle from the top) x phi (azimuth from +x), the needle side |phi| > 0.7 pi
+# and the skin near the base (theta > 0.9) left out; a patch is a compression paddle's
+# contact, ~0.5 in radius (smaller patches barely move the target: 4 particles at spacing
+# 0.25 cut the deviation at most 2x).
+PHANTOM_3D = {
+    "semi_axes": (1.0, 0.8, 0.6),
+    "needle_point": (0.0, 0.1, 0.2),  # a point of the needle line
+    "needle_axis": (1.0, 0.0, 0.0),   # its direction
+    "target_depth": 0.4,              # fraction of the chord from the entry
+    "needle_length": 0.3,             # the needle particles: near the first 0.3 of the track
+    "insertion": 0.12,                # needle advance (absolute; 6.5% of the chord)
+    "theta": (0.15, 0.9, 4),          # patch centres: polar angles (lo, hi, count)
+    "phi": (-0.7 * np.pi, 0.7 * np.pi, 6),   # azimuths (lo, hi, count): 4 x 6 = 24 patches
+    "patch_radius": 0.5,              # a paddle patch: the skin within ~0.5 of its centre
+}
+# inclusions (x100 stiffness): balls (centre offset from the target, radius) beside the target,
+# off the needle line, as the squares of section 6.3.1 beside the 2D target
+INCLUSIONS_3D = {"none": None, "side": ((0.0, 0.25, 0.0), 0.15), "above": ((0.0, 0.0, 0.22), 0.15)}
+
 NEEDLE = {
     # section 6.3 (Figs 6.2-6.3): target deviation with no paddle at 15% insertion
     "no_paddle_deviation": 0.0307454,

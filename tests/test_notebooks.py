@@ -19,7 +19,7 @@ BUDGET_S = 120.0   # issue 7: each notebook runs top to bottom in under two minu
 def test_notebooks_exist():
     names = {p.name for p in NOTEBOOKS}
     assert {"01_quickstart.ipynb", "02_tracking.ipynb", "03_paddle_sweeps.ipynb", "04_autodiff_vs_fd.ipynb",
-            "05_rig_sim.ipynb"} <= names
+            "05_rig_sim.ipynb", "06_mesh_objects.ipynb"} <= names
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])

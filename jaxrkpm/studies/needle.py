@@ -304,7 +304,7 @@ def run_optimize(phantom, inclusion, increments, out: Path, n_devices=1, start=N
     best_dev = float(sw.final[sw.best - 1])
     summary = {
         "mode": "optimize", "inclusion": inclusion, "increments": increments,
-        "optimum": {"q": opt.q, "arc_length": opt.arc_length, "deviation": opt.deviation},
+        "optimum": {"q": opt.q, "arc_length": phantom.arc_length(opt.q), "deviation": opt.deviation},
         "best_discrete": sw.best, "best_discrete_deviation": best_dev,
         "no_paddle_deviation": float(sw.no_paddle[-1]),
         "improvement_over_discrete": abs(best_dev) / max(abs(opt.deviation), 1e-300),
