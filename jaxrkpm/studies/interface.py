@@ -156,6 +156,23 @@ def needle_parser():
     return p
 
 
+def needle3d_parser():
+    from jaxrkpm.thesis import INCLUSIONS_3D
+    p = _parser("needle3d", "jaxrkpm.studies.needle3d", "results/needle3d")
+    p.add_argument("--mode", choices=("static", "dynamic", "optimize"), default="static")
+    p.add_argument("--inclusion", choices=tuple(INCLUSIONS_3D), default="none")
+    p.add_argument("--spacing", type=number(float, 0.05, 0.4), default=0.2,
+                   help="mesh size of the phantom (0.2: ~260 particles; 0.1: ~2,000)")
+    p.add_argument("--increments", type=COUNT, default=4, help="insertion increments")
+    p.add_argument("--paddle", type=COUNT, default=None,
+                   help="dynamic mode: patch to move (default: the most controllable)")
+    p.add_argument("--tol", type=POSITIVE, default=1e-5, help="dynamic mode: |lateral deviation| to hold")
+    p.add_argument("--iterations", type=COUNT, default=12, help="optimize mode: Adam iterations")
+    p.add_argument("--devices", type=COUNT, default=None,
+                   help="shard the sweep over this many devices (default: one)")
+    return p
+
+
 def rig_sim_parser():
     p = _parser("rig-sim", "jaxrkpm.studies.rig_sim", None)
     p.add_argument("--path", choices=("setpoint", "box"), default="box")
@@ -194,7 +211,7 @@ def cantilever_parser():
 
 
 PARSERS = {"demo": demo_parser, "track": track_parser, "compress": compress_parser,
-           "needle": needle_parser, "rig-sim": rig_sim_parser, "reproduce": reproduce_parser,
+           "needle": needle_parser, "needle3d": needle3d_parser, "rig-sim": rig_sim_parser, "reproduce": reproduce_parser,
            "cantilever": cantilever_parser}
 
 

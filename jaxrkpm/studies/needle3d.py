@@ -22,16 +22,17 @@ Writes summary.json, PNG figures and a .vtu of the final state to --out.
 """
 from __future__ import annotations
 
-import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 from jaxrkpm import needle as nd
-from jaxrkpm import output, plot
+from jaxrkpm import cli, output, plot
 from jaxrkpm.phantom3d import Phantom3D
+from jaxrkpm.studies import interface
 from jaxrkpm.thesis import INCLUSIONS_3D
 
 
@@ -91,7 +92,7 @@ def final_state(phantom, inclusion, paddle, increments):
 
 
 def write_vtu(out: Path, name: str, model, sol) -> str:
-    return output.write_solution(out / f"{name}.vtu", model, sol)
+    return str(output.write_solution(out / f"{name}.vtu", model, sol))
 
 
 def run_static(phantom, inclusion, increments, out: Path, n_devices=1):
@@ -244,44 +245,57 @@ def run_optimize(phantom, inclusion, increments, out: Path, iterations=12, stiff
     return summary
 
 
-BRIEF = {"static": ("particles", "inclusion", "no_paddle_deviation", "best", "best_reduction", "most_controllable",
-                    "converged", "wall_s"),
-         "dynamic": ("particles", "inclusion", "paddle", "max_deviation", "bound", "held", "paddle_travel",
-                     "status", "wall_s"),
-         "optimize": ("particles", "inclusion", "optimum", "best_discrete", "best_discrete_deviation",
-                      "improvement_over_discrete", "status", "wall_s")}
+def result(s: dict) -> tuple[bool, str]:
+    """(goal reached, the result in words) of a needle3d summary. Static: every patch and the
+    no-paddle run reach full insertion; dynamic: the target held within the bound at every
+    increment; optimize: the optimiser converged."""
+    mode, inc, n = s["mode"], s["inclusion"], s["particles"]
+    if mode == "static":
+        failed = [i + 1 for i, row in enumerate(s["status"]) if any(x != "converged" for x in row)]
+        words = (f"needle3d static ({inc}, {n} particles): no paddle {abs(s['no_paddle_deviation']):.2e}, best "
+                 f"patch {s['best']} of {s['patches']} {abs(s['deviation'][s['best'] - 1]):.2e} "
+                 f"({s['best_reduction']:.0f}x less), most controllable patch {s['most_controllable']}")
+        if failed:
+            words += f"; patches {', '.join(map(str, failed))} stopped before full insertion"
+        return bool(s["converged"]), words
+    if mode == "dynamic":
+        dev = "none" if s["max_deviation"] is None else f"{s['max_deviation']:.1e}"
+        words = (f"needle3d dynamic ({inc}, {n} particles): patch {s['paddle']}, max |lateral deviation| {dev} "
+                 f"(bound {s['bound']:.0e}), paddle travel {s['paddle_travel']:.4f}; "
+                 f"{s['status']}: {s['message']}")
+        return bool(s["held"]), words
+    o = s["optimum"]
+    words = (f"needle3d optimize ({inc}, {n} particles): patch at theta {o['theta']:.3f}, phi {o['phi']:.3f}, "
+             f"deviation {abs(o['deviation']):.1e}, {s['improvement_over_discrete']:.1f}x below the best "
+             f"discrete patch {s['best_discrete']}; {s['status']}: {s['message']}")
+    return s["status"] == "converged", words
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(prog="jaxrkpm needle3d", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--mode", choices=["static", "dynamic", "optimize"], default="static")
-    p.add_argument("--inclusion", choices=list(INCLUSIONS_3D), default="none")
-    p.add_argument("--spacing", type=float, default=0.2, help="mesh size (0.2: ~300 particles)")
-    p.add_argument("--increments", type=int, default=4, help="insertion increments")
-    p.add_argument("--paddle", type=int, default=None, help="dynamic mode: patch to move (default: most controllable)")
-    p.add_argument("--tol", type=float, default=1e-5, help="dynamic mode: |lateral deviation| to hold")
-    p.add_argument("--iterations", type=int, default=12, help="optimize mode: Adam iterations")
-    p.add_argument("--devices", type=int, default=None, help="shard the sweep over this many devices")
-    p.add_argument("--out", default="results/needle3d")
-    a = p.parse_args(argv)
-    if a.increments < 1:
-        p.error(f"--increments must be >= 1, got {a.increments}")
-    if not a.spacing > 0:
-        p.error(f"--spacing must be positive, got {a.spacing}")
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
+    a = interface.parse("needle3d", argv)
+    t0 = time.time()
+    out = interface.output_folder(a.out)
+    stages = interface.progress(total=2, desc=f"needle3d {a.mode} {a.inclusion}", unit="stage")
+    stages.set_postfix_str("mesh and models")
     phantom = Phantom3D(spacing=a.spacing)
+    if a.paddle is not None and a.paddle > len(phantom.paddles):
+        interface.needle3d_parser().error(f"argument --paddle: must be an integer in [1, {len(phantom.paddles)}] "
+                                          f"(the candidate patches), got {a.paddle}")
+    phantom.body
+    stages.update()
+    stages.set_postfix_str("sweep and solves")
     if a.mode == "static":
         summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
     elif a.mode == "dynamic":
         summary = run_dynamic(phantom, a.inclusion, a.increments, out, a.paddle, a.tol, a.devices)
     else:
         summary = run_optimize(phantom, a.inclusion, a.increments, out, a.iterations, n_devices=a.devices)
+    stages.update()
+    stages.close()
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(json.dumps({k: summary[k] for k in BRIEF[a.mode]}, indent=2))
+    interface.finish(out, t0, summary, result(summary)[1], a.json)
     return summary
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(cli.main(["needle3d", *sys.argv[1:]]))
