@@ -146,7 +146,7 @@ def static_report(phantom, sw, out: Path, wall=None):
     m0, s0 = final_state(phantom, inclusion, None, increments)
     m1, s1 = final_state(phantom, inclusion, best, increments)
     vmax = float(max(np.linalg.norm(m.particle_displacements(s), axis=1).max() for m, s in ((m0, s0), (m1, s1))))
-    fig, axes = plot.plt.subplots(1, 2, figsize=(12, 4.5), layout="constrained")
+    fig, axes = plot.plt.subplots(1, 2, figsize=(12, 3.3), layout="constrained")
     draw_deformed(axes[0], phantom, m0, s0, "no paddle (x-z view)", vmax)
     sc = draw_deformed(axes[1], phantom, m1, s1, f"static patch {best} (x-z view)", vmax, patch=best)
     axes[1].legend(fontsize=7, loc="upper right")
