@@ -9,7 +9,7 @@ Measured (neo-Hookean, no inclusion, needle and target as thesis.PHANTOM_3D; 2 i
 spacing 0.25 = the tests' 162-particle phantom, 4 at 0.2 = the CLI default, 258 particles):
 
   grid (theta; phi/pi; radius)          spacing 0.25   spacing 0.2   median (0.25)
-  0.15..0.9 x4; -0.7..0.7 x6; 0.5  (today)   3.40x         4.3x (CLI)     1.09x
+  0.15..0.9 x4; -0.7..0.7 x6; 0.5  (today)   3.40x         4.3x (brief)   1.09x
   0.5..1.35 x4; -0.8..0.8 x8; 0.5 (flanks)   2.97x         2.87x          0.98x
   0.1..0.9 x6; -0.8..0.8 x10; 0.5            4.76x           -            1.11x
   0.1..0.9 x6; -0.8..0.8 x10; 0.7            9.99x           -            1.21x
