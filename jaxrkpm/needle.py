@@ -78,8 +78,8 @@ class Phantom(NeedleTrack):
     material of chapter 5 (Table 6.1 tensors), inclusions x ``stiffness_ratio``.
 
     ``immobile``: "bottom" (default) holds the bottom edge right of the needle entry;
-    "top" holds the edge y = 1 (DESIGN.md's first reading of the figure, which is not in
-    the text). Only "bottom" reproduces the thesis in kind: with "top" the unsupported
+    "top" holds the edge y = 1 (another reading of the figure; the text does not say which
+    edge is held). Only "bottom" reproduces the thesis in kind: with "top" the unsupported
     deviation is 0.0007 (thesis 0.0307) and four of the five paddles increase it."""
 
     vertices: tuple = PHANTOM_OUTLINE
