@@ -140,11 +140,17 @@ def compress_parser():
     return p
 
 
+def _needle_options(command: str, inclusions) -> argparse.ArgumentParser:
+    """The options the 2D and 3D needle studies share (their own ones are added after)."""
+    p = _parser(command, f"jaxrkpm.studies.{command}", f"results/{command}")
+    p.add_argument("--mode", choices=("static", "dynamic", "optimize"), default="static")
+    p.add_argument("--inclusion", choices=tuple(inclusions), default="none")
+    return p
+
+
 def needle_parser():
     from jaxrkpm.thesis import INCLUSIONS, TABLE_6_2
-    p = _parser("needle", "jaxrkpm.studies.needle", "results/needle")
-    p.add_argument("--mode", choices=("static", "dynamic", "optimize"), default="static")
-    p.add_argument("--inclusion", choices=tuple(INCLUSIONS), default="none")
+    p = _needle_options("needle", INCLUSIONS)
     p.add_argument("--increments", type=COUNT, default=15, help="insertion increments up to 15%%")
     p.add_argument("--paddle", type=number(int, 1, len(TABLE_6_2)), default=None,
                    help="dynamic mode: paddle to move (default: the most controllable)")
@@ -158,11 +164,9 @@ def needle_parser():
 
 def needle3d_parser():
     from jaxrkpm.thesis import INCLUSIONS_3D
-    p = _parser("needle3d", "jaxrkpm.studies.needle3d", "results/needle3d")
-    p.add_argument("--mode", choices=("static", "dynamic", "optimize"), default="static")
-    p.add_argument("--inclusion", choices=tuple(INCLUSIONS_3D), default="none")
+    p = _needle_options("needle3d", INCLUSIONS_3D)
     p.add_argument("--spacing", type=number(float, 0.05, 0.4), default=0.2,
-                   help="mesh size of the phantom (0.2: ~260 particles; 0.1: ~2,000)")
+                   help="mesh size of the phantom (0.2: 258 particles; 0.1: 1,260)")
     p.add_argument("--increments", type=COUNT, default=4, help="insertion increments")
     p.add_argument("--paddle", type=COUNT, default=None,
                    help="dynamic mode: patch to move (default: the most controllable)")

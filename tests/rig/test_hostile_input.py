@@ -14,18 +14,7 @@ from jaxrkpm.rig.link import (LinkClosed, LinkError, ProtocolError, RobotClient,
                               SimulatedRobotServer)
 from jaxrkpm.rig.stereo import StereoTracker, ParallelStereo, detect_blobs, draw_blobs, render_markers
 
-
-def _reply(sock, buf: bytearray) -> dict:
-    for _ in range(1000):               # bounded; each recv is bounded by the socket timeout
-        nl = buf.find(b"\n")
-        if nl >= 0:
-            line = bytes(buf[:nl])
-            del buf[:nl + 1]
-            return json.loads(line)
-        chunk = sock.recv(65536)
-        assert chunk, "server closed the connection"
-        buf.extend(chunk)
-    raise AssertionError("no reply line")
+from .lines import read_reply
 
 
 def test_deeply_nested_line_is_refused_and_the_connection_stays():
@@ -34,14 +23,14 @@ def test_deeply_nested_line_is_refused_and_the_connection_stays():
         buf = bytearray()
         try:
             sock.sendall(b"[" * 60000 + b"\n")
-            r = _reply(sock, buf)
+            r = read_reply(sock, buf)
             assert (r["ok"], r["code"]) == (False, "bad_json") and "nested" in r["error"]
             sock.sendall(b'{"v": 1, "id": 2, "op": "read_pose"}\n')
-            r = _reply(sock, buf)
+            r = read_reply(sock, buf)
             assert r["ok"] is True and r["id"] == 2
             # an error text quoting a huge field is cut to a line, not a dropped connection
             sock.sendall(json.dumps({"v": 1, "id": 3, "op": "x" * 60000}).encode() + b"\n")
-            r = _reply(sock, buf)
+            r = read_reply(sock, buf)
             assert (r["ok"], r["id"], r["code"]) == (False, 3, "unknown_op")
         finally:
             sock.close()

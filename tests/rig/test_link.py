@@ -4,7 +4,6 @@ input without losing the connection, model-side safety limits, timeouts, reconne
 Every server runs in a background thread with its own event loop, binds 127.0.0.1 on an
 ephemeral port and is stopped at test end; every socket read has a timeout."""
 
-import json
 import logging
 import socket
 import time
@@ -23,6 +22,8 @@ from jaxrkpm.rig.link import (
     SimulatedRobotServer,
     encode_message,
 )
+
+from .lines import read_reply
 
 STIFFNESS_N_PER_M = 250.0   # simulated object: a linear spring on the paddle
 
@@ -52,16 +53,7 @@ def raw(server):
 
     def ask(line: bytes) -> dict:
         sock.sendall(line)
-        for _ in range(1000):           # bounded; each recv is bounded by the timeout
-            nl = buf.find(b"\n")
-            if nl >= 0:
-                out = bytes(buf[:nl])
-                del buf[:nl + 1]
-                return json.loads(out)
-            chunk = sock.recv(65536)
-            assert chunk, "server closed the connection"
-            buf.extend(chunk)
-        raise AssertionError("no reply line")
+        return read_reply(sock, buf)
 
     try:
         yield ask
