@@ -26,6 +26,8 @@ import meshio
 import numpy as np
 from scipy.spatial import Delaunay
 
+from .mesh import simplex_volumes
+
 # meshio cell type of the viewing cells, by (dimension, vertices per cell)
 CELL_TYPES = {(2, 3): "triangle", (2, 4): "quad", (3, 4): "tetra", (3, 8): "hexahedron"}
 # outward faces of a cell, by meshio type, for the VTK vertex order (positive orientation)
@@ -56,7 +58,7 @@ def body_cells(body) -> tuple[str, np.ndarray]:
     if lattice is not None:
         return CELL_TYPES[d, 2 ** d], lattice
     simplices = Delaunay(X).simplices.astype(np.int64)
-    size = np.abs(_signed_measure(X, simplices))
+    size = np.abs(simplex_volumes(X, simplices))
     keep = (size > 1e-9 * body.spacing ** d) & body.contains(X[simplices].mean(axis=1))
     return CELL_TYPES[d, d + 1], _oriented(X, simplices[keep])
 
@@ -83,17 +85,10 @@ def _lattice_cells(X, h):
     return np.stack(cells, axis=1)
 
 
-def _signed_measure(X, simplices):
-    """Signed area (2D triangles) / volume (3D tetrahedra) of each simplex."""
-    P = X[simplices]
-    E = P[:, 1:] - P[:, :1]
-    return np.linalg.det(E) / (2.0 if X.shape[1] == 2 else 6.0)
-
-
 def _oriented(X, simplices):
     """Simplices with two vertices swapped where their orientation is negative."""
     out = simplices.copy()
-    neg = _signed_measure(X, simplices) < 0
+    neg = simplex_volumes(X, simplices) < 0
     out[neg, 1], out[neg, 2] = simplices[neg, 2], simplices[neg, 1]
     return out
 
