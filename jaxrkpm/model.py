@@ -430,6 +430,13 @@ class Model:
             raise SolveError(Solution(*(_concrete(x) for x in sol)))
         return sol
 
+    def continuation(self, ds: float, **options):
+        """The equilibrium path through limit points by arc-length continuation: an
+        EquilibriumPath (load factor, states, |r|, stability per point, status); see
+        ``jaxrkpm.continuation.arc_length`` for the options."""
+        from .continuation import arc_length   # it imports this module
+        return arc_length(self, ds, **options)
+
     def directions(self, name: str, rigid: bool = True):
         """Unit prescribed-value directions (m, Nb, d) that drive set ``name``: d rigid
         translations, or one per particle and component (m = n_set * d)."""

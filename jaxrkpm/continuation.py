@@ -1,0 +1,409 @@
+"""Arc-length (Riks / Crisfield) continuation: equilibrium paths through limit points.
+
+Load control (``model.solve``) cannot pass a limit point: past the largest load the
+structure carries, no equilibrium exists at a higher load, so the solve fails or jumps
+(snap-through). Arc-length continuation makes the load factor lambda an unknown and adds
+one constraint per step, Crisfield's
+
+    |Delta u|^2 + psi^2 Delta lambda^2 |q|^2 = Delta s^2
+
+(``psi=0``: the cylindrical constraint, the default; ``psi=1``: the spherical Riks
+constraint), so the path is followed by its length and turns at limit points like any other
+point. ``q = -dr/dlambda`` is the load the path parameter drives: the model's dead loads
+(tractions, body force; or a ``load_pattern``, e.g. ``point_load``) scaled by lambda, plus,
+optionally, a prescribed displacement direction ``g = g0 + lambda dg``.
+
+Every accepted point records the load factor, the state, |r|, the step's arc length, and
+the stability of K_ff there: Stability (positive definite or not) and the number of
+negative eigenvalues (the sparse factorisation's inertia; for the dense solver 0 where the
+Cholesky factorisation succeeds, else counted from the eigenvalues of K_ff).
+
+Design choices (and why):
+
+- **Predictor direction: the previous increment**, not the sign of det K_ff. The tangent
+  direction u_t = K_ff^-1 q is followed with the sign that makes a positive angle with the
+  last accepted increment (Delta u, Delta lambda). The determinant's sign also flips at
+  bifurcation points, where the path does not turn back, and the sparse factorisation cannot
+  always tell the inertia (UNKNOWN); the angle criterion needs nothing from the
+  factorisation and turns exactly where the path turns. The first step goes in the
+  direction of ``direction`` (+1: increasing load).
+- **Corrector**: full Newton (a new factorisation of K_ff at every iterate), with
+  Crisfield's quadratic for the load-factor correction; of its two roots the one whose
+  increment makes the smaller angle with the current one is taken (no doubling back).
+  Complex roots (NO_ROOT), NaN (NONFINITE), det F <= 0 (INVERTED) or the iteration cap cut
+  the arc length in half and retry from the last accepted point.
+- **Adaptive arc length**: after a step that took I corrector iterations,
+  Delta s <- Delta s sqrt(target / I), clipped to [1/2, 2] times the last and to ``ds_max``.
+- **A jitted step called from Python**: each step attempt (predictor, corrector loop and
+  the factorisation at the new point) is one compiled function; the loop over steps is
+  Python. A lax loop over all steps would compile the same body once too (so no compile
+  time is saved), but it would need preallocated (steps, Nf, d) buffers, could not stop
+  early on a target without running to its cap in the compiled loop, and a failure or an
+  interrupt would lose the points computed so far. Here every accepted point is kept on the
+  host as it is accepted, the path stops as soon as its end or a failure is reached, and the
+  dispatch of one call per step costs far less than the step's factorisations.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import partial
+from typing import Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import solve as S
+from .linear import DenseSolver, Stability
+from .model import Model
+from .outcome import Outcome
+
+MAX_PATH_STEPS = S.MAX_STEPS       # arc-length steps of one path
+MAX_CUTS = S.MAX_CUTS              # halvings of one step's arc length
+MAX_ITER = S.MAX_ITER              # corrector iterations per step
+
+
+class PathStatus(Outcome):
+    """How an arc-length path ended (``path.outcome``); every accepted point is kept."""
+
+    COMPLETED = 0, "the path reached its end: the target load factor, or all the steps asked for"
+    MAX_ITERATIONS = 1, ("the corrector reached its iteration cap even on the smallest arc length "
+                         "allowed (max_cuts halvings)")
+    NONFINITE = 2, "non-finite residual (NaN/inf) even on the smallest arc length allowed"
+    INVERTED = 3, ("a corrector step would invert the material (det F <= 0 at an integration "
+                   "point) even on the smallest arc length allowed")
+    NO_ROOT = 4, ("the arc-length constraint had no real load-factor correction (complex roots of "
+                  "Crisfield's quadratic) even on the smallest arc length allowed")
+    INTERRUPTED = 5, "interrupted (KeyboardInterrupt); the points accepted until then are kept"
+
+
+_RUNNING = -1
+
+
+@dataclass(frozen=True)
+class EquilibriumPath:
+    """An equilibrium path from ``arc_length`` (NumPy arrays, one row per accepted point;
+    row 0 is the start).
+
+    load (n,) load factor lambda; u (n, Nf, d) free RK coefficients; g (n, Nb, d) prescribed
+    values; displacement (n, P, d) at the ``points`` asked for (None if none); residual_norm
+    (n,) |r|; stability (n,) jaxrkpm.linear.Stability codes of K_ff; negative (n,) its number
+    of negative eigenvalues (-1 where the factorisation could not tell); arc (n,) the arc
+    length of the step that reached each point (0 at the start); iterations (n,) corrector
+    iterations; cuts: arc-length halvings in all; status: a PathStatus code."""
+
+    load: np.ndarray
+    u: np.ndarray
+    g: np.ndarray
+    displacement: np.ndarray | None
+    residual_norm: np.ndarray
+    stability: np.ndarray
+    negative: np.ndarray
+    arc: np.ndarray
+    iterations: np.ndarray
+    cuts: int
+    status: int
+
+    def __len__(self) -> int:
+        return len(self.load)
+
+    @property
+    def outcome(self) -> PathStatus:
+        return PathStatus.of(self.status)
+
+    @property
+    def completed(self) -> bool:
+        return self.outcome == PathStatus.COMPLETED
+
+    @property
+    def limit_points(self) -> np.ndarray:
+        """Indices of the points where the load factor has a local maximum or minimum along
+        the path (the increment of lambda changes sign after them): the sampled limit points."""
+        dl = np.diff(self.load)
+        return np.flatnonzero(dl[:-1] * dl[1:] < 0) + 1
+
+    def limit_loads(self) -> np.ndarray:
+        """The load factor at each of ``limit_points``, located between the samples: the
+        vertex of the parabola through the three points around it, in the path's arc length
+        (the sampled extremum misses the true one by O(Delta s^2))."""
+        s = np.cumsum(self.arc)
+        out = []
+        for k in self.limit_points:
+            c2, c1, c0 = np.polyfit(s[k - 1:k + 2] - s[k], self.load[k - 1:k + 2], 2)
+            out.append(c0 - c1 * c1 / (4 * c2))
+        return np.asarray(out)
+
+    @property
+    def critical_points(self) -> np.ndarray:
+        """Indices of the first point after each change of the number of negative
+        eigenvalues of K_ff (a limit or bifurcation point lies between it and the one before)."""
+        return np.flatnonzero(np.diff(self.negative) != 0) + 1
+
+    @property
+    def message(self) -> str:
+        s = self.outcome
+        where = (f"{len(self) - 1} steps, load factor {self.load[0]:.4g} -> {self.load[-1]:.4g} "
+                 f"(largest {self.load.max():.4g}), {len(self.limit_points)} limit point(s), "
+                 f"{self.cuts} step cuts")
+        if s == PathStatus.COMPLETED:
+            return f"completed: {where}"
+        return f"{s.name}: {s.message}; stopped after {where}; every accepted point is kept"
+
+    def solution(self, k: int) -> S.Solution:
+        """Point ``k`` as a Solution (for ``model.displacement``, ``reaction``, ``stress``,
+        output). Its status is CONVERGED (or STABILITY_UNKNOWN) whatever the stability: that
+        is in ``stability[k]``, as with ``model.solve(..., check_stability=False)``."""
+        n = len(self)
+        if not -n <= k < n:
+            raise IndexError(f"point {k} of a path of {n} points")
+        status = S.Status.STABILITY_UNKNOWN if self.stability[k] == Stability.UNKNOWN else S.Status.CONVERGED
+        i32, f64 = partial(jnp.asarray, dtype=jnp.int32), partial(jnp.asarray, dtype=jnp.float64)
+        return S.Solution(jnp.asarray(self.u[k]), jnp.asarray(self.g[k]), f64(self.load[k]),
+                          i32(int(status)), f64(1.0), i32(int(self.iterations[k])), i32(k),
+                          i32(self.cuts), f64(self.residual_norm[k]))
+
+
+# ----------------------------------------------------------------------- inside jit
+def negative_eigenvalues(linear, state):
+    """Number of negative eigenvalues of the factorised K_ff (-1: unknown). Sparse: the
+    factorisation's inertia. Dense: 0 where Cholesky succeeded (positive definite), else
+    counted from the eigenvalues (only for the points past a critical point)."""
+    if isinstance(linear, DenseSolver):
+        def count():
+            return jnp.sum(jnp.linalg.eigvalsh(state.K) < 0).astype(jnp.int64)
+        return jax.lax.cond(state.spd, lambda: jnp.zeros((), jnp.int64), count)
+    return jnp.maximum(state.inertia, -1).astype(jnp.int64)
+
+
+@partial(jax.jit, static_argnames=("cfg",))
+def start_point(ops, params, cfg, u, g, load):
+    """The path's first point: (factorisation of K_ff, stability, negative eigenvalues, |r|)."""
+    state = S.linear_state(ops, params, cfg, u, g)
+    rn = jnp.linalg.norm(S.residual(ops, params, cfg.W, u, g, load))
+    return state, cfg.linear.stability(state), negative_eigenvalues(cfg.linear, state), rn
+
+
+def _residual_and_load(ops, params, W, u, g0, dg, lam0, lam):
+    """r(u, lambda) (Nf, d), q = -dr/dlambda (the load the path parameter drives) and the
+    smallest det F, at g = g0 + (lambda - lambda0) dg and load scale lambda."""
+    def r_of(l):
+        (_, detmin), r = jax.value_and_grad(
+            lambda v: S.energy(ops, params, W, v, g0 + (l - lam0) * dg, l), has_aux=True)(u)
+        return r, detmin
+
+    (r, detmin), (dr, _) = jax.jvp(r_of, (lam,), (jnp.ones_like(lam),))
+    return r, -dr, detmin
+
+
+@partial(jax.jit, static_argnames=("cfg",))
+def arc_step(ops, params, cfg, max_iter, u0, g0, dg, lam0, state0, du_prev, dlam_prev, ds, psi):
+    """One arc-length step of length ``ds`` from the equilibrium (u0, g0, lam0), whose
+    factorisation is ``state0``; (du_prev, dlam_prev) is the last accepted increment (zeros
+    and the wanted sign of the first load increment on the first step).
+
+    Returns (u, g, lam, status, iterations, |r|, state, stability, negative eigenvalues) at
+    the new point; status 0 accepted, else the PathStatus of the failure (the caller cuts
+    ``ds``)."""
+    W = cfg.W
+    res = partial(_residual_and_load, ops, params, W)
+    _, q0, _ = res(u0, g0, dg, lam0, lam0)
+    qq = jnp.sum(q0 * q0)
+    psi2 = psi * psi * qq     # the load term's weight in the constraint
+
+    # predictor: the tangent u_t = K^-1 q, scaled to the arc length, signed by the angle
+    # with the last increment (see the module docstring)
+    ut = cfg.linear.solve(state0, q0)
+    angle = jnp.sum(ut * du_prev) + psi2 * dlam_prev
+    sign = jnp.where(angle != 0, jnp.sign(angle), jnp.where(dlam_prev < 0, -1.0, 1.0))
+    dlam = sign * ds / jnp.sqrt(jnp.sum(ut * ut) + psi2)
+    du = dlam * ut
+
+    r_ref = jnp.abs(dlam) * jnp.sqrt(qq)   # the out-of-balance load the step puts on
+    floor = S.roundoff_floor(ops, params, W, S.coefficients(ops, u0, g0))
+
+    def at(du, dlam):
+        lam = lam0 + dlam
+        return u0 + du, g0 + dlam * dg, lam
+
+    def cond(c):
+        return c[3] == _RUNNING
+
+    def body(c):
+        it, du, dlam, _, _, state = c
+        u, g, lam = at(du, dlam)
+        r, q, detmin = res(u, g0, dg, lam0, lam)
+        rn = jnp.linalg.norm(r)
+        finite = jnp.all(jnp.isfinite(r)) & jnp.all(jnp.isfinite(q))
+        scale = S.internal_force_scale(ops, params, W, S.coefficients(ops, u, g))
+        converged = rn <= jnp.maximum(cfg.rtol * jnp.maximum(r_ref, scale), floor)
+        state = cfg.linear.init(ops, S.pair_blocks(ops, params, W, S.coefficients(ops, u, g)))
+        # K [dr, dt] = [-r, q]: the residual correction and the tangent at this iterate
+        x = cfg.linear.solve(state, jnp.stack([-r, q], axis=-1))
+        d_r, d_t = x[..., 0], x[..., 1]
+        w = du + d_r
+        a = jnp.sum(d_t * d_t) + psi2
+        b = 2.0 * (jnp.sum(d_t * w) + psi2 * dlam)
+        cc = jnp.sum(w * w) + psi2 * dlam * dlam - ds * ds
+        disc = b * b - 4.0 * a * cc
+        root = jnp.sqrt(jnp.maximum(disc, 0.0))
+        dl1, dl2 = (-b + root) / (2.0 * a), (-b - root) / (2.0 * a)
+
+        def angle(dl):   # with the current increment: the root that does not double back
+            return jnp.sum((w + dl * d_t) * du) + psi2 * (dlam + dl) * dlam
+
+        dl = jnp.where(angle(dl1) >= angle(dl2), dl1, dl2)
+        status = jnp.where(~finite, PathStatus.NONFINITE,
+                           jnp.where(detmin <= 0, PathStatus.INVERTED,
+                                     jnp.where(converged, PathStatus.COMPLETED,
+                                               jnp.where(disc < 0, PathStatus.NO_ROOT,
+                                                         jnp.where(it + 1 >= max_iter, PathStatus.MAX_ITERATIONS,
+                                                                   _RUNNING)))))
+        keep = converged | (status != _RUNNING)
+        return (it + 1, jnp.where(keep, du, w + dl * d_t), jnp.where(keep, dlam, dlam + dl),
+                status, rn, state)
+
+    init = (jnp.array(0), du, dlam, jnp.array(_RUNNING), jnp.array(jnp.inf), state0)
+    it, du, dlam, status, rn, state = jax.lax.while_loop(cond, body, init)
+    u, g, lam = at(du, dlam)
+    return (u, g, lam, status, it - 1, rn, state, cfg.linear.stability(state),
+            negative_eigenvalues(cfg.linear, state))
+
+
+# ------------------------------------------------------------------------ the driver
+def point_load(model, points, forces) -> np.ndarray:
+    """The (N, d) nodal load of concentrated forces ``forces`` (P, d) at reference points
+    ``points`` (P, d): f_K = sum_p Psi_K(X_p) F_p, the load work-conjugate to the
+    displacements u(X_p) (the same force a prescribed u(X_p) has as its reaction). Pass it
+    as ``arc_length(..., load_pattern=...)``."""
+    X = np.atleast_2d(np.asarray(points, float))
+    F = np.asarray(forces, float)
+    if F.ndim == 1:
+        F = np.broadcast_to(F, X.shape)
+    if F.shape != X.shape or not np.all(np.isfinite(F)):
+        raise ValueError(f"forces must be finite, of shape ({model.dim},) or {X.shape} (one per point), "
+                         f"got {F.shape}")
+    sf = model.shape_functions(X, gradients=False)
+    f = np.zeros((model.body.n, model.dim))
+    np.add.at(f, np.asarray(sf.idx), np.asarray(sf.psi)[..., None] * F[:, None, :])
+    return f
+
+
+def _check_int(name, v, lo, hi):
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
+        raise TypeError(f"{name} must be an int, got {v!r}")
+    if not lo <= int(v) <= hi:
+        raise ValueError(f"{name} must lie in {lo}..{hi}, got {v}")
+    return int(v)
+
+
+def _check_positive(name, v, allow_zero=False):
+    ok = isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+    if not (ok and math.isfinite(v) and (v >= 0 if allow_zero else v > 0)):
+        raise ValueError(f"{name} must be a {'non-negative' if allow_zero else 'positive'} finite number, "
+                         f"got {v!r}")
+    return float(v)
+
+
+def arc_length(model, ds: float, *, steps: int = 50, initial: S.Solution | None = None,
+               load_max: float | None = None, load_pattern=None, prescribed: Mapping | None = None,
+               direction: int = 1, psi: float = 0.0, ds_max: float | None = None,
+               max_cuts: int = 8, max_iter: int = 12, target_iterations: int = 4,
+               points=None, params=None, **options) -> EquilibriumPath:
+    """Follow the equilibrium path of ``model`` by arc-length continuation (Crisfield).
+
+    The path parameter lambda scales the dead loads (the model's tractions and body force,
+    or ``load_pattern`` (N, d), e.g. from ``point_load``) and, optionally, drives the
+    prescribed displacements along ``prescribed`` (set name -> (d,) or (n_set, d) direction
+    per unit lambda). It starts at ``initial`` (default: undeformed, lambda = 0) and takes at
+    most ``steps`` steps of arc length ``ds`` (in the units of the RK coefficients; adapted
+    to about ``target_iterations`` corrector iterations per step, never above ``ds_max``,
+    default 4 ds; cut in half on a failed step at most ``max_cuts`` times in a row), stopping
+    early once lambda >= ``load_max``. ``psi`` 0: cylindrical constraint; 1: spherical
+    (Riks). ``direction`` -1 starts with a decreasing load factor. ``points`` (P, d):
+    reference points whose displacement is recorded per point. ``options``: Config fields
+    (e.g. rtol). Returns an EquilibriumPath (never raises for a failed step: its status
+    says why the path stopped, every accepted point is kept)."""
+    if not isinstance(model, Model):
+        raise TypeError(f"model must be a jaxrkpm Model, got {type(model).__name__}")
+    if model.unconstrained:
+        raise ValueError("unconstrained: the model has no essential set and no springs, so it has "
+                         "rigid-body modes and no path is unique; hold part of it or add Springs")
+    ds = _check_positive("ds", ds)
+    ds_max = 4.0 * ds if ds_max is None else _check_positive("ds_max", ds_max)
+    if ds_max < ds:
+        raise ValueError(f"ds_max ({ds_max}) must be at least ds ({ds})")
+    steps = _check_int("steps", steps, 1, MAX_PATH_STEPS)
+    max_cuts = _check_int("max_cuts", max_cuts, 0, MAX_CUTS)
+    max_iter = _check_int("max_iter", max_iter, 1, MAX_ITER)
+    target_iterations = _check_int("target_iterations", target_iterations, 1, MAX_ITER)
+    psi = _check_positive("psi", psi, allow_zero=True)
+    if direction not in (1, -1):
+        raise ValueError(f"direction must be +1 (load factor increasing first) or -1, got {direction!r}")
+    if load_max is not None and not (isinstance(load_max, (int, float)) and math.isfinite(load_max)):
+        raise ValueError(f"load_max must be a finite number (or None: no target), got {load_max!r}")
+
+    start = model.initial() if initial is None else model.check_solution(initial, "initial")
+    if not S.Status.of(start.status).equilibrium:
+        raise ValueError(f"initial must be an equilibrium, but its status is {S.Status.of(start.status).name}")
+    ops = model.ops
+    if load_pattern is not None:
+        f = np.asarray(load_pattern, float)
+        if f.shape != ops.f_ext.shape or not np.all(np.isfinite(f)):
+            raise ValueError(f"load_pattern must be finite nodal loads of shape {ops.f_ext.shape} "
+                             f"(e.g. from continuation.point_load), got shape {f.shape}")
+        ops = ops._replace(f_ext=jnp.asarray(f))
+    dg = model.prescribed(prescribed)
+    if not (np.any(np.asarray(ops.f_ext)) or np.any(np.asarray(dg))):
+        raise ValueError("nothing drives the path: the model has no dead load (tractions, body force), "
+                         "and neither load_pattern nor prescribed is given")
+    prm = model.params_with(params)
+    cfg = model.config(**options)
+    # explicit dtypes: a weakly typed Python scalar would compile arc_step a second time
+    f64 = partial(jnp.asarray, dtype=jnp.float64)
+    lim_iter, psi_a = jnp.asarray(max_iter, jnp.int64), f64(psi)
+
+    u = jnp.asarray(start.u, jnp.float64)
+    g = jnp.asarray(start.g, jnp.float64)
+    lam = jnp.asarray(start.load, jnp.float64)
+    state, stab, neg, rn0 = start_point(ops, prm, cfg, u, g, lam)
+    rows = [(np.asarray(u), np.asarray(g), float(lam), float(rn0), int(stab), int(neg), 0.0, 0)]
+    du_prev, dlam_prev = jnp.zeros_like(u), f64(direction)
+    step_ds, cuts, status = ds, 0, PathStatus.COMPLETED
+    try:
+        for _ in range(steps):
+            tries = 0
+            while True:
+                out = arc_step(ops, prm, cfg, lim_iter, u, g, dg, lam, state, du_prev, dlam_prev,
+                               f64(step_ds), psi_a)
+                code = int(out[3])
+                if code == PathStatus.COMPLETED:
+                    break
+                if tries == max_cuts:
+                    status = PathStatus.of(code)
+                    break
+                tries, cuts, step_ds = tries + 1, cuts + 1, step_ds / 2
+            if status != PathStatus.COMPLETED:
+                break
+            u1, g1, lam1, _, its, rn, state, stab, neg = out
+            du_prev, dlam_prev = u1 - u, lam1 - lam
+            u, g, lam = u1, g1, lam1
+            its = int(its)
+            rows.append((np.asarray(u), np.asarray(g), float(lam), float(rn), int(stab), int(neg), step_ds, its))
+            step_ds = min(step_ds * min(2.0, max(0.5, math.sqrt(target_iterations / max(its, 1)))), ds_max)
+            if load_max is not None and float(lam) >= load_max:
+                break
+    except KeyboardInterrupt:
+        status = PathStatus.INTERRUPTED
+
+    U, G, L, R, ST, NEG, A, IT = (np.asarray(c) for c in zip(*rows))
+    disp = None
+    if points is not None:
+        sf = model.shape_functions(points, gradients=False)
+        idx, psi_p = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
+        # one point at a time: a compiled function of the path's length would recompile per length
+        disp = np.stack([np.asarray(_point_values(ops, idx, psi_p, u_k, g_k)) for u_k, g_k in zip(U, G)])
+    return EquilibriumPath(L, U, G, disp, R, ST, NEG, A, IT, cuts, int(status))
+
+
+_point_values = jax.jit(S.point_values)
