@@ -101,12 +101,14 @@ def displacement_control(model: jr.Model, depth: float, n: int):
     return v, np.asarray(force)
 
 
-def sampled_maximum(x, y) -> float:
-    """The maximum of y(x) between samples: the vertex of the parabola through the largest
-    sample and its two neighbours."""
-    k = int(np.argmax(y))
-    if not 0 < k < len(y) - 1:
-        raise ValueError("the maximum is at an end of the samples: sample further")
+def first_maximum(x, y) -> float:
+    """The first local maximum of y(x) (the limit point; past the snap the force rises
+    again), between samples: the vertex of the parabola through the sample and its two
+    neighbours."""
+    peaks = np.flatnonzero((y[1:-1] > y[:-2]) & (y[1:-1] >= y[2:])) + 1
+    if not len(peaks):
+        raise ValueError("no local maximum inside the samples: sample further")
+    k = int(peaks[0])
     c2, c1, c0 = np.polyfit(x[k - 1:k + 2] - x[k], y[k - 1:k + 2], 2)
     return float(c0 - c1 * c1 / (4 * c2))
 
@@ -138,7 +140,7 @@ def figure(path: Path, arch: Arch, model: jr.Model, eq, v_ref, f_ref):
     ax2.set_xlabel(f"x ({plot.UNITS})")
     ax2.set_ylabel(f"y ({plot.UNITS})")
     ax2.set_title("shapes along the path (start, limit points, end)")
-    ax2.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.3), ncol=2)
+    ax2.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.45), ncol=2)
     plot.save(fig, path)
 
 
@@ -160,7 +162,7 @@ def main(argv=None) -> dict:
     t = time.perf_counter()
     v_ref, f_ref = displacement_control(crown_model(arch), args.depth, args.ref_steps)
     t_ref = time.perf_counter() - t
-    reference = sampled_maximum(v_ref, f_ref)
+    reference = first_maximum(v_ref, f_ref)
     limits = eq.limit_loads()
     summary = {
         "particles": arch.body.n, "status": str(eq.outcome), "message": eq.message,

@@ -37,7 +37,7 @@ def snap(arch, model):
 def reference(arch):
     """Crown deflection and force under displacement control, and its largest force."""
     v, f = st.displacement_control(st.crown_model(arch), REF_DEPTH, REF_STEPS)
-    return v, f, st.sampled_maximum(v, f)
+    return v, f, st.first_maximum(v, f)
 
 
 def test_snap_through_limit_load_matches_displacement_control(snap, reference):
@@ -137,6 +137,36 @@ def test_a_failed_step_keeps_every_accepted_point(model):
     assert "MAX_ITERATIONS" in path.message and "every accepted point is kept" in path.message
 
 
+def test_an_interrupted_path_keeps_its_points(model, monkeypatch):
+    from jaxrkpm import continuation
+    calls = []
+
+    def interrupted_on_the_third_step(*args):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return step(*args)
+
+    step = continuation.arc_step
+    monkeypatch.setattr(continuation, "arc_step", interrupted_on_the_third_step)
+    path = arc_length(model, 0.03, steps=5)
+    assert path.outcome == PathStatus.INTERRUPTED and len(path) == 3 and np.all(np.diff(path.load) > 0)
+
+
+def test_spherical_constraint_finds_the_same_limit_load(arch, model, snap):
+    """psi > 0 (Riks' sphere in (u, psi lambda |q|)): each step satisfies
+    |du|^2 + psi^2 dlambda^2 |q|^2 = ds^2 (q: the crown load, all on free particles) with a
+    real share of the load term, and the limit load is the same."""
+    psi, load = 2000.0, st.crown_load(model, arch)
+    path = arc_length(model, 0.03, steps=14, psi=psi, ds_max=0.03, load_pattern=load)
+    assert path.completed and len(path.limit_points) == 1
+    du2 = np.sum((path.u[1:] - path.u[:-1]).reshape(len(path) - 1, -1) ** 2, axis=1)
+    sphere = du2 + (psi * np.diff(path.load)) ** 2 * np.sum(load**2)
+    np.testing.assert_allclose(sphere, path.arc[1:] ** 2, rtol=1e-8)
+    assert np.min(du2 / path.arc[1:] ** 2) < 0.8
+    assert abs(path.limit_loads()[0] / snap.limit_loads()[0] - 1) < 1e-3
+
+
 def test_example_prints_json_and_writes_the_figure(tmp_path, capsys):
     summary = st.main(["--out", str(tmp_path), "--steps", "14", "--ref-steps", "4", "--depth", "0.08"])
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == summary
@@ -144,3 +174,14 @@ def test_example_prints_json_and_writes_the_figure(tmp_path, capsys):
     assert abs(summary["relative_error"]) < 0.02   # against a coarse (4-step) reference sweep
     assert (tmp_path / "snap_through.png").stat().st_size > 10_000
     assert json.loads((tmp_path / "summary.json").read_text()) == summary
+
+
+def test_sparse_solver_follows_the_same_path_with_its_inertia(arch, snap):
+    """The sparse path (SuperLU through host callbacks): the same points, and the number of
+    negative eigenvalues from its factorisation's inertia."""
+    sparse = jr.Model(arch.body, st.MATERIAL, essential=arch.ends, support=st.SUPPORT,
+                      solver="sparse", factorisation="superlu")
+    path = st.snap(arch, sparse, ds=0.03, steps=12)
+    assert path.completed, path.message
+    np.testing.assert_allclose(path.load, snap.load[:13], rtol=1e-7, atol=1e-12)
+    assert path.negative.tolist() == snap.negative[:13].tolist()
