@@ -87,7 +87,8 @@ class EquilibriumPath:
     (n,) |r|; stability (n,) jaxrkpm.linear.Stability codes of K_ff; negative (n,) its number
     of negative eigenvalues (-1 where the factorisation could not tell); arc (n,) the arc
     length of the step that reached each point (0 at the start); iterations (n,) corrector
-    iterations; cuts: arc-length halvings in all; status: a PathStatus code."""
+    iterations; cuts: arc-length halvings in all; status: a PathStatus code; start: the
+    Solution the path started from."""
 
     load: np.ndarray
     u: np.ndarray
@@ -100,6 +101,7 @@ class EquilibriumPath:
     iterations: np.ndarray
     cuts: int
     status: int
+    start: S.Solution
 
     def __len__(self) -> int:
         return len(self.load)
@@ -155,9 +157,9 @@ class EquilibriumPath:
             raise IndexError(f"point {k} of a path of {n} points")
         status = S.Status.STABILITY_UNKNOWN if self.stability[k] == Stability.UNKNOWN else S.Status.CONVERGED
         i32, f64 = partial(jnp.asarray, dtype=jnp.int32), partial(jnp.asarray, dtype=jnp.float64)
-        return S.Solution(jnp.asarray(self.u[k]), jnp.asarray(self.g[k]), f64(self.load[k]),
-                          i32(int(status)), f64(1.0), i32(int(self.iterations[k])), i32(k),
-                          i32(self.cuts), f64(self.residual_norm[k]))
+        return self.start._replace(u=f64(self.u[k]), g=f64(self.g[k]), load=f64(self.load[k]),
+                                   status=i32(int(status)), t=f64(1.0), iterations=i32(int(self.iterations[k])),
+                                   steps=i32(k), cuts=i32(self.cuts), residual_norm=f64(self.residual_norm[k]))
 
 
 # ----------------------------------------------------------------------- inside jit
@@ -303,7 +305,7 @@ def arc_length(model, ds: float, *, steps: int = 50, initial: S.Solution | None 
     The path parameter lambda scales the dead loads (the model's tractions and body force,
     or ``load_pattern`` (N, d), e.g. from ``point_load``) and, optionally, drives the
     prescribed displacements along ``prescribed`` (set name -> (d,) or (n_set, d) direction
-    per unit lambda). It starts at ``initial`` (default: undeformed, lambda = 0) and takes at
+    per unit lambda, added to the start's values). It starts at ``initial`` (default: undeformed, lambda = 0) and takes at
     most ``steps`` steps of arc length ``ds`` (in the units of the RK coefficients; adapted
     to about ``target_iterations`` corrector iterations per step, never above ``ds_max``,
     default 4 ds; cut in half on a failed step at most ``max_cuts`` times in a row), stopping
@@ -390,7 +392,7 @@ def arc_length(model, ds: float, *, steps: int = 50, initial: S.Solution | None 
         idx, psi_p = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
         # one point at a time: a compiled function of the path's length would recompile per length
         disp = np.stack([np.asarray(_point_values(ops, idx, psi_p, u_k, g_k)) for u_k, g_k in zip(U, G)])
-    return EquilibriumPath(L, U, G, disp, R, ST, NEG, A, IT, cuts, int(status))
+    return EquilibriumPath(L, U, G, disp, R, ST, NEG, A, IT, cuts, int(status), start)
 
 
 _point_values = jax.jit(S.point_values)
