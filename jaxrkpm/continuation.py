@@ -305,13 +305,14 @@ def arc_length(model, ds: float, *, steps: int = 50, initial: S.Solution | None 
     The path parameter lambda scales the dead loads (the model's tractions and body force,
     or ``load_pattern`` (N, d), e.g. from ``point_load``) and, optionally, drives the
     prescribed displacements along ``prescribed`` (set name -> (d,) or (n_set, d) direction
-    per unit lambda, added to the start's values). It starts at ``initial`` (default: undeformed, lambda = 0) and takes at
-    most ``steps`` steps of arc length ``ds`` (in the units of the RK coefficients; adapted
-    to about ``target_iterations`` corrector iterations per step, never above ``ds_max``,
-    default 4 ds; cut in half on a failed step at most ``max_cuts`` times in a row), stopping
-    early once lambda >= ``load_max``. ``psi`` 0: cylindrical constraint; 1: spherical
-    (Riks). ``direction`` -1 starts with a decreasing load factor. ``points`` (P, d):
-    reference points whose displacement is recorded per point. ``options``: Config fields
+    per unit lambda, added to the start's values). It starts at ``initial`` (default:
+    undeformed, lambda = 0) and takes at most ``steps`` steps of arc length ``ds`` (in the
+    units of the RK coefficients; adapted to about ``target_iterations`` corrector iterations
+    per step, never above ``ds_max``, default 4 ds; cut in half on a failed step at most
+    ``max_cuts`` times in a row), stopping early once lambda >= ``load_max``. ``psi`` 0:
+    cylindrical constraint; > 0: spherical (Riks), the load term weighted by psi^2 |q|^2.
+    ``direction`` -1 starts with a decreasing load factor. ``points`` (P, d): reference
+    points whose displacement is recorded per point. ``options``: Config fields
     (e.g. rtol). Returns an EquilibriumPath (never raises for a failed step: its status
     says why the path stopped, every accepted point is kept)."""
     if not isinstance(model, Model):
