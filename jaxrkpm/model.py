@@ -428,7 +428,7 @@ class Model:
         status = _concrete(sol.status)
         if throw and status is not None and not Status.of(status).equilibrium:
             # under jax.jacfwd / jax.grad the fields are tracers: the error carries their values
-            raise SolveError(Solution(*(_concrete(x) for x in sol)))
+            raise SolveError(Solution(*jax.tree.map(_concrete, tuple(sol))))
         return sol
 
     def directions(self, name: str, rigid: bool = True):

@@ -23,16 +23,21 @@ class Status(Outcome):
     """Outcome of a solve (an int code inside jit; ``Status.of(sol.status)`` outside)."""
 
     CONVERGED = 0, "converged"
-    MAX_ITERATIONS = 1, "Newton reached its iteration cap on the smallest load step allowed"
-    NONFINITE = 2, "non-finite residual or energy (NaN/inf) on the smallest load step allowed"
+    MAX_ITERATIONS = 1, ("Newton reached its iteration cap on the smallest load step allowed "
+                         "(or once the failed attempts had spent their work budget)")
+    NONFINITE = 2, ("non-finite residual or energy (NaN/inf) on the smallest load step allowed "
+                    "(or once the failed attempts had spent their work budget)")
     INVERTED = 3, ("a step would invert the material (det F <= 0 at an integration point) "
-                   "even on the smallest load step allowed")
+                   "even on the smallest load step allowed (or once the failed attempts had "
+                   "spent their work budget)")
     LINE_SEARCH = 4, ("the line search found no decrease of energy or residual "
-                      "on the smallest load step allowed")
+                      "on the smallest load step allowed (or once the failed attempts had "
+                      "spent their work budget)")
     UNSTABLE_TANGENT = 5, ("the tangent K_ff is not positive definite at the equilibrium "
                            "reached (loss of stability: a limit or bifurcation point, buckling "
                            "or loss of ellipticity passed), even on the smallest load step "
-                           "allowed; the path is stopped at the last stable state (solve with "
+                           "allowed (or once the failed attempts had spent their work budget); "
+                           "the path is stopped at the last stable state (solve with "
                            "check_stability=False to follow the unstable branch)")
     STABILITY_UNKNOWN = 6, ("converged, but the factorisation could not tell whether K_ff is "
                             "positive definite (perturbed or permuted pivots): the state may lie "
@@ -113,6 +118,7 @@ class Config:
 MAX_STEPS = 1000   # initial load steps of one solve (Limits.of)
 MAX_ITER = 1000    # Newton iterations per load step
 MAX_CUTS = 50      # halvings of the load step (2**-50 of the increment: below round-off)
+FAILED_WORK = 2    # Newton iterations of failed attempts allowed per iteration of useful work (solve_path)
 
 
 class Limits(NamedTuple):
@@ -484,7 +490,7 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
 
 # ------------------------------------------------------------------ the stable branch
 SWITCH_AMPLITUDE = 0.05   # the kick along the critical mode: its largest entry, in particle spacings
-SHIFT_FLOOR = 1e-3        # smallest tangent shift, relative to the largest diagonal entry of K_ff
+SHIFT_FLOOR = 1e-10       # smallest tangent shift, relative to the largest diagonal entry of K_ff
 
 
 def switches_branch(cfg: Config) -> bool:
@@ -510,7 +516,11 @@ def descend(ops, params, cfg: Config, max_iter, u, g, load):
     Each step solves (K_ff + tau I) p = -r with the smallest tau of the trial sequence 0,
     max(beta, tau_prev / 2), doubling, for which the Cholesky factorisation exists (Nocedal &
     Wright, Algorithm 3.3, "Cholesky with added multiple of the identity"; beta = SHIFT_FLOOR x
-    the largest diagonal entry). So p is always a descent direction, and the Armijo energy line
+    the largest diagonal entry, near round-off: the shift must come out comparable to the
+    negative eigenvalue, which near a bifurcation is many orders below the diagonal, or the
+    step along the critical mode, |lambda| / (lambda + tau) of its residual, would crawl; with
+    doubling, tau < 2 |lambda| and the step along the mode at least doubles the amplitude).
+    So p is always a descent direction, and the Armijo energy line
     search can only go downhill: it cannot end on a saddle (the unstable branch), which is why
     this and not Newton on the residual follows a critical point. Where K_ff is positive
     definite tau = 0 and the step is Newton's (quadratic convergence at the end). Converged:
@@ -554,14 +564,18 @@ def descend(ops, params, cfg: Config, max_iter, u, g, load):
         L, tau, chol_ok = shifted_cholesky(K, tau_prev)
         p = -jax.scipy.linalg.cho_solve((L, True), r.reshape(-1)).reshape(r.shape)
         slope = jnp.sum(p * r)
+        rn = jnp.linalg.norm(r)
 
         def ls_body(c2):
             k, _, _, _, _ = c2
             alpha = 0.5 ** k
             w = v + alpha * p
             Pi_w, det_w, r_w = evaluate(w)
+            # where K_ff is positive definite (tau = 0) a residual decrease also counts: near
+            # the minimum the energy change drowns in round-off, and a convex neighbourhood
+            # holds no saddle to converge to
             ok = jnp.isfinite(Pi_w) & jnp.all(jnp.isfinite(r_w)) & (det_w > 0) & \
-                (Pi_w <= Pi + cfg.armijo * alpha * slope)
+                ((Pi_w <= Pi + cfg.armijo * alpha * slope) | ((tau == 0) & (jnp.linalg.norm(r_w) < rn)))
             return k + 1, ok, w, Pi_w, r_w
 
         _, ls_ok, w, Pi_w, r_w = jax.lax.while_loop(lambda c2: (~c2[1]) & (c2[0] <= cfg.line_search), ls_body,
@@ -612,8 +626,9 @@ def switch_branch(ops, params, cfg: Config, max_iter, u, g, load):
 
     The state is kicked along the critical mode (the eigenvector of the lowest eigenvalue; its
     largest entry SWITCH_AMPLITUDE particle spacings, then doubled while the energy falls:
-    ``along_mode``) to either side, and ``descend`` minimises the energy from each kick; of the stable equilibria found, the lower energy is kept (at a
-    symmetric bifurcation the two are mirror images of equal energy: the + side is kept). A
+    ``along_mode``) to either side; ``descend`` minimises the energy from the kick of lower
+    energy (at a symmetric bifurcation the two sides are mirror images of equal energy: the +
+    side is taken; at an asymmetric one, the side on which the energy falls further). A
     perturbation along the mode, not a shift alone, because at the unstable equilibrium r = 0:
     every shifted Newton step would be zero."""
     lam, vecs = lowest_modes(dense_tangent(ops, pair_blocks(ops, params, cfg.W, coefficients(ops, u, g))),
@@ -622,13 +637,11 @@ def switch_branch(ops, params, cfg: Config, max_iter, u, g, load):
     mode = vecs[:, 0].reshape(u.shape)
     kick = SWITCH_AMPLITUDE * ops.spacing / jnp.max(jnp.abs(mode)) * mode
 
-    def side(sign):
-        return descend(ops, params, cfg, max_iter, along_mode(ops, params, cfg.W, u, sign * kick, g, load), g, load)
-
-    v, found, Pi, its = jax.lax.map(side, jnp.array([1.0, -1.0], u.dtype))
-    Pi = jnp.where(found, Pi, jnp.inf)
-    best = jnp.argmin(Pi)      # the first of equal energies: +
-    return v[best], jnp.any(found), lam, mode, jnp.sum(its)
+    plus = along_mode(ops, params, cfg.W, u, kick, g, load)
+    minus = along_mode(ops, params, cfg.W, u, -kick, g, load)
+    lower = energy(ops, params, cfg.W, minus, g, load)[0] < energy(ops, params, cfg.W, plus, g, load)[0]
+    v, found, _, its = descend(ops, params, cfg, max_iter, jnp.where(lower, minus, plus), g, load)
+    return v, found, lam, mode, its
 
 
 def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l0, l1) -> Solution:
@@ -639,15 +652,28 @@ def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l
     converged state is returned with the failing status. The linear solver's state runs
     through every step (a sparse factorisation keeps preconditioning later steps).
 
-    Past a critical point (``switches_branch(cfg)``): a step whose equilibrium has a K_ff that
-    is not positive definite is cut (as any failure) until it is at most dt0 / 2**cfg.locate
-    long, which pins the critical point between the last stable state and that equilibrium;
-    then ``switch_branch`` goes on to a stable equilibrium of the same load, the step is
-    accepted there and the critical point recorded in ``Solution.critical``."""
+    Past a critical point (``switches_branch(cfg)``): a step that fails, or whose equilibrium
+    has a K_ff that is not positive definite, is cut (as any failure) until it is at most
+    dt0 / 2**cfg.locate long, which pins the critical point between the last stable state and
+    that step's end; then ``switch_branch`` goes on from the step's last state (the unstable
+    equilibrium, or where Newton stopped: near a critical point the energy line search cannot
+    reach the saddle) to a stable equilibrium of the same load, and the step is accepted
+    there. Where K_ff had a negative eigenvalue there, the critical point is recorded in
+    ``Solution.critical`` and counted in ``Solution.branch``.
+
+    Failure in bounded time: the Newton iterations spent in failed attempts (cut steps and
+    failed switches) may not exceed FAILED_WORK x max(iterations of the accepted steps,
+    steps x cfg.easy) + 2 x max_iter; the solve gives up (with the failing attempt's status)
+    once they would. So a solve that cannot proceed costs at most (1 + FAILED_WORK) x the
+    larger of the work it did and a converging solve's nominal work (steps x easy), plus two
+    attempts, whatever lim.max_cuts allows. Without the budget, a solve stuck at a limit point
+    spends up to max_cuts attempts of max_iter iterations each, and more where successes and
+    failures alternate (tens of times a converging solve's work)."""
     dt0 = 1.0 / lim.steps
     dt_min = dt0 * 0.5 ** lim.max_cuts
     dt_locate = jnp.maximum(dt0 * 0.5 ** cfg.locate, dt_min)
     branching = switches_branch(cfg)
+    nominal = lim.steps * max(int(cfg.easy), 1)
 
     def at(t):
         # exactly g0 before the first converged step (a NaN in g1 must not leak into the
@@ -661,7 +687,7 @@ def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l
         return (t < 1.0) & (status <= 0)
 
     def body(c):
-        t, dt, u, status, iters, steps, cuts, rn, unknown, state, branch, crit = c
+        t, dt, u, status, iters, steps, cuts, rn, unknown, state, branch, crit, wasted = c
         t1 = jnp.minimum(t + dt, 1.0)
         t1 = jnp.where(1.0 - t1 < 1e-12, 1.0, t1)
         ga, la = at(t)
@@ -669,14 +695,15 @@ def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l
         v, st, it, rn_v, state = newton(ops, params, cfg, lim.max_iter, u, ga, gb, la, lb, state)
         ok = (st == Status.CONVERGED) | (st == Status.STABILITY_UNKNOWN)
         if branching:
-            switch = (st == Status.UNSTABLE_TANGENT) & (dt <= dt_locate * (1 + 1e-9))
+            switch = (~ok) & (dt <= dt_locate * (1 + 1e-9))
             nan = jnp.full((CRITICAL_EIGS,), jnp.nan, u.dtype)
             w, found, lam, mode, its = _when(
                 switch, lambda: switch_branch(ops, params, cfg, lim.max_iter, v, gb, lb),
                 (v, jnp.array(False), nan, jnp.zeros_like(u), jnp.array(0)))
             moved = switch & found
-            crit = crit.record(branch, moved, t, t1, lam, mode)
-            branch = branch + moved
+            critical = moved & (lam[0] < 0)
+            crit = crit.record(branch, critical, t, t1, lam, mode)
+            branch = branch + critical
             v = jnp.where(moved, w, v)
             it = it + its
             ok = ok | moved
@@ -685,15 +712,17 @@ def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l
             rn_v = jnp.where(moved, jnp.linalg.norm(residual(ops, params, cfg.W, v, gb, lb)), rn_v)
         grow = jnp.where(it <= cfg.easy, cfg.growth, 1.0)
         dt_next = jnp.where(ok, jnp.minimum(dt * grow, dt0), dt / 2)
-        give_up = (~ok) & (dt / 2 < dt_min * (1 - 1e-9))
+        wasted = wasted + jnp.where(ok, 0, it)
+        budget = FAILED_WORK * jnp.maximum(iters + it - wasted, nominal) + 2 * lim.max_iter
+        give_up = (~ok) & ((dt / 2 < dt_min * (1 - 1e-9)) | (wasted > budget))
         return (jnp.where(ok, t1, t), dt_next, jnp.where(ok, v, u),
                 jnp.where(give_up, st, 0), iters + it, steps + ok, cuts + (~ok), jnp.where(ok, rn_v, rn),
-                unknown | (st == Status.STABILITY_UNKNOWN), state, branch, crit)
+                unknown | (st == Status.STABILITY_UNKNOWN), state, branch, crit, wasted)
 
     zero = jnp.array(0)
     init = (jnp.array(0.0), jnp.array(dt0), u0, zero, zero, zero, zero, jnp.array(0.0), jnp.array(False),
-            cfg.linear.empty(ops, u0.dtype), zero, Critical.empty(u0))
-    t, _, u, status, iters, steps, cuts, rn, unknown, _, branch, crit = jax.lax.while_loop(cond, body, init)
+            cfg.linear.empty(ops, u0.dtype), zero, Critical.empty(u0), zero)
+    t, _, u, status, iters, steps, cuts, rn, unknown, _, branch, crit, _ = jax.lax.while_loop(cond, body, init)
     status = jnp.where((status == 0) & unknown, Status.STABILITY_UNKNOWN, status)
     g, load = at(t)
     return Solution(u, g, load, status, t, iters, steps, cuts, rn, branch, crit)
