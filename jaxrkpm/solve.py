@@ -525,7 +525,10 @@ def descend(ops, params, cfg: Config, max_iter, u, g, load):
     this and not Newton on the residual follows a critical point. Where K_ff is positive
     definite tau = 0 and the step is Newton's (quadratic convergence at the end). Converged:
     |r| below the Newton tolerance, with K_ff positive definite (tau = 0) at the last step and
-    by a Cholesky factorisation at the state returned (every accepted state is stable)."""
+    by a Cholesky factorisation at the state returned (every accepted state is stable). A step
+    that finds no energy decrease in the line search is retried with a shift at least 4x larger
+    (a shorter, more gradient-like step: Levenberg-Marquardt damping), which relaxes again by 4x
+    after each good step; so the descent fails only at its iteration cap (``max_iter``)."""
     W = cfg.W
     n = u.size
 
@@ -537,7 +540,7 @@ def descend(ops, params, cfg: Config, max_iter, u, g, load):
         d = coefficients(ops, v, g)
         return jnp.maximum(cfg.rtol * internal_force_scale(ops, params, W, d), roundoff_floor(ops, params, W, d))
 
-    def shifted_cholesky(K, tau_prev):
+    def shifted_cholesky(K, tau_prev, tau_min):
         beta = SHIFT_FLOOR * jnp.max(jnp.abs(jnp.diagonal(K)))
 
         def trial(tau):
@@ -546,22 +549,23 @@ def descend(ops, params, cfg: Config, max_iter, u, g, load):
 
         def body(c):
             k, tau, _, _ = c
-            tau = jnp.where(k == 0, 0.0, jnp.where(k == 1, jnp.maximum(beta, tau_prev / 2), 2 * tau))
+            tau = jnp.where(k == 0, tau_min,
+                            jnp.where(k == 1, jnp.maximum(jnp.maximum(beta, tau_prev / 2), 2 * tau_min), 2 * tau))
             L, ok = trial(tau)
             return k + 1, tau, L, ok
 
         init = (jnp.array(0), jnp.asarray(0.0, K.dtype), jnp.zeros_like(K), jnp.array(False))
         # 64 doublings of beta cover any finite spectrum
         _, tau, L, ok = jax.lax.while_loop(lambda c: (~c[3]) & (c[0] < 66), body, init)
-        return L, tau, ok
+        return L, tau, ok, beta
 
     def cond(c):
-        return c[5] < 0
+        return c[6] < 0
 
     def body(c):
-        it, v, Pi, r, tau_prev, _ = c
+        it, v, Pi, r, tau_prev, tau_min, _ = c
         K = dense_tangent(ops, pair_blocks(ops, params, W, coefficients(ops, v, g)))
-        L, tau, chol_ok = shifted_cholesky(K, tau_prev)
+        L, tau, chol_ok, beta = shifted_cholesky(K, tau_prev, tau_min)
         p = -jax.scipy.linalg.cho_solve((L, True), r.reshape(-1)).reshape(r.shape)
         slope = jnp.sum(p * r)
         rn = jnp.linalg.norm(r)
@@ -582,12 +586,15 @@ def descend(ops, params, cfg: Config, max_iter, u, g, load):
                                                     (jnp.array(0), jnp.array(False), v, Pi, r))
         ok = chol_ok & ls_ok
         done = ok & (tau == 0) & (jnp.linalg.norm(r_w) <= tol(w))
-        status = jnp.where(done, 1, jnp.where(~ok | (it + 1 >= max_iter), 0, -1))
-        return (it + 1, jnp.where(ok, w, v), jnp.where(ok, Pi_w, Pi), jnp.where(ok, r_w, r), tau, status)
+        # no decrease along p: the next step is shorter, by a larger shift (Levenberg-Marquardt
+        # damping) instead of giving up; after a good step the damping relaxes
+        tau_min = jnp.where(ls_ok, jnp.where(tau_min / 4 < beta, 0.0, tau_min / 4), jnp.maximum(4 * tau, beta))
+        status = jnp.where(done, 1, jnp.where(~chol_ok | (it + 1 >= max_iter), 0, -1))
+        return (it + 1, jnp.where(ok, w, v), jnp.where(ok, Pi_w, Pi), jnp.where(ok, r_w, r), tau, tau_min, status)
 
     Pi0, _, r0 = evaluate(u)
-    it, v, Pi, _, _, status = jax.lax.while_loop(cond, body, (jnp.array(0), u, Pi0, r0,
-                                                              jnp.asarray(0.0, u.dtype), jnp.array(-1)))
+    zero = jnp.asarray(0.0, u.dtype)
+    it, v, Pi, _, _, _, status = jax.lax.while_loop(cond, body, (jnp.array(0), u, Pi0, r0, zero, zero, jnp.array(-1)))
     K = dense_tangent(ops, pair_blocks(ops, params, W, coefficients(ops, v, g)))
     L = jnp.linalg.cholesky(K)
     stable = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
@@ -652,13 +659,14 @@ def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l
     converged state is returned with the failing status. The linear solver's state runs
     through every step (a sparse factorisation keeps preconditioning later steps).
 
-    Past a critical point (``switches_branch(cfg)``): a step that fails, or whose equilibrium
-    has a K_ff that is not positive definite, is cut (as any failure) until it is at most
-    dt0 / 2**cfg.locate long, which pins the critical point between the last stable state and
-    that step's end; then ``switch_branch`` goes on from the step's last state (the unstable
-    equilibrium, or where Newton stopped: near a critical point the energy line search cannot
-    reach the saddle) to a stable equilibrium of the same load, and the step is accepted
-    there. Where K_ff had a negative eigenvalue there, the critical point is recorded in
+    Past a critical point (``switches_branch(cfg)``): a step whose equilibrium has a K_ff that
+    is not positive definite is cut (as any failure) until it is at most dt0 / 2**cfg.locate
+    long, which pins the critical point between the last stable state and that step's end;
+    then ``switch_branch`` goes on from that unstable equilibrium to a stable equilibrium of
+    the same load, and the step is accepted there; if none is found the solve stops there
+    with UNSTABLE_TANGENT (the last stable state kept). (A step whose Newton fails is cut as
+    before: measured on the Fung squares, a descent from where Newton stalled did not reach a
+    stable state within max_iter, and it costs several times a Newton attempt.) Where K_ff had a negative eigenvalue there, the critical point is recorded in
     ``Solution.critical`` and counted in ``Solution.branch``.
 
     Failure in bounded time: the Newton iterations spent in failed attempts (cut steps and
@@ -695,12 +703,13 @@ def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l
         v, st, it, rn_v, state = newton(ops, params, cfg, lim.max_iter, u, ga, gb, la, lb, state)
         ok = (st == Status.CONVERGED) | (st == Status.STABILITY_UNKNOWN)
         if branching:
-            switch = (~ok) & (dt <= dt_locate * (1 + 1e-9))
+            switch = (st == Status.UNSTABLE_TANGENT) & (dt <= dt_locate * (1 + 1e-9))
             nan = jnp.full((CRITICAL_EIGS,), jnp.nan, u.dtype)
             w, found, lam, mode, its = _when(
                 switch, lambda: switch_branch(ops, params, cfg, lim.max_iter, v, gb, lb),
                 (v, jnp.array(False), nan, jnp.zeros_like(u), jnp.array(0)))
             moved = switch & found
+            lost = switch & ~found
             critical = moved & (lam[0] < 0)
             crit = crit.record(branch, critical, t, t1, lam, mode)
             branch = branch + critical
@@ -715,6 +724,10 @@ def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l
         wasted = wasted + jnp.where(ok, 0, it)
         budget = FAILED_WORK * jnp.maximum(iters + it - wasted, nominal) + 2 * lim.max_iter
         give_up = (~ok) & ((dt / 2 < dt_min * (1 - 1e-9)) | (wasted > budget))
+        if branching:
+            # the critical point is bracketed and no stable state of that load was found:
+            # smaller steps would only bracket it again
+            give_up = give_up | lost
         return (jnp.where(ok, t1, t), dt_next, jnp.where(ok, v, u),
                 jnp.where(give_up, st, 0), iters + it, steps + ok, cuts + (~ok), jnp.where(ok, rn_v, rn),
                 unknown | (st == Status.STABILITY_UNKNOWN), state, branch, crit, wasted)

@@ -11,6 +11,8 @@ k^2 of the pinned elastica of length L / 2: P / P_E = (2 K(m) / pi)^2 and the be
 shortening is L (2 - 2 E(m) / K(m)); the strip also shortens axially by P L / (E' h)
 (extensible correction, cos(theta) ~ 1 in it).
 """
+import time
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,6 +21,7 @@ from scipy.optimize import brentq
 from scipy.special import ellipe, ellipk
 
 import jaxrkpm as jr
+from jaxrkpm import solve as S
 
 L, H, NX, NY = 1.0, 0.05, 81, 5
 LAM, MU = 1.0, 1.0
@@ -111,3 +114,59 @@ def test_strip_follows_the_elastica(strip, strip_path):
     mid = np.asarray(strip.displacement(sol, [[0.5 * L, 0.5 * H]]))[0]
     # the clamped elastica's mid-span deflection at 10% shortening is about 0.2 L
     assert 0.1 * L < abs(mid[1]) < 0.3 * L
+
+
+# ---------------------------------------------------- the compressed square, failure in bounded time
+def block_model(n: int, material, integration: str = "gauss") -> jr.Model:
+    """Unit square, n x n particles: "wall" (x = 0) held, "edge" (x = 1) moved rigidly
+    (the set-up of experiments/compress_block.py, which runs the issue's 33x33 cases)."""
+    body = jr.Body.grid((n, n), 1.0 / (n - 1))
+    sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "edge": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
+    return jr.Model(body, material, integration=integration, essential=sets)
+
+
+@pytest.fixture(scope="module")
+def fung_block():
+    return block_model(9, jr.Fung(alpha=1.0, beta=1.0))
+
+
+@pytest.mark.parametrize("case", ["compression", "compression_shear"])
+def test_square_reaches_full_load_on_stable_states(fung_block, case):
+    """20% compression (Fung) and 20% compression + 10% shear (Quadratic) between a fixed and
+    a rigidly moved edge reach the full load, on a stable state (9x9 Gauss here; 33x33 and
+    SCNI/MSCNI in experiments/compress_block.py)."""
+    model = fung_block if case == "compression" else block_model(9, jr.Quadratic(alpha=1.0))
+    push = [-0.2, 0.0] if case == "compression" else [-0.2, 0.1]
+    sol = model.solve({"edge": jnp.array(push)}, steps=10)
+    assert sol.outcome == jr.Status.CONVERGED and float(sol.t) == 1.0
+    assert min_eig(model, sol) > 0
+
+
+def test_failure_costs_a_small_multiple_of_a_converging_solve(fung_block):
+    """A solve that cannot proceed (60% compression: the path stops near 31%, where the Fung
+    square's tangent loses positive definiteness and no stable state is found) gives up after
+    a bounded amount of work: its Newton iterations are within (1 + FAILED_WORK) x the larger
+    of its useful work and steps x easy, plus 2 x max_iter (solve_path's budget), and its run
+    time a small multiple of a converging solve of the same model, steps and size."""
+    def timed(c):
+        best = np.inf
+        for _ in range(2):          # the first call of each compiles (the same function)
+            t0 = time.perf_counter()
+            sol = fung_block.solve({"edge": jnp.array([-c, 0.0])}, steps=10, throw=False)
+            sol.u.block_until_ready()
+            best = min(best, time.perf_counter() - t0)
+        return sol, best
+
+    good, t_good = timed(0.2)
+    bad, t_bad = timed(0.6)
+    assert good.converged and not bad.converged and 0.3 < 0.6 * float(bad.t) < 0.4
+    cfg = fung_block.config()
+    nominal = 10 * cfg.easy
+    print(f"converging: {int(good.iterations)} iterations, {t_good:.3f} s; failing ({bad.outcome.name} at "
+          f"{60 * float(bad.t):.1f}%): {int(bad.iterations)} iterations, {int(bad.cuts)} cuts, {t_bad:.3f} s: "
+          f"ratio {t_bad / t_good:.1f}")
+    assert int(bad.iterations) <= (1 + S.FAILED_WORK) * max(int(bad.iterations), nominal) + 2 * 25
+    # measured here: 82 vs 30 iterations, time ratio 8 (without the budget and the stop after a
+    # failed switch: 163 iterations, ratio 16)
+    assert int(bad.iterations) <= 4 * int(good.iterations)
+    assert t_bad <= 15 * t_good
