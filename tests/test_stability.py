@@ -21,25 +21,8 @@ from scipy.optimize import brentq
 from scipy.special import ellipe, ellipk
 
 import jaxrkpm as jr
+from experiments.elastica import E_PLANE, EULER, H, L, elastica_force, path, strip_model
 from jaxrkpm import solve as S
-
-L, H, NX, NY = 1.0, 0.05, 81, 5
-LAM, MU = 1.0, 1.0
-E_PLANE = 4 * MU * (LAM + MU) / (LAM + 2 * MU)
-EULER = 4 * np.pi**2 * E_PLANE * (H**3 / 12) / L**2
-SHORTENINGS = (0.006, 0.01, 0.02, 0.04, 0.07, 0.10)   # of L; Euler's is 0.0082
-
-
-def elastica_force(shortening: float) -> float:
-    """End force of the clamped extensible elastica at an end shortening (a fraction of L)."""
-    def gap(P):
-        bend = shortening - P / (E_PLANE * H)
-        if bend <= 0:
-            return -1.0
-        m = brentq(lambda m: 2 - 2 * ellipe(m) / ellipk(m) - bend, 1e-14, 0.999)
-        return EULER * (2 * ellipk(m) / np.pi) ** 2 - P
-    return brentq(gap, EULER * (1 + 1e-9), 2 * EULER)
-
 
 _TANGENT = jax.jit(lambda prob, u, g: prob.tangent(u, g))
 
@@ -51,19 +34,13 @@ def min_eig(model, sol) -> float:
 
 @pytest.fixture(scope="module")
 def strip():
-    body = jr.Body.grid((NX, NY), L / (NX - 1))
-    sets = {"left": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > L - 1e-9)}
-    return jr.Model(body, jr.NeoHookean(lam=LAM, mu=MU), essential=sets)
+    return strip_model()
 
 
 @pytest.fixture(scope="module")
 def strip_path(strip):
     """Warm-started solves to each end shortening: [(shortening, solution)]."""
-    sol, path = strip.initial(), []
-    for c in SHORTENINGS:
-        sol = strip.solve({"right": jnp.array([-c * L, 0.0])}, initial=sol)
-        path.append((c, sol))
-    return path
+    return path(strip)
 
 
 def test_the_elastica_reference_is_the_textbook_one():
