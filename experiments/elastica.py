@@ -75,7 +75,7 @@ def main(argv=None):
     X = model.body.X
     for c, sol in rows:
         x = X + np.asarray(model.particle_displacements(sol))
-        a1.plot(x[:, 0], x[:, 1], ".", ms=2, label=f"{100 * c:.0f}%")
+        a1.plot(x[:, 0], x[:, 1], ".", ms=2, label=f"{100 * c:.1f}%")
     a1.set_aspect("equal")
     a1.legend(fontsize=7, ncol=6)
     a1.set_title("buckled strip (end shortening in % of L)")
