@@ -90,7 +90,8 @@ class ControlledModel(NamedTuple):
                                         state=state, chord=True)
         quick = Solution(u, g1, sol.load, jnp.zeros_like(sol.status), jnp.ones_like(sol.t),
                          its.astype(sol.iterations.dtype), jnp.ones_like(sol.steps),
-                         jnp.zeros_like(sol.cuts), rn.astype(sol.residual_norm.dtype))
+                         jnp.zeros_like(sol.cuts), rn.astype(sol.residual_norm.dtype),
+                         jnp.zeros_like(sol.branch), sol.critical)
 
         def full():
             new = solve_path(prob.ops, prob.params, prob.config, lim, sol.u, sol.g, g1, sol.load, sol.load)

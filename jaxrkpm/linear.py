@@ -60,6 +60,18 @@ def dense_tangent(ops, blocks):
     return Kff.reshape(n, n)
 
 
+def lowest_modes(K, k: int = 1):
+    """The k lowest eigenpairs of a dense symmetric K_ff (n, n): (eigenvalues (k,) ascending,
+    modes (n, k) orthonormal columns). Where the smallest eigenvalue is <= 0 the equilibrium is
+    not stable and its column 0 is the critical (buckling) mode. A full ``eigh`` (O(n^3), a few
+    Cholesky factorisations' worth): small dense systems, once per critical point."""
+    n = K.shape[0]
+    if not 1 <= k <= n:
+        raise ValueError(f"k must lie in 1..{n} (the size of K), got {k}")
+    lam, vecs = jnp.linalg.eigh(0.5 * (K + K.T))   # symmetrised: assembly round-off is not physics
+    return lam[:k], vecs[:, :k]
+
+
 @dataclass(frozen=True)
 class DenseSolver:
     """Dense Cholesky of K_ff (LU where it is not positive definite): small systems.

@@ -17,7 +17,7 @@ from .rk import psi_jax
 from .linear import DenseSolver, SparseSolver
 from .problem import Problem
 from .sparse import SaddlePointSystem, factoriser
-from .solve import (Config, Limits, Ops, Params, Solution, Status, coefficients,
+from .solve import (Config, Critical, Limits, Ops, Params, Solution, Status, coefficients,
                     deformation_gradients, energy_full, implicit_jacobian, point_values,
                     solve_path_jit)
 
@@ -384,8 +384,9 @@ class Model:
         """The undeformed, unloaded equilibrium."""
         z = jnp.zeros((), jnp.int32)
         f = jnp.zeros((), jnp.float64)  # not weak-typed: the same jit signature as a solve's output
-        return Solution(jnp.zeros((len(self.sets.free), self.dim)),
-                        jnp.zeros((len(self.sets.bnd), self.dim)), f, z, f + 1.0, z, z, z, f)
+        u = jnp.zeros((len(self.sets.free), self.dim))
+        return Solution(u, jnp.zeros((len(self.sets.bnd), self.dim)), f, z, f + 1.0, z, z, z, f, z,
+                        Critical.empty(u))
 
     def solve(self, prescribed: Mapping | None = None, *, loads: float = 1.0, params=None,
               steps: int = 1, initial: Solution | None = None, throw: bool = True,
@@ -427,7 +428,7 @@ class Model:
         status = _concrete(sol.status)
         if throw and status is not None and not Status.of(status).equilibrium:
             # under jax.jacfwd / jax.grad the fields are tracers: the error carries their values
-            raise SolveError(Solution(*(_concrete(x) for x in sol)))
+            raise SolveError(Solution(*jax.tree.map(_concrete, tuple(sol))))
         return sol
 
     def continuation(self, ds: float, **options):

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .linear import Stability
+from .linear import DenseSolver, Stability, dense_tangent, lowest_modes
 from .materials import green_lagrange
 from .outcome import Outcome
 
@@ -23,16 +23,21 @@ class Status(Outcome):
     """Outcome of a solve (an int code inside jit; ``Status.of(sol.status)`` outside)."""
 
     CONVERGED = 0, "converged"
-    MAX_ITERATIONS = 1, "Newton reached its iteration cap on the smallest load step allowed"
-    NONFINITE = 2, "non-finite residual or energy (NaN/inf) on the smallest load step allowed"
+    MAX_ITERATIONS = 1, ("Newton reached its iteration cap on the smallest load step allowed "
+                         "(or once the failed attempts had spent their work budget)")
+    NONFINITE = 2, ("non-finite residual or energy (NaN/inf) on the smallest load step allowed "
+                    "(or once the failed attempts had spent their work budget)")
     INVERTED = 3, ("a step would invert the material (det F <= 0 at an integration point) "
-                   "even on the smallest load step allowed")
+                   "even on the smallest load step allowed (or once the failed attempts had "
+                   "spent their work budget)")
     LINE_SEARCH = 4, ("the line search found no decrease of energy or residual "
-                      "on the smallest load step allowed")
+                      "on the smallest load step allowed (or once the failed attempts had "
+                      "spent their work budget)")
     UNSTABLE_TANGENT = 5, ("the tangent K_ff is not positive definite at the equilibrium "
                            "reached (loss of stability: a limit or bifurcation point, buckling "
                            "or loss of ellipticity passed), even on the smallest load step "
-                           "allowed; the path is stopped at the last stable state (solve with "
+                           "allowed (or once the failed attempts had spent their work budget); "
+                           "the path is stopped at the last stable state (solve with "
                            "check_stability=False to follow the unstable branch)")
     STABILITY_UNKNOWN = 6, ("converged, but the factorisation could not tell whether K_ff is "
                             "positive definite (perturbed or permuted pivots): the state may lie "
@@ -94,6 +99,10 @@ class Config:
     growth: float = 1.5           # ... by this factor (never above the initial step)
     check_stability: bool = True  # an equilibrium with K_ff not positive definite -> UNSTABLE_TANGENT
     #                               (False also lets iterative linear solves stop early)
+    stable_branch: bool = True    # past a critical point, go on to a stable equilibrium of the same
+    #                               load (see ``switch_branch``); dense solver and check_stability only
+    locate: int = 6               # halvings of the initial load step that pin a critical point
+    #                               before the branch switch (it lies within dt0 / 2**locate)
 
     def __post_init__(self):
         if not callable(self.W):
@@ -102,13 +111,14 @@ class Config:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a positive number, got {v!r}")
-        if int(self.line_search) < 0 or int(self.easy) < 0:
-            raise ValueError("line_search and easy must be >= 0")
+        if int(self.line_search) < 0 or int(self.easy) < 0 or int(self.locate) < 0:
+            raise ValueError("line_search, easy and locate must be >= 0")
 
 
 MAX_STEPS = 1000   # initial load steps of one solve (Limits.of)
 MAX_ITER = 1000    # Newton iterations per load step
 MAX_CUTS = 50      # halvings of the load step (2**-50 of the increment: below round-off)
+FAILED_WORK = 2    # Newton iterations of failed attempts allowed per iteration of useful work (solve_path)
 
 
 class Limits(NamedTuple):
@@ -133,12 +143,47 @@ class Limits(NamedTuple):
         return Limits(jnp.asarray(int(steps)), jnp.asarray(int(max_iter)), jnp.asarray(int(max_cuts)))
 
 
+MAX_CRITICAL = 8    # critical points one solve records (more are counted in Solution.branch)
+CRITICAL_EIGS = 3   # lowest eigenvalues of K_ff recorded at each
+
+
+class Critical(NamedTuple):
+    """Critical points a solve passed (the first ``MAX_CRITICAL``; NaN where unfilled).
+
+    The tangent K_ff lost positive definiteness between the load fractions ``t_stable`` (the
+    last stable equilibrium) and ``t_unstable`` (the first equilibrium on the path with a
+    negative eigenvalue; ``t_unstable - t_stable`` <= dt0 / 2**Config.locate); ``eigenvalues``
+    (K, CRITICAL_EIGS) the lowest eigenvalues of K_ff there, ``mode`` (K, Nf, d) the critical
+    mode (unit norm) along which the solve left the unstable branch."""
+
+    t_stable: jax.Array      # (K,)
+    t_unstable: jax.Array    # (K,)
+    eigenvalues: jax.Array   # (K, CRITICAL_EIGS)
+    mode: jax.Array          # (K, Nf, d)
+
+    @staticmethod
+    def empty(u) -> "Critical":
+        nan = jnp.full((MAX_CRITICAL,), jnp.nan, u.dtype)
+        return Critical(nan, nan, jnp.full((MAX_CRITICAL, CRITICAL_EIGS), jnp.nan, u.dtype),
+                        jnp.full((MAX_CRITICAL,) + u.shape, jnp.nan, u.dtype))
+
+    def record(self, k, when, t_stable, t_unstable, eigenvalues, mode) -> "Critical":
+        """With entry k set where ``when`` (k >= MAX_CRITICAL: dropped)."""
+        def put(a, v):
+            return jnp.where(when, a.at[k].set(v, mode="drop"), a)
+        return Critical(put(self.t_stable, t_stable), put(self.t_unstable, t_unstable),
+                        put(self.eigenvalues, eigenvalues), put(self.mode, mode))
+
+
 class Solution(NamedTuple):
     """A solve's result (a pytree: batched solves stack every field).
 
     u (Nf, d) free coefficients at the last converged load; g (Nb, d) prescribed values and
     ``load`` the load scale there; ``t`` the fraction of the requested increment reached;
-    ``status`` a Status code."""
+    ``status`` a Status code. ``branch`` counts the critical points this solve passed by
+    switching to a stable branch (0: the state lies on the branch the solve started on;
+    CONVERGED with branch > 0: a stable state of a secondary, bifurcated branch) and
+    ``critical`` records them (see ``Critical``)."""
 
     u: jax.Array
     g: jax.Array
@@ -149,6 +194,8 @@ class Solution(NamedTuple):
     steps: jax.Array
     cuts: jax.Array
     residual_norm: jax.Array
+    branch: jax.Array     # () critical points passed by switching to a stable branch (0: primary)
+    critical: "Critical"  # the critical points this solve passed (fixed size, NaN where unfilled)
 
     @property
     def converged(self) -> bool:
@@ -172,7 +219,12 @@ class Solution(NamedTuple):
                     + Status.of(st.flat[bad[0]]).message)
         s = Status.of(st)
         if s == Status.CONVERGED:
-            return (f"converged in {int(self.steps)} load steps, {int(self.iterations)} Newton "
+            where = ""
+            if int(self.branch):
+                t = np.asarray(self.critical.t_unstable)
+                where = (f" on a stable secondary branch, past {int(self.branch)} critical point(s) "
+                         f"(first at {100 * t[0]:.2f}% of the increment)")
+            return (f"converged{where} in {int(self.steps)} load steps, {int(self.iterations)} Newton "
                     f"iterations (|r| = {float(self.residual_norm):.2e})")
         if s == Status.STABILITY_UNKNOWN:
             return (f"{s.name}: {s.message} (after {int(self.steps)} load steps, "
@@ -436,15 +488,200 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
     return u_new, status, it, jnp.linalg.norm(r), state
 
 
+# ------------------------------------------------------------------ the stable branch
+SWITCH_AMPLITUDE = 0.05   # the kick along the critical mode: its largest entry, in particle spacings
+SHIFT_FLOOR = 1e-10       # smallest tangent shift, relative to the largest diagonal entry of K_ff
+
+
+def switches_branch(cfg: Config) -> bool:
+    """Whether solves with ``cfg`` go on past a critical point (static): the stable-branch
+    option needs the stability check and the dense tangent (its eigenpairs); the sparse path
+    stops with UNSTABLE_TANGENT as before."""
+    return bool(cfg.stable_branch and cfg.check_stability and isinstance(cfg.linear, DenseSolver))
+
+
+def _when(need, f, default):
+    """f() where ``need``, else ``default``, as a while loop that runs at most once: unlike a
+    lax.cond under vmap (which evaluates both sides for every member), the loop costs nothing
+    while no batch member needs it."""
+    def body(c):
+        return jnp.array(False), f()
+    return jax.lax.while_loop(lambda c: c[0], body, (jnp.asarray(need), default))[1]
+
+
+def descend(ops, params, cfg: Config, max_iter, u, g, load):
+    """Minimise the energy at the fixed load (g, load) from u by Newton steps on a shifted
+    tangent: returns (u, converged to a stable equilibrium, energy, iterations).
+
+    Each step solves (K_ff + tau I) p = -r with the smallest tau of the trial sequence 0,
+    max(beta, tau_prev / 2), doubling, for which the Cholesky factorisation exists (Nocedal &
+    Wright, Algorithm 3.3, "Cholesky with added multiple of the identity"; beta = SHIFT_FLOOR x
+    the largest diagonal entry, near round-off: the shift must come out comparable to the
+    negative eigenvalue, which near a bifurcation is many orders below the diagonal, or the
+    step along the critical mode, |lambda| / (lambda + tau) of its residual, would crawl; with
+    doubling, tau < 2 |lambda| and the step along the mode at least doubles the amplitude).
+    So p is always a descent direction, and the Armijo energy line
+    search can only go downhill: it cannot end on a saddle (the unstable branch), which is why
+    this and not Newton on the residual follows a critical point. Where K_ff is positive
+    definite tau = 0 and the step is Newton's (quadratic convergence at the end). Converged:
+    |r| below the Newton tolerance, with K_ff positive definite (tau = 0) at the last step and
+    by a Cholesky factorisation at the state returned (every accepted state is stable). A step
+    that finds no energy decrease in the line search is retried with a shift at least 4x larger
+    (a shorter, more gradient-like step: Levenberg-Marquardt damping), which relaxes again by 4x
+    after each good step; so the descent fails only at its iteration cap (``max_iter``)."""
+    W = cfg.W
+    n = u.size
+
+    def evaluate(v):
+        (Pi, detmin), r = jax.value_and_grad(lambda x: energy(ops, params, W, x, g, load), has_aux=True)(v)
+        return Pi, detmin, r
+
+    def tol(v):
+        d = coefficients(ops, v, g)
+        return jnp.maximum(cfg.rtol * internal_force_scale(ops, params, W, d), roundoff_floor(ops, params, W, d))
+
+    def shifted_cholesky(K, tau_prev, tau_min):
+        beta = SHIFT_FLOOR * jnp.max(jnp.abs(jnp.diagonal(K)))
+
+        def trial(tau):
+            L = jnp.linalg.cholesky(K + tau * jnp.eye(n, dtype=K.dtype))
+            return L, jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
+
+        def body(c):
+            k, tau, _, _ = c
+            tau = jnp.where(k == 0, tau_min,
+                            jnp.where(k == 1, jnp.maximum(jnp.maximum(beta, tau_prev / 2), 2 * tau_min), 2 * tau))
+            L, ok = trial(tau)
+            return k + 1, tau, L, ok
+
+        init = (jnp.array(0), jnp.asarray(0.0, K.dtype), jnp.zeros_like(K), jnp.array(False))
+        # 64 doublings of beta cover any finite spectrum
+        _, tau, L, ok = jax.lax.while_loop(lambda c: (~c[3]) & (c[0] < 66), body, init)
+        return L, tau, ok, beta
+
+    def cond(c):
+        return c[6] < 0
+
+    def body(c):
+        it, v, Pi, r, tau_prev, tau_min, _ = c
+        K = dense_tangent(ops, pair_blocks(ops, params, W, coefficients(ops, v, g)))
+        L, tau, chol_ok, beta = shifted_cholesky(K, tau_prev, tau_min)
+        p = -jax.scipy.linalg.cho_solve((L, True), r.reshape(-1)).reshape(r.shape)
+        slope = jnp.sum(p * r)
+        rn = jnp.linalg.norm(r)
+
+        def ls_body(c2):
+            k, _, _, _, _ = c2
+            alpha = 0.5 ** k
+            w = v + alpha * p
+            Pi_w, det_w, r_w = evaluate(w)
+            # where K_ff is positive definite (tau = 0) a residual decrease also counts: near
+            # the minimum the energy change drowns in round-off, and a convex neighbourhood
+            # holds no saddle to converge to
+            ok = jnp.isfinite(Pi_w) & jnp.all(jnp.isfinite(r_w)) & (det_w > 0) & \
+                ((Pi_w <= Pi + cfg.armijo * alpha * slope) | ((tau == 0) & (jnp.linalg.norm(r_w) < rn)))
+            return k + 1, ok, w, Pi_w, r_w
+
+        _, ls_ok, w, Pi_w, r_w = jax.lax.while_loop(lambda c2: (~c2[1]) & (c2[0] <= cfg.line_search), ls_body,
+                                                    (jnp.array(0), jnp.array(False), v, Pi, r))
+        ok = chol_ok & ls_ok
+        done = ok & (tau == 0) & (jnp.linalg.norm(r_w) <= tol(w))
+        # no decrease along p: the next step is shorter, by a larger shift (Levenberg-Marquardt
+        # damping) instead of giving up; after a good step the damping relaxes
+        tau_min = jnp.where(ls_ok, jnp.where(tau_min / 4 < beta, 0.0, tau_min / 4), jnp.maximum(4 * tau, beta))
+        status = jnp.where(done, 1, jnp.where(~chol_ok | (it + 1 >= max_iter), 0, -1))
+        return (it + 1, jnp.where(ok, w, v), jnp.where(ok, Pi_w, Pi), jnp.where(ok, r_w, r), tau, tau_min, status)
+
+    Pi0, _, r0 = evaluate(u)
+    zero = jnp.asarray(0.0, u.dtype)
+    it, v, Pi, _, _, _, status = jax.lax.while_loop(cond, body, (jnp.array(0), u, Pi0, r0, zero, zero, jnp.array(-1)))
+    K = dense_tangent(ops, pair_blocks(ops, params, W, coefficients(ops, v, g)))
+    L = jnp.linalg.cholesky(K)
+    stable = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
+    return v, (status == 1) & stable, Pi, it
+
+
+KICK_DOUBLINGS = 40       # the kick along the critical mode grows by doubling at most this often
+
+
+def along_mode(ops, params, W, u, kick, g, load):
+    """u + 2**k kick for the k (0 <= k <= KICK_DOUBLINGS) of least energy, found by doubling
+    while the energy falls (and det F > 0). Near a bifurcation the energy is flat along the
+    critical mode (Pi ~ lambda s^2 / 2 + c s^4 / 4 with a tiny lambda < 0): a shifted Newton
+    step from a small kick crawls, while this 1D search lands within a factor 2 of the
+    buckled amplitude sqrt(-lambda / c) in a few energy evaluations."""
+    def Pi(v):
+        e, det = energy(ops, params, W, v, g, load)
+        return jnp.where(jnp.isfinite(e) & (det > 0), e, jnp.inf)
+
+    def body(c):
+        k, best, Pi_best, _ = c
+        v = u + 2.0 ** k * kick
+        Pi_v = Pi(v)
+        lower = Pi_v < Pi_best
+        return k + 1, jnp.where(lower, v, best), jnp.where(lower, Pi_v, Pi_best), lower
+
+    _, best, _, _ = jax.lax.while_loop(lambda c: c[3] & (c[0] <= KICK_DOUBLINGS), body,
+                                       (jnp.array(0), u, Pi(u), jnp.array(True)))
+    return best
+
+
+def switch_branch(ops, params, cfg: Config, max_iter, u, g, load):
+    """From the equilibrium u at (g, load) whose K_ff is not positive definite, to a stable
+    equilibrium of the same load: returns (u, found, lowest eigenvalues (CRITICAL_EIGS,),
+    critical mode (Nf, d) of unit norm, iterations).
+
+    The state is kicked along the critical mode (the eigenvector of the lowest eigenvalue; its
+    largest entry SWITCH_AMPLITUDE particle spacings, then doubled while the energy falls:
+    ``along_mode``) to either side; ``descend`` minimises the energy from the kick of lower
+    energy (at a symmetric bifurcation the two sides are mirror images of equal energy: the +
+    side is taken; at an asymmetric one, the side on which the energy falls further). A
+    perturbation along the mode, not a shift alone, because at the unstable equilibrium r = 0:
+    every shifted Newton step would be zero."""
+    lam, vecs = lowest_modes(dense_tangent(ops, pair_blocks(ops, params, cfg.W, coefficients(ops, u, g))),
+                             min(CRITICAL_EIGS, u.size))
+    lam = jnp.concatenate([lam, jnp.full((CRITICAL_EIGS - lam.shape[0],), jnp.nan, lam.dtype)])
+    mode = vecs[:, 0].reshape(u.shape)
+    kick = SWITCH_AMPLITUDE * ops.spacing / jnp.max(jnp.abs(mode)) * mode
+
+    plus = along_mode(ops, params, cfg.W, u, kick, g, load)
+    minus = along_mode(ops, params, cfg.W, u, -kick, g, load)
+    lower = energy(ops, params, cfg.W, minus, g, load)[0] < energy(ops, params, cfg.W, plus, g, load)[0]
+    v, found, _, its = descend(ops, params, cfg, max_iter, jnp.where(lower, minus, plus), g, load)
+    return v, found, lam, mode, its
+
+
 def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l0, l1) -> Solution:
     """Adaptive load stepping from the equilibrium (u0, g0, l0) to (g1, l1).
 
     Halves the step on failure (up to lim.max_cuts times below the initial step), grows it
     by ``cfg.growth`` after easy steps (never above the initial step). On failure the last
     converged state is returned with the failing status. The linear solver's state runs
-    through every step (a sparse factorisation keeps preconditioning later steps)."""
+    through every step (a sparse factorisation keeps preconditioning later steps).
+
+    Past a critical point (``switches_branch(cfg)``): a step whose equilibrium has a K_ff that
+    is not positive definite is cut (as any failure) until it is at most dt0 / 2**cfg.locate
+    long, which pins the critical point between the last stable state and that step's end;
+    then ``switch_branch`` goes on from that unstable equilibrium to a stable equilibrium of
+    the same load, and the step is accepted there; if none is found the solve stops there
+    with UNSTABLE_TANGENT (the last stable state kept). (A step whose Newton fails is cut as
+    before: measured on the Fung squares, a descent from where Newton stalled did not reach a
+    stable state within max_iter, and it costs several times a Newton attempt.) Where K_ff had a negative eigenvalue there, the critical point is recorded in
+    ``Solution.critical`` and counted in ``Solution.branch``.
+
+    Failure in bounded time: the Newton iterations spent in failed attempts (cut steps and
+    failed switches) may not exceed FAILED_WORK x max(iterations of the accepted steps,
+    steps x cfg.easy) + 2 x max_iter; the solve gives up (with the failing attempt's status)
+    once they would. So a solve that cannot proceed costs at most (1 + FAILED_WORK) x the
+    larger of the work it did and a converging solve's nominal work (steps x easy), plus two
+    attempts, whatever lim.max_cuts allows. Without the budget, a solve stuck at a limit point
+    spends up to max_cuts attempts of max_iter iterations each, and more where successes and
+    failures alternate (tens of times a converging solve's work)."""
     dt0 = 1.0 / lim.steps
     dt_min = dt0 * 0.5 ** lim.max_cuts
+    dt_locate = jnp.maximum(dt0 * 0.5 ** cfg.locate, dt_min)
+    branching = switches_branch(cfg)
+    nominal = lim.steps * max(int(cfg.easy), 1)
 
     def at(t):
         # exactly g0 before the first converged step (a NaN in g1 must not leak into the
@@ -458,27 +695,50 @@ def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l
         return (t < 1.0) & (status <= 0)
 
     def body(c):
-        t, dt, u, status, iters, steps, cuts, rn, unknown, state = c
+        t, dt, u, status, iters, steps, cuts, rn, unknown, state, branch, crit, wasted = c
         t1 = jnp.minimum(t + dt, 1.0)
         t1 = jnp.where(1.0 - t1 < 1e-12, 1.0, t1)
         ga, la = at(t)
         gb, lb = at(t1)
         v, st, it, rn_v, state = newton(ops, params, cfg, lim.max_iter, u, ga, gb, la, lb, state)
         ok = (st == Status.CONVERGED) | (st == Status.STABILITY_UNKNOWN)
+        if branching:
+            switch = (st == Status.UNSTABLE_TANGENT) & (dt <= dt_locate * (1 + 1e-9))
+            nan = jnp.full((CRITICAL_EIGS,), jnp.nan, u.dtype)
+            w, found, lam, mode, its = _when(
+                switch, lambda: switch_branch(ops, params, cfg, lim.max_iter, v, gb, lb),
+                (v, jnp.array(False), nan, jnp.zeros_like(u), jnp.array(0)))
+            moved = switch & found
+            lost = switch & ~found
+            critical = moved & (lam[0] < 0)
+            crit = crit.record(branch, critical, t, t1, lam, mode)
+            branch = branch + critical
+            v = jnp.where(moved, w, v)
+            it = it + its
+            ok = ok | moved
+            st = jnp.where(moved, Status.CONVERGED, st)
+            # the residual of the state kept (the switch converged to the Newton tolerance)
+            rn_v = jnp.where(moved, jnp.linalg.norm(residual(ops, params, cfg.W, v, gb, lb)), rn_v)
         grow = jnp.where(it <= cfg.easy, cfg.growth, 1.0)
         dt_next = jnp.where(ok, jnp.minimum(dt * grow, dt0), dt / 2)
-        give_up = (~ok) & (dt / 2 < dt_min * (1 - 1e-9))
+        wasted = wasted + jnp.where(ok, 0, it)
+        budget = FAILED_WORK * jnp.maximum(iters + it - wasted, nominal) + 2 * lim.max_iter
+        give_up = (~ok) & ((dt / 2 < dt_min * (1 - 1e-9)) | (wasted > budget))
+        if branching:
+            # the critical point is bracketed and no stable state of that load was found:
+            # smaller steps would only bracket it again
+            give_up = give_up | lost
         return (jnp.where(ok, t1, t), dt_next, jnp.where(ok, v, u),
                 jnp.where(give_up, st, 0), iters + it, steps + ok, cuts + (~ok), jnp.where(ok, rn_v, rn),
-                unknown | (st == Status.STABILITY_UNKNOWN), state)
+                unknown | (st == Status.STABILITY_UNKNOWN), state, branch, crit, wasted)
 
     zero = jnp.array(0)
     init = (jnp.array(0.0), jnp.array(dt0), u0, zero, zero, zero, zero, jnp.array(0.0), jnp.array(False),
-            cfg.linear.empty(ops, u0.dtype))
-    t, _, u, status, iters, steps, cuts, rn, unknown, _ = jax.lax.while_loop(cond, body, init)
+            cfg.linear.empty(ops, u0.dtype), zero, Critical.empty(u0), zero)
+    t, _, u, status, iters, steps, cuts, rn, unknown, _, branch, crit, _ = jax.lax.while_loop(cond, body, init)
     status = jnp.where((status == 0) & unknown, Status.STABILITY_UNKNOWN, status)
     g, load = at(t)
-    return Solution(u, g, load, status, t, iters, steps, cuts, rn)
+    return Solution(u, g, load, status, t, iters, steps, cuts, rn, branch, crit)
 
 
 # ------------------------------------------------------------ implicit differentiation
@@ -529,7 +789,7 @@ def _solve_path_jvp(cfg, primals, tangents):
     _, dr = jax.jvp(lambda g, l, p: residual(ops, p, cfg.W, sol.u, g, l),
                     (sol.g, sol.load, params), (dg, dl, dparams))
     du = -sensitivity(ops, params, cfg, sol.u, sol.g, sol.load, dr) * valid
-    dsol = Solution(du, dg, dl, *(_zero_tangent(x) for x in sol[3:]))
+    dsol = Solution(du, dg, dl, *jax.tree.map(_zero_tangent, tuple(sol[3:])))
     return sol, dsol
 
 

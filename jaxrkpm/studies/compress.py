@@ -9,11 +9,15 @@ Y axis using equivalent intervals": equal x and y increments; by the mirror symm
 problem about y = 0.5 the sign of the y motion does not matter). Each step is a warm-started
 solve from the previous equilibrium.
 
-The run stops at the first of: the Newton solve failing (its status), det F <= 0 at an
-integration point, or the free tangent losing positive definiteness (its smallest eigenvalue
-crossing zero: the equilibrium path reaches a physical instability, a limit or bifurcation
-point of the discrete system). ``--through`` keeps going past the instability until the
-solve fails, still recording where the eigenvalue crossed zero.
+Each solve follows the stable branch (``jaxrkpm.solve``'s stable-branch solve): where the
+free tangent K_ff loses positive definiteness (a bifurcation or limit point of the discrete
+system: the smallest eigenvalue crosses zero), the critical point is recorded (compression,
+the eigenvalues there, the critical mode, drawn in a figure) and the solve goes on to a
+stable equilibrium of the same compression (the buckled shape). Every state kept is stable
+(the study checks the smallest eigenvalue itself). The run stops at the first of: a solve
+that fails (its status), det F <= 0 at an integration point, or the requested maximum.
+``--through`` instead follows the primary (possibly unstable) branch with the stability check
+off, as before the stable-branch solve, until the solve fails.
 """
 from __future__ import annotations
 
@@ -81,11 +85,28 @@ def _diagnostics(model):
     return diag
 
 
+def critical_points(model, new, c_prev: float, step: float, lam0: float) -> list:
+    """The critical points a warm-started solve from compression c_prev to c_prev + step
+    passed (``Solution.critical``): compression bracket, eigenvalues relative to the rest
+    value, and the critical mode as particle displacements (N, d) (unit largest entry)."""
+    out = []
+    crit = new.critical
+    for k in range(min(int(new.branch), len(np.asarray(crit.t_stable)))):
+        mode = new._replace(u=crit.mode[k], g=jnp.zeros_like(new.g))
+        shape = np.asarray(model.particle_displacements(mode))
+        out.append({"compression": c_prev + float(crit.t_unstable[k]) * step,
+                    "compression_stable": c_prev + float(crit.t_stable[k]) * step,
+                    "eigenvalues_rel": (np.asarray(crit.eigenvalues[k]) / lam0).tolist(),
+                    "mode": shape / max(np.abs(shape).max(), 1e-300)})
+    return out
+
+
 def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_compression: float = 0.9,
         step: float = 0.01, through: bool = False, material: str = "fung", keep_states: bool = True,
         half_width: float = PADDLE_HALF_WIDTH):
     """Step the paddle until failure. Returns (summary dict, model, states) where states maps
-    compression -> particle displacements (N, d)."""
+    compression -> particle displacements (N, d); the critical modes are in
+    summary["critical_points"][i]["mode"] (dropped before the summary is written)."""
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}: choose one of {list(MODES)}")
     model = setup(n, integration, material, half_width)
@@ -93,19 +114,19 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
     diag = _diagnostics(model)
     sol = model.initial()
     lam0, _, ac0 = (float(v) for v in diag(model.ops, model.params, sol.u, sol.g))
-    rows, states = [], {0.0: np.zeros_like(model.body.X)}
+    rows, states, crits = [], {0.0: np.zeros_like(model.body.X)}, []
     reason, first_unstable, limit = "reached the requested maximum compression", None, None
     first_nonelliptic = None
     k_max = int(round(max_compression / step))
     bar = interface.progress(range(1, k_max + 1), desc=f"compress {mode} {integration}", unit="step")
+    # the stable-branch solve passes critical points itself; --through follows the primary
+    # branch with the check off (the study's own smallest eigenvalue below tells stability)
+    options = {"check_stability": False} if through else {}
     for k in bar:
         bar.set_postfix_str(f"{100 * k * step:.0f}%")
         c = k * step
         t0 = time.perf_counter()
-        # the study follows the path itself and checks stability with the exact smallest
-        # eigenvalue below, so the solver's own UNSTABLE_TANGENT stop is switched off
-        new = model.solve({"paddle": jnp.asarray(c * direction)}, initial=sol, throw=False,
-                          check_stability=False)
+        new = model.solve({"paddle": jnp.asarray(c * direction)}, initial=sol, throw=False, **options)
         new.u.block_until_ready()
         dt = time.perf_counter() - t0
         status = jr.Status(int(new.status))
@@ -113,25 +134,22 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
             # the solver keeps the last converged sub-step: look at the tangent there
             c_part = (k - 1) * step + float(new.t) * step
             lam_p, det_p, _ = (float(v) for v in diag(model.ops, model.params, new.u, new.g))
+            crits += critical_points(model, new, (k - 1) * step, step, lam0)
             limit = {"compression": c_part, "min_eig_rel": lam_p / lam0, "min_detF": det_p}
             reason = (f"Newton failure in the step to {100 * c:.0f}% ({status.name}); at the last "
                       f"converged sub-step, {100 * c_part:.2f}%, the smallest tangent eigenvalue is "
-                      f"{lam_p / lam0:.3f} x its rest value "
-                      + ("(it has crossed zero)" if lam_p < 0 else "and falling")
-                      + ": the path reaches a limit point of the equilibrium (loss of stability), "
-                      "not a solver breakdown"
-                      if lam_p / lam0 < 0.5 else
-                      f"Newton failure in the step to {100 * c:.0f}%: {status.name} ({new.message}); "
-                      f"smallest tangent eigenvalue {lam_p / lam0:.3f} x rest at {100 * c_part:.2f}%")
+                      f"{lam_p / lam0:.3f} x its rest value and the smallest det F {det_p:.3f}")
             rows.append({"compression": c, "status": status.name, "time_s": dt,
                          "t_reached": float(new.t), "last_converged_compression": c_part,
                          "min_eig_rel_there": lam_p / lam0, "min_detF_there": det_p})
             break
+        crits += critical_points(model, new, (k - 1) * step, step, lam0)
         sol = new
         lam, detmin, ac = (float(v) for v in diag(model.ops, model.params, sol.u, sol.g))
         f = np.asarray(model.reaction(sol, "paddle")).tolist()
         rows.append({"compression": c, "status": status.name, "time_s": dt,
                      "newton_iterations": int(sol.iterations), "load_steps": int(sol.steps),
+                     "critical_points": int(sol.branch),
                      "reaction": f, "min_eig": lam, "min_eig_rel": lam / lam0,
                      "min_detF": detmin, "min_acoustic_rel": ac / ac0})
         if keep_states:
@@ -142,24 +160,27 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
             reason = f"det F <= 0 at an integration point at {100 * c:.0f}%"
             break
         if lam <= 0 and first_unstable is None:
-            first_unstable = c
-            if not through:
-                reason = (f"tangent lost positive definiteness at {100 * c:.0f}% (smallest eigenvalue "
-                          f"{lam:.3g}): physical instability of the equilibrium path")
-                break
+            first_unstable = c     # only with --through: the stable-branch solve keeps stable states
     bar.close()
+    if crits:
+        first_unstable = crits[0]["compression"] if first_unstable is None else min(first_unstable,
+                                                                                    crits[0]["compression"])
     ok = [r for r in rows if r["status"] == "CONVERGED"]
     times = [r["time_s"] for r in ok]
+    stable = [r["compression"] for r in ok if r["min_eig"] > 0]
     summary = {
         "mode": mode, "direction_per_unit": direction.tolist(), "integration": integration,
         "particles": [n, n], "paddle_particles": int(len(model.set_indices("paddle"))),
         "paddle_half_width": half_width,
         "material": model.material.describe(), "step": step,
         "integration_points": int(model.ops.w.shape[0]),
+        "branch": "primary (check_stability=False)" if through else "stable",
         "max_compression": ok[-1]["compression"] if ok else 0.0,
+        "max_stable_compression": max(stable) if stable else 0.0,
         "reason": reason,
         "limit_state": limit,
         "first_unstable_compression": first_unstable,
+        "critical_points": crits,
         "first_loss_of_ellipticity": first_nonelliptic,
         "min_eig_at_rest": lam0,
         "compression": [r["compression"] for r in ok],
@@ -175,6 +196,24 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
         "steps": rows,
     }
     return summary, model, states
+
+
+def mode_figures(out: Path, summary, model, tag: str) -> None:
+    """One PNG per critical point: the reference particles displaced along the critical mode
+    (scaled to a tenth of the width), coloured by its magnitude; the file names go into the
+    summary's critical points (their mode arrays are dropped from it)."""
+    X = model.body.X
+    for i, cp in enumerate(summary["critical_points"]):
+        mode = np.asarray(cp.pop("mode"))
+        fig, ax = plot.plt.subplots(figsize=(4.6, 4.2))
+        sc = plot.deformed_particles(ax, X, 0.1 * mode, size=18 if len(X) < 100 else 6)
+        ax.set_title(f"critical mode {i + 1}: {100 * cp['compression']:.2f}% compression\n"
+                     f"lowest eigenvalues / rest: {', '.join(f'{e:.3g}' for e in cp['eigenvalues_rel'])}",
+                     fontsize=9)
+        fig.colorbar(sc, ax=ax, label="|mode| (scaled)", shrink=0.8)
+        name = f"mode{i + 1}_{tag}.png"
+        plot.save(fig, out / name)
+        cp["mode_figure"] = name
 
 
 def uniaxial_limits(material: str = "fung", step: float = 0.005) -> dict:
@@ -292,8 +331,13 @@ def figures(out: Path, summary, model, states, tag: str):
 def result(s: dict) -> tuple[bool, str]:
     """(at least one step converged, the result in words) of a compression summary: the
     study looks for where the compression fails, so stopping is its finding."""
+    cps = s.get("critical_points") or []
+    crit = ("; critical points at " + ", ".join(f"{100 * cp['compression']:.1f}%" for cp in cps)
+            if cps else "; no critical point")
     words = (f"{s['mode']} compression ({s['integration']}, {s['particles'][0]}x{s['particles'][1]} "
-             f"{s['material']['name']}): last converged step {100 * s['max_compression']:.0f}%; {s['reason']}")
+             f"{s['material']['name']}): last converged step {100 * s['max_compression']:.0f}%, largest "
+             f"compression on stable states {100 * s.get('max_stable_compression', 0.0):.0f}%{crit}; "
+             f"{s['reason']}")
     if s.get("fold_estimate") is not None:
         words += f"; limit point extrapolated at {100 * s['fold_estimate']:.1f}%"
     return s["max_compression"] > 0, words
@@ -312,6 +356,7 @@ def main(argv=None):
     tag = (f"{a.mode}_{a.integration}_{a.n}" + ("" if a.material == "fung" else f"_{a.material}")
            + ("" if a.paddle_half_width == PADDLE_HALF_WIDTH else "_edge" if a.paddle_half_width >= 0.5
               else f"_hw{a.paddle_half_width:g}"))
+    mode_figures(out, summary, model, tag)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     figures(out, summary, model, states, tag)
     interface.finish(out, t0, summary, result(summary)[1], a.json)

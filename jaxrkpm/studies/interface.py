@@ -136,7 +136,8 @@ def compress_parser():
                    help="paddle = right-edge particles with |y - 0.5| <= this (0.5: the whole edge, "
                         "a homogeneous compression without punch corners)")
     p.add_argument("--through", action="store_true",
-                   help="continue past the loss of positive definiteness until the solve fails")
+                   help="follow the primary branch past the loss of positive definiteness (stability "
+                        "check off) until the solve fails, instead of the stable branch")
     return p
 
 
