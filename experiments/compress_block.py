@@ -61,7 +61,7 @@ def main(argv=None):
     rows = []
     for case in a.case:
         for integration in a.integration:
-            r = run_case(a.n, integration, case, a.steps)
+            r = run_case(a.n, integration, case, a.steps, stable_branch=True)
             rows.append(r)
             print(f"{r['n']}x{r['n']} {case:18s} {integration:6s} {r['status']:16s} t={r['t']:.3f} "
                   f"branch={r['branch']} critical at t={[round(c, 4) for c in r['critical_t']]} "

@@ -50,7 +50,7 @@ def path(model: jr.Model, shortenings=SHORTENINGS):
     """Warm-started solves to each end shortening: [(shortening, solution)]."""
     sol, out = model.initial(), []
     for c in shortenings:
-        sol = model.solve({"right": jnp.array([-c * L, 0.0])}, initial=sol)
+        sol = model.solve({"right": jnp.array([-c * L, 0.0])}, initial=sol, stable_branch=True)
         out.append((c, sol))
     return out
 

@@ -67,7 +67,7 @@ def test_strip_buckles_at_euler_load(strip, strip_path):
     assert np.linalg.norm(mode[:, 1]) > 5 * np.linalg.norm(mode[:, 0])
     # the force at the last stable state before the bifurcation
     c_crit = c0 + lo * (c1 - c0)
-    at = strip.solve({"right": jnp.array([-c_crit * L, 0.0])}, initial=below)
+    at = strip.solve({"right": jnp.array([-c_crit * L, 0.0])}, initial=below, stable_branch=True)
     force = -float(strip.reaction(at, "right")[0])
     print(f"bifurcation at shortening {100 * c_crit:.3f}%: P = {force:.5e}, Euler {EULER:.5e} "
           f"({100 * (force / EULER - 1):+.2f}%)")

@@ -121,7 +121,7 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
     bar = interface.progress(range(1, k_max + 1), desc=f"compress {mode} {integration}", unit="step")
     # the stable-branch solve passes critical points itself; --through follows the primary
     # branch with the check off (the study's own smallest eigenvalue below tells stability)
-    options = {"check_stability": False} if through else {}
+    options = {"check_stability": False} if through else {"stable_branch": True}
     for k in bar:
         bar.set_postfix_str(f"{100 * k * step:.0f}%")
         c = k * step
