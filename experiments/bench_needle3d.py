@@ -32,7 +32,7 @@ import sys  # noqa: E402
 import time  # noqa: E402
 
 # mesh size -> target particle count (the mesher decides the exact count)
-RESOLUTIONS = {"160": 0.25, "500": 0.15, "2000": 0.085, "8000": 0.05}
+RESOLUTIONS = {"230": 0.3, "500": 0.15, "2000": 0.085, "8000": 0.055}
 
 
 def timed(fn, *args, **kw):
@@ -52,10 +52,9 @@ def insertion(model, phantom, depths):
 
 def run_resolution(spacing, increments, repeats):
     import jaxrkpm as jr
-    from jaxrkpm import mesh
     from jaxrkpm.phantom3d import Phantom3D
     ph = Phantom3D(spacing=spacing)
-    t_mesh, m = timed(mesh.half_ellipsoid, ph.semi_axes, spacing)   # the mesher alone
+    t_mesh, m = timed(ph.mesh)                                      # the mesher alone
     t_body, _ = timed(jr.Body.from_mesh, m)                          # the mesh -> particles alone
     t_phantom, body = timed(lambda: ph.body)        # the phantom's own build: the same two calls
     t_model, model = timed(ph.model, "none", None)
@@ -120,8 +119,8 @@ def main(argv=None):
     p.add_argument("--increments", type=int, default=4)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--patches", type=int, default=20)
-    p.add_argument("--sweep-resolution", default="160", choices=list(RESOLUTIONS),
-                   help="the sweep's resolution (160: the tests' phantom; a 20-patch loop at 500 takes ~20 min)")
+    p.add_argument("--sweep-resolution", default="230", choices=list(RESOLUTIONS),
+                   help="the sweep's resolution (230: the tests' phantom; a 20-patch loop at 500 takes ~20 min)")
     p.add_argument("--no-sweep", action="store_true")
     p.add_argument("--timeout", type=float, default=3600, help="per subprocess, seconds")
     p.add_argument("--case", help=argparse.SUPPRESS)
