@@ -15,8 +15,11 @@ spacing 0.1, mirror-symmetric). Target displacement at full insertion, no paddle
   0.15       598       0.0406   0.00747                        0
   0.12       906       0.0378   0.00769                        0
   0.1       1332       0.0369   0.00721                        0
+  0.085     2089         -      0.00640  (bench_needle3d.py)   -
 
-Converged to about +-4% for spacing <= 0.2. Before (the same day): the needle as the particles
+Within +-4% for spacing 0.2..0.1, where the needle's own lines (pitch track_spacing 0.1) are
+no coarser than the mesh; at 0.085, finer than the needle's pitch, 13% lower: the needle's
+discretisation must be refined with the mesh there (track_spacing <= spacing), not measured. Before (the same day): the needle as the particles
 within 0.75 spacing of the track, an asymmetric mesh: u_y +0.0010/+0.0018/-0.0021/+0.0003/-0.0003
 at spacing 0.25..0.1, u_z 0.0025..0.0047; the track embedded but the needle a line of particles
 (radius below the mesh): u_z 0.0062, 0.0044, 0.0031, 0.0039 at 0.3..0.15 (a discrete line has

@@ -11,7 +11,9 @@ NumPy, outside jit, run once per body. The pieces:
 - ``tetrahedralise(points, triangles, spacing)``: a closed, manifold, non-self-intersecting
   triangle surface (checked here) meshed into tetrahedra by Gmsh at the requested spacing.
 - ``half_ellipsoid``, ``lobe``, ``cylinder``: shapes built with Gmsh's OpenCASCADE kernel at
-  run time, as ``meshio.Mesh`` with named physical groups (write them with ``meshio.write``).
+  run time, as ``meshio.Mesh`` with named physical groups (write them with ``meshio.write``);
+  each can conform to given segments (``embed_segments``: e.g. a needle track, vertices along
+  it) and be made mirror-symmetric (``symmetric``: half meshed, then ``mirrored``).
 - simplex helpers the body and the integration share: ``simplex_volumes``,
   ``vertex_volumes``, ``boundary_faces``, ``mean_edge_length``, ``Locator`` (point in mesh).
 
