@@ -30,6 +30,7 @@ shared, load ~6-8 on 2 cores, so indicative only):
                          per copy at 6,200 and ~5.5 GB at 8,000; ops.pair_id then holds it as
                          int32 on the device. Not the dense path, not _BLOCK_BUDGET.
   sweep (20 patches x 4 increments, 231 particles): did not finish in 600 s under that load.
+"""
 from __future__ import annotations
 
 import os
