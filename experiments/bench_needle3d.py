@@ -15,7 +15,22 @@ interleaved; the two agree to round-off (reported).
 
 BLAS is single-threaded (OPENBLAS/MKL/OMP_NUM_THREADS=1, set before numpy loads) so the
 timings compare like with like on a shared machine; ratios are taken within one run.
-Prints JSON."""
+Prints JSON.
+
+Measured 2026-11-24 (the phantom with its resolved needle; 4 increments, 1 repeat, machine
+shared, load ~6-8 on 2 cores, so indicative only):
+  598 particles (0.15):  build 4.3 s (mesh 0.7, body 0.02, model 3.9); warm solve 7.4 s per
+                         increment (dense, 1,197 DOF); peak 1.7 GB
+  2,089 particles (0.085): build 16.5 s (model 15.9); warm solve 23.3 s per increment
+                         (sparse, 4,740 DOF); peak 4.4 GB
+  ~6,200 particles (0.055): the model build alone passes 8 GB (bench_needle3d_memory.py):
+                         Model's tangent pattern makes (G, K, K) int64 pair keys and ids (G =
+                         integration-point groups = tetrahedra at order 1, K ~ 133 neighbours):
+                         1.3 GB per copy at 2,089 particles (peak 3.8 GB in the build), ~4.2 GB
+                         per copy at 6,200 and ~5.5 GB at 8,000; ops.pair_id then holds it as
+                         int32 on the device. Not the dense path, not _BLOCK_BUDGET.
+  sweep (20 patches x 4 increments, 231 particles): did not finish in 600 s under that load.
+"""
 from __future__ import annotations
 
 import os
@@ -32,7 +47,7 @@ import sys  # noqa: E402
 import time  # noqa: E402
 
 # mesh size -> target particle count (the mesher decides the exact count)
-RESOLUTIONS = {"160": 0.25, "500": 0.15, "2000": 0.085, "8000": 0.05}
+RESOLUTIONS = {"230": 0.3, "500": 0.15, "2000": 0.085, "8000": 0.055}
 
 
 def timed(fn, *args, **kw):
@@ -52,10 +67,9 @@ def insertion(model, phantom, depths):
 
 def run_resolution(spacing, increments, repeats):
     import jaxrkpm as jr
-    from jaxrkpm import mesh
     from jaxrkpm.phantom3d import Phantom3D
     ph = Phantom3D(spacing=spacing)
-    t_mesh, m = timed(mesh.half_ellipsoid, ph.semi_axes, spacing)   # the mesher alone
+    t_mesh, m = timed(ph.mesh)                                      # the mesher alone
     t_body, _ = timed(jr.Body.from_mesh, m)                          # the mesh -> particles alone
     t_phantom, body = timed(lambda: ph.body)        # the phantom's own build: the same two calls
     t_model, model = timed(ph.model, "none", None)
@@ -120,8 +134,8 @@ def main(argv=None):
     p.add_argument("--increments", type=int, default=4)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--patches", type=int, default=20)
-    p.add_argument("--sweep-resolution", default="160", choices=list(RESOLUTIONS),
-                   help="the sweep's resolution (160: the tests' phantom; a 20-patch loop at 500 takes ~20 min)")
+    p.add_argument("--sweep-resolution", default="230", choices=list(RESOLUTIONS),
+                   help="the sweep's resolution (230: the tests' phantom; a 20-patch loop at 500 takes ~20 min)")
     p.add_argument("--no-sweep", action="store_true")
     p.add_argument("--timeout", type=float, default=3600, help="per subprocess, seconds")
     p.add_argument("--case", help=argparse.SUPPRESS)

@@ -1,30 +1,23 @@
-"""Which candidate-patch grid of the 3D phantom gives what reduction of the final lateral
-deviation (best patch vs no paddle): one static sweep per setting, the reduction map and the
-target's two lateral displacement components per patch (x 1e4).
+"""The 3D phantom's static patch sweep at several mesh spacings: the reduction of the final
+lateral deviation (no paddle / patch) per candidate patch, the best and the median, and the
+target's two lateral displacement components per patch (x 1e4), e.g.
 
-    PYTHONPATH=. python experiments/phantom3d_patch_grid.py SPACING INCREMENTS \
-        "[theta_lo,theta_hi,n]" "[phi_lo/pi,phi_hi/pi,n]" PATCH_RADIUS
+    PYTHONPATH=. python experiments/phantom3d_patch_grid.py 0.25 0.2 0.15 [--increments 2]
+        [--set key=value ...]   (Phantom3D fields as JSON, e.g. --set patch_radius=0.4)
 
-Measured (neo-Hookean, no inclusion, needle and target as thesis.PHANTOM_3D; 2 increments at
-spacing 0.25 = the tests' 162-particle phantom, 4 at 0.2 = the CLI default, 258 particles):
-
-  grid (theta; phi/pi; radius)          spacing 0.25   spacing 0.2   median (0.25)
-  0.15..0.9 x4; -0.7..0.7 x6; 0.5  (today)   3.40x         4.3x (brief)   1.09x
-  0.5..1.35 x4; -0.8..0.8 x8; 0.5 (flanks)   2.97x         2.87x          0.98x
-  0.1..0.9 x6; -0.8..0.8 x10; 0.5            4.76x           -            1.11x
-  0.1..0.9 x6; -0.8..0.8 x10; 0.7            9.99x           -            1.21x
-  0.1..0.9 x6; -0.8..0.8 x10; 0.9            9.23x           -            1.46x
-  0.1..0.7 x7;  0.0..0.8 x9;  0.7           18.3x          6.51x          2.22x (1.70x at 0.2)
-
-Findings: a held skin patch restrains the target little by itself (median ~1-2x at every
-setting); the large reductions are cancellations, where both lateral components change sign
-across the dome; flank patches at the target's height (theta ~1.2) and the -y half make the
-deviation larger. The best patch is an isolated grid point (its neighbours 3-8x), and the sign
-map changes between spacing 0.25 and 0.2 (uz under a top patch is +1e-4..+9e-4 at 0.25,
--1.2e-3..-1.9e-3 at 0.2), so a >= 10x best discrete patch at one resolution is a fluke of
-that mesh, not a property of the set-up.
+Measured 2026-11-24 (default set-up, see phantom3d_convergence.py; grid theta 0.15..1.05 x 5,
+phi -0.8 pi..0.8 pi x 5 = 25 patches, 2 increments; shared machine):
+  spacing 0.3 (231 particles, 10 per patch): best = top patch, 3.60x; median 0.89x (416 s)
+  spacing 0.2 (390 particles, 24 per patch): best = top patch, 17.5x; median 0.97x (906 s, 8 GB)
+  the default 4 x 5 grid at 0.3 (12 per patch): best 6.2x (tests/test_needle3d.py)
+Only patches on the top of the dome help (row theta = 0.15: 2-18x); flank patches give
+0.65-1.05x (they make the deviation larger). The top patch turns the vertical motion from up
+(no paddle) to about zero, its residual's sign changing with mesh and patch size
+(phantom3d_convergence.py --paddle), so >= 10x at the best patch holds at some meshes and
+patch sizes (18x, 33x, 16x) but not others (3.6x, 6.6x): not a mesh-robust result.
+A needle at z = 0.4 (spacing 0.3, 24 patches): 28x at one grid point whose neighbours give
+0.7x and 6.4x, a cancellation again.
 """
-import json
 import sys
 import time
 
@@ -33,25 +26,28 @@ import numpy as np
 from jaxrkpm import needle as nd
 from jaxrkpm.phantom3d import Phantom3D
 
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from phantom3d_convergence import options  # noqa: E402
+
 
 def main(argv):
-    spacing, increments = float(argv[0]), int(argv[1])
-    theta = tuple(json.loads(argv[2]))
-    phi_lo, phi_hi, n_phi = json.loads(argv[3])
-    phi = (phi_lo * np.pi, phi_hi * np.pi, n_phi)
-    t0 = time.time()
-    ph = Phantom3D(spacing=spacing, theta=theta, phi=phi, patch_radius=float(argv[4]))
-    print("particles", ph.body.n, "patch_size", ph.patch_size, "target", np.round(ph.target, 3))
-    s = nd.static_sweep(ph, "none", increments)
-    red = abs(s.no_paddle[-1]) / np.abs(s.final)
-    q = ph.patch_coordinates
-    print(f"no paddle {s.no_paddle[-1]:.3e} converged {s.converged} best {s.best} at {q[s.best - 1]}: "
-          f"reduction {red[s.best - 1]:.2f}x, median {np.median(red):.2f}x ({time.time() - t0:.0f} s)")
-    shape = (int(theta[2]), int(n_phi))
-    print("reduction per patch (rows theta, columns phi):\n", np.round(red.reshape(shape), 2))
-    lat = s.target_u[:, -1] @ ph.lateral.T
-    for k in range(lat.shape[1]):
-        print(f"lateral component {k} x 1e4:\n", np.round(1e4 * lat[:, k].reshape(shape), 1))
+    fields, spacings, increments, _ = options(argv, default_increments=2)
+    for h in spacings:
+        t0 = time.time()
+        ph = Phantom3D(spacing=h, **fields)
+        print(f"spacing {h}: particles {ph.body.n}, needle {len(ph.needle)}, patch_size {ph.patch_size}, "
+              f"target {np.round(ph.target, 3).tolist()}", flush=True)
+        s = nd.static_sweep(ph, "none", increments)
+        red = abs(s.no_paddle[-1]) / np.abs(s.final)
+        q = ph.patch_coordinates
+        print(f"  no paddle {s.no_paddle[-1]:.3e} (lateral {np.round(1e4 * ph.lateral_components(s.no_paddle_u[-1]), 2).tolist()} e-4) "
+              f"converged {s.converged}; best {s.best} at {np.round(q[s.best - 1], 3).tolist()}: "
+              f"{red[s.best - 1]:.2f}x, median {np.median(red):.2f}x ({time.time() - t0:.0f} s)", flush=True)
+        shape = (int(ph.theta[2]), int(ph.phi[2]))
+        print("  reduction per patch (rows theta, columns phi):\n", np.round(red.reshape(shape), 2))
+        lat = s.target_u[:, -1] @ ph.lateral.T
+        for k in range(lat.shape[1]):
+            print(f"  lateral component {k} x 1e4:\n", np.round(1e4 * lat[:, k].reshape(shape), 2), flush=True)
 
 
 if __name__ == "__main__":

@@ -11,7 +11,9 @@ NumPy, outside jit, run once per body. The pieces:
 - ``tetrahedralise(points, triangles, spacing)``: a closed, manifold, non-self-intersecting
   triangle surface (checked here) meshed into tetrahedra by Gmsh at the requested spacing.
 - ``half_ellipsoid``, ``lobe``, ``cylinder``: shapes built with Gmsh's OpenCASCADE kernel at
-  run time, as ``meshio.Mesh`` with named physical groups (write them with ``meshio.write``).
+  run time, as ``meshio.Mesh`` with named physical groups (write them with ``meshio.write``);
+  each can conform to given segments (``embed_segments``: e.g. a needle track, vertices along
+  it) and be made mirror-symmetric (``symmetric``: half meshed, then ``mirrored``).
 - simplex helpers the body and the integration share: ``simplex_volumes``,
   ``vertex_volumes``, ``boundary_faces``, ``mean_edge_length``, ``Locator`` (point in mesh).
 
@@ -520,8 +522,10 @@ def _check_volume(mesh: meshio.Mesh, expected: float, spacing: float, name: str)
                          f"off); use a smaller spacing")
 
 
-def _generate(gmsh, spacing: float, name: str) -> meshio.Mesh:
-    gmsh.option.setNumber("Mesh.MeshSizeMin", spacing)
+def _generate(gmsh, spacing: float, name: str, finest: float | None = None) -> meshio.Mesh:
+    """Tetrahedralise the current model at ``spacing`` (``finest``: the smallest size a
+    background field may ask for, default ``spacing``)."""
+    gmsh.option.setNumber("Mesh.MeshSizeMin", spacing if finest is None else min(finest, spacing))
     gmsh.option.setNumber("Mesh.MeshSizeMax", spacing)
     gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
     try:
@@ -561,32 +565,163 @@ def tetrahedralise(points, triangles, spacing: float, name: str = "surface") -> 
 
 
 # ======================================================================== shapes
-def _occ_shape(build, spacing: float, name: str) -> meshio.Mesh:
+AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def _occ_shape(build, spacing: float, name: str, embed_segments=(), segment_spacing=None,
+               symmetric: str | None = None) -> meshio.Mesh:
     """Mesh an OpenCASCADE solid: ``build(occ)`` makes it and returns (volume tag,
-    classify), ``classify(centre of mass)`` names each boundary surface's physical group."""
+    classify, centre), ``classify(centre of mass)`` names each boundary surface's physical
+    group. ``embed_segments``: segments the mesh conforms to (``_embed_segments``).
+    ``symmetric`` ("x", "y" or "z"): only the half on the positive side of the plane through
+    ``centre`` normal to that axis is meshed, then mirrored (``mirrored``), so the mesh has
+    the solid's mirror symmetry exactly (a symmetric load gives a symmetric answer)."""
+    segments = _segments(embed_segments)
+    if symmetric is not None and symmetric not in AXES:
+        raise ValueError(f"symmetric must be one of {list(AXES)} or None, got {symmetric!r}")
     with gmsh_session(name) as gmsh:
         occ = gmsh.model.occ
-        volume, classify = build(occ)
+        volume, classify, centre = build(occ)
         occ.synchronize()
         xmin, ymin, zmin, xmax, ymax, zmax = gmsh.model.getBoundingBox(3, volume)
-        _check_spacing(spacing, np.array([xmax - xmin, ymax - ymin, zmax - zmin]), name)
+        extent = np.array([xmax - xmin, ymax - ymin, zmax - zmin])
+        _check_spacing(spacing, extent, name)
         expected = occ.getMass(3, volume)
+        plane = None if symmetric is None else (AXES[symmetric], float(centre[AXES[symmetric]]))
+        _check_inside(gmsh, volume, segments, name, plane)
+        if plane is not None:
+            corner = np.array([xmin, ymin, zmin]) - extent
+            size = 3 * extent
+            size[plane[0]] = plane[1] - corner[plane[0]]
+            out, _ = occ.cut([(3, volume)], [(3, occ.addBox(*corner, *size))])
+            occ.synchronize()
+            volume = out[0][1]
+        finest = None
+        if len(segments):
+            finest = spacing if segment_spacing is None else _positive([segment_spacing], 1, "segment_spacing")[0]
+            volume = _embed_segments(gmsh, volume, segments, spacing, finest, name)
         gmsh.model.addPhysicalGroup(3, [volume], name="volume")
         surfaces = [t for _, t in gmsh.model.getBoundary([(3, volume)], oriented=False)]
         groups = {}
         for s in surfaces:
+            if plane is not None:
+                box = np.reshape(gmsh.model.getBoundingBox(2, s), (2, 3))[:, plane[0]]   # padded by OCC
+                centre_of_mass = occ.getCenterOfMass(2, s)[plane[0]]
+                if np.ptp(box) < 1e-4 * extent.max() and abs(centre_of_mass - plane[1]) < 1e-9 * extent.max():
+                    continue                          # the cut face: inside the mirrored solid
             groups.setdefault(classify(np.array(occ.getCenterOfMass(2, s))), []).append(s)
         for group, tags in groups.items():
             gmsh.model.addPhysicalGroup(2, tags, name=group)
-        mesh = _generate(gmsh, spacing, name)
+        mesh = _generate(gmsh, spacing, name, finest)
+    if plane is not None:
+        mesh = mirrored(mesh, *plane)
     _check_volume(mesh, expected, spacing, name)
     return mesh
 
 
-def half_ellipsoid(radii, spacing: float, center=(0.0, 0.0, 0.0)) -> meshio.Mesh:
+def mirrored(source, axis: int, offset: float = 0.0) -> meshio.Mesh:
+    """A mesh lying on one side of the plane x[axis] = offset joined with its mirror image:
+    the vertices on the plane shared, the mirrored cells' orientation restored, every named
+    group (cell sets, Gmsh physical and geometrical data, point sets) holding both halves."""
+    import meshio
+
+    mesh = read(source)
+    P = np.asarray(mesh.points, float)
+    side = P[:, axis] - offset
+    scale = np.ptp(P, axis=0).max()
+    if np.any(side > 1e-9 * scale) and np.any(side < -1e-9 * scale):
+        raise ValueError(f"the mesh lies on both sides of the plane x[{axis}] = {offset}: nothing to mirror")
+    on_plane = np.abs(side) <= 1e-9 * scale
+    image = np.arange(len(P))
+    image[~on_plane] = len(P) + np.arange(int((~on_plane).sum()))
+    Q = P[~on_plane].copy()
+    Q[:, axis] = 2 * offset - Q[:, axis]
+    cells = []
+    for block in mesh.cells:
+        data = np.asarray(block.data)
+        flip = image[data]
+        if data.shape[1] > 1 and block.dim > 0:
+            flip = flip[:, [1, 0, *range(2, data.shape[1])]]   # mirrored: swap two vertices back
+        cells.append(meshio.CellBlock(block.type, np.concatenate([data, flip])))
+    sizes = [len(b.data) for b in mesh.cells]
+    cell_data = {k: [np.concatenate([x, x]) for x in v] for k, v in mesh.cell_data.items()}
+    cell_sets = {k: [None if ids is None else np.concatenate([ids, np.asarray(ids) + n]) for ids, n in zip(v, sizes)]
+                 for k, v in mesh.cell_sets.items()}
+    point_data = {k: np.concatenate([v, np.asarray(v)[~on_plane]]) for k, v in mesh.point_data.items()}
+    point_sets = {k: np.union1d(v, image[np.asarray(v)]) for k, v in mesh.point_sets.items()}
+    return meshio.Mesh(np.concatenate([P, Q]), cells, point_data=point_data, cell_data=cell_data,
+                       field_data=dict(mesh.field_data), cell_sets=cell_sets, point_sets=point_sets)
+
+
+def _segments(embed_segments) -> np.ndarray:
+    """(S, 2, 3) segment end points from a sequence of (a, b) pairs, checked."""
+    seg = np.asarray(embed_segments if embed_segments is not None else (), float)
+    if seg.size == 0:
+        return np.zeros((0, 2, 3))
+    if seg.ndim == 2 and seg.shape == (2, 3):
+        seg = seg[None]
+    if seg.ndim != 3 or seg.shape[1:] != (2, 3) or not np.isfinite(seg).all():
+        raise ValueError(f"embed_segments must be a list of (a, b) pairs of 3D points, got shape {seg.shape}")
+    if np.any(np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1) == 0):
+        raise ValueError("embed_segments holds a segment of zero length (a == b)")
+    return seg
+
+
+def _check_inside(gmsh, volume: int, segments: np.ndarray, name: str, plane=None):
+    """Raise unless every segment lies in the solid (its ends may touch the surface) and, for
+    a mirrored mesh, on the meshed side of the mirror plane (axis, offset) or in it."""
+    for k, (a, b) in enumerate(segments):
+        inside = [gmsh.model.isInside(3, volume, list(a + t * (b - a))) for t in np.linspace(0.02, 0.98, 25)]
+        if not all(inside):
+            raise ValueError(f"embed_segments[{k}] {a.tolist()} -> {b.tolist()} leaves {name}: every "
+                             "segment must lie inside the solid (its ends may touch the surface)")
+        if plane is not None and min(a[plane[0]], b[plane[0]]) < plane[1] - 1e-12:
+            raise ValueError(f"embed_segments[{k}] {a.tolist()} -> {b.tolist()} crosses to the mirrored "
+                             f"half of {name}: give segments on the side x[{plane[0]}] >= {plane[1]} "
+                             "(their mirror images are not embedded)")
+
+
+def _embed_segments(gmsh, volume: int, segments: np.ndarray, spacing: float, finest: float, name: str) -> int:
+    """Make the mesh of ``volume`` conform to the segments (mesh vertices along each, at
+    ``finest`` spacing; the size grows back to ``spacing`` within one ``spacing`` of them):
+    the segments fragment the solid (OpenCASCADE), which embeds them in it. Returns the
+    volume's tag after the fragment. Each segment must lie in the solid (its ends may touch
+    the surface)."""
+    occ = gmsh.model.occ
+    lines = [(1, occ.addLine(occ.addPoint(*a), occ.addPoint(*b))) for a, b in segments]
+    out, _ = occ.fragment([(3, volume)], lines)
+    occ.synchronize()
+    volumes = [t for d, t in out if d == 3]
+    curves = [t for d, t in out if d == 1]
+    if len(volumes) != 1:
+        raise ValueError(f"embedding the segments split {name} into {len(volumes)} pieces")
+    field = gmsh.model.mesh.field
+    distance = field.add("Distance")
+    field.setNumbers(distance, "CurvesList", curves)
+    field.setNumber(distance, "Sampling", 200)
+    threshold = field.add("Threshold")
+    field.setNumber(threshold, "InField", distance)
+    field.setNumber(threshold, "SizeMin", finest)
+    field.setNumber(threshold, "SizeMax", spacing)
+    field.setNumber(threshold, "DistMin", 0.5 * finest)
+    field.setNumber(threshold, "DistMax", spacing)
+    field.setAsBackgroundMesh(threshold)
+    return volumes[0]
+
+
+def half_ellipsoid(radii, spacing: float, center=(0.0, 0.0, 0.0), embed_segments=(),
+                   segment_spacing: float | None = None, symmetric: str | None = None) -> meshio.Mesh:
     """The upper half (z >= center z) of the ellipsoid with semi-axes ``radii`` (3,): a
     breast-like phantom on a flat base. Physical groups "volume", "base" (the flat face at
-    z = center z) and "skin" (the curved surface)."""
+    z = center z) and "skin" (the curved surface).
+
+    Every shape builder takes ``embed_segments`` (a list of (a, b) 3D point pairs inside the
+    solid, e.g. a needle track): the mesh conforms to them, with vertices along each at
+    ``segment_spacing`` (default ``spacing``), its size growing back to ``spacing`` within one
+    ``spacing`` of them; and ``symmetric`` ("x", "y" or "z", for the cylinder "x" or "y",
+    for the lobe "z"): the mesh mirror-symmetric about the shape's symmetry plane normal to
+    that axis (half meshed, then mirrored; a segment lying in the mirror plane must not touch
+    the surface: gmsh cannot mesh that face then, so start it just inside)."""
     r = _positive(radii, 3, "radii")
     c = np.asarray(center, float)
 
@@ -595,14 +730,18 @@ def half_ellipsoid(radii, spacing: float, center=(0.0, 0.0, 0.0)) -> meshio.Mesh
         occ.dilate([(3, ball)], *c, *r)
         below = occ.addBox(*(c - 2 * r), *(4 * r[0], 4 * r[1], 2 * r[2]))
         out, _ = occ.cut([(3, ball)], [(3, below)])
-        return out[0][1], lambda cm: "base" if abs(cm[2] - c[2]) < 1e-9 * r[2] else "skin"
+        return out[0][1], lambda cm: "base" if abs(cm[2] - c[2]) < 1e-9 * r[2] else "skin", c
 
-    return _occ_shape(build, spacing, "the half-ellipsoid")
+    if symmetric == "z":
+        raise ValueError("the half-ellipsoid has no mirror plane normal to z: symmetric must be 'x' or 'y'")
+    return _occ_shape(build, spacing, "the half-ellipsoid", embed_segments, segment_spacing, symmetric)
 
 
-def cylinder(radius: float, height: float, spacing: float, center=(0.0, 0.0, 0.0)) -> meshio.Mesh:
+def cylinder(radius: float, height: float, spacing: float, center=(0.0, 0.0, 0.0), embed_segments=(),
+             segment_spacing: float | None = None, symmetric: str | None = None) -> meshio.Mesh:
     """The cylinder of ``radius`` along z from the base ``center`` up to ``height``.
-    Physical groups "volume", "bottom", "top" and "side"."""
+    Physical groups "volume", "bottom", "top" and "side". ``embed_segments``,
+    ``segment_spacing``, ``symmetric``: as ``half_ellipsoid``."""
     radius, height = _positive([radius, height], 2, "radius and height")
     c = np.asarray(center, float)
 
@@ -611,14 +750,18 @@ def cylinder(radius: float, height: float, spacing: float, center=(0.0, 0.0, 0.0
             return "bottom"
         return "top" if abs(cm[2] - c[2] - height) < 1e-9 * height else "side"
 
-    return _occ_shape(lambda occ: (occ.addCylinder(*c, 0, 0, height, radius), classify),
-                      spacing, "the cylinder")
+    if symmetric == "z":
+        raise ValueError("mirroring the cylinder about a plane normal to z is not offered: symmetric must be 'x' or 'y'")
+    return _occ_shape(lambda occ: (occ.addCylinder(*c, 0, 0, height, radius), classify, c),
+                      spacing, "the cylinder", embed_segments, segment_spacing, symmetric)
 
 
-def lobe(length: float, width: float, thickness: float, spacing: float) -> meshio.Mesh:
+def lobe(length: float, width: float, thickness: float, spacing: float, embed_segments=(),
+         segment_spacing: float | None = None, symmetric: str | None = None) -> meshio.Mesh:
     """A lobe-shaped organ: two flattened ellipsoids fused along x (a large lobe of
     ``length`` x ``width`` x ``thickness`` and a smaller one overlapping its right end),
-    centred at the origin. Physical groups "volume" and "surface"."""
+    centred at the origin. Physical groups "volume" and "surface". ``embed_segments``,
+    ``segment_spacing``, ``symmetric``: as ``half_ellipsoid``."""
     L, W, H = _positive([length, width, thickness], 3, "length, width and thickness")
 
     def build(occ):
@@ -627,9 +770,11 @@ def lobe(length: float, width: float, thickness: float, spacing: float) -> meshi
         small = occ.addSphere(0.25 * L, 0.1 * W, 0, 1.0)
         occ.dilate([(3, small)], 0.25 * L, 0.1 * W, 0, 0.25 * L, 0.35 * W, 0.35 * H)
         out, _ = occ.fuse([(3, big)], [(3, small)])
-        return out[0][1], lambda cm: "surface"
+        return out[0][1], lambda cm: "surface", np.zeros(3)
 
-    return _occ_shape(build, spacing, "the lobe")
+    if symmetric in ("x", "y"):
+        raise ValueError(f"the lobe has no mirror plane normal to {symmetric}: symmetric must be 'z' or None")
+    return _occ_shape(build, spacing, "the lobe", embed_segments, segment_spacing, symmetric)
 
 
 def _positive(values, n, what) -> np.ndarray:

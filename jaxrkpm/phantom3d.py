@@ -2,10 +2,18 @@
 
 A half-ellipsoid "breast" (semi-axes a, b, c; :data:`jaxrkpm.thesis.PHANTOM_3D`) sits on the
 chest wall z = 0, which holds its flat face fixed ("base"). A straight needle enters through
-the skin (by default from x < 0 along +x; ``needle_point``, ``needle_axis``) and is modelled, as in 2D,
-by the particles near the first ``needle_length`` of its track, translated along the needle
-by the insertion depth. The target lies on the needle line at ``target_depth`` of the chord;
-its lateral deviation (its displacement across the needle) is what a paddle must prevent.
+the skin (by default from x < 0 along +x in the symmetry plane y = 0, 0.3 above the chest
+wall; ``needle_point``, ``needle_axis``) and is modelled, as in 2D, by the particles of the
+first ``needle_length`` of its track, translated along the needle by the insertion depth.
+The needle has a physical radius (``needle_radius``): the mesh conforms to its axis and to
+four lines on its surface (gmsh embedding, ``tracks``), so the loaded region is the same
+cylinder at every mesh spacing and the no-paddle deviation converges with the mesh (it did
+not while the needle was "the particles within a multiple of the spacing of the track").
+With the needle in y = 0 the mesh is mirror-symmetric, so the no-paddle deviation is purely
+vertical (the fixed base plays the 2D phantom's immobile edge), not polluted by mesh
+asymmetry. The target lies on the needle line at ``target_depth`` of the chord (a particle
+sits on it); its lateral deviation (its displacement across the needle) is what a paddle
+must prevent.
 
 Paddle positions: contact patches = the ``patch_size`` skin particles nearest to centres on
 an angle grid (theta, phi) of the accessible skin (the upper dome away from the needle entry
@@ -61,8 +69,11 @@ class Phantom3D(NeedleTrack):
     """The half-ellipsoid phantom (defaults: :data:`jaxrkpm.thesis.PHANTOM_3D`).
 
     spacing        mesh size of the tetrahedral mesh (particles at its vertices)
-    needle_radius  needle particles: within needle_radius x spacing of the first
-                   ``needle_length`` of the track
+    needle_radius  the needle's physical radius: its particles are those within
+                   needle_radius of the first ``needle_length`` of the track; the mesh
+                   conforms to the axis and four lines on the needle's surface (``tracks``)
+    track_spacing  mesh size along those lines (default ``spacing``); a particle sits on
+                   the target
     patch_radius   a paddle patch: the skin near its centre (see ``patch_size``)
     material_law   "neohookean" (default) or "fung" (chapter 6's law with the 3D Table 5.2
                    pattern); see ``material``
@@ -78,7 +89,8 @@ class Phantom3D(NeedleTrack):
     needle_axis: tuple = PHANTOM_3D["needle_axis"]
     target_depth: float = PHANTOM_3D["target_depth"]
     needle_length: float = PHANTOM_3D["needle_length"]
-    needle_radius: float = 0.75
+    needle_radius: float = PHANTOM_3D["needle_radius"]
+    track_spacing: float | None = PHANTOM_3D["track_spacing"]
     insertion: float = PHANTOM_3D["insertion"]
     theta: tuple = PHANTOM_3D["theta"]
     phi: tuple = PHANTOM_3D["phi"]
@@ -113,6 +125,8 @@ class Phantom3D(NeedleTrack):
                              f"would reach the target at {self.target_depth * self.chord:.3f} along the track")
         if self.material_law not in MATERIALS_3D:
             raise ValueError(f"unknown material_law {self.material_law!r}: choose {list(MATERIALS_3D)}")
+        if not (np.isfinite(self.needle_radius) and self.needle_radius > 0):
+            raise ValueError(f"needle_radius must be a positive length, got {self.needle_radius}")
         if not (np.isfinite(self.patch_radius) and self.patch_radius > 0):
             raise ValueError(f"patch_radius must be a positive length, got {self.patch_radius}")
 
@@ -120,20 +134,7 @@ class Phantom3D(NeedleTrack):
     def _crossing(self):
         """(t_in, t_out) of the needle line p + t axis inside the half-ellipsoid (the
         ellipsoid cut by the base z = 0), or None if it misses."""
-        semi = np.asarray(self.semi_axes, float)
-        p, d = np.asarray(self.needle_point, float) / semi, self.needle_direction / semi
-        A, B, C = d @ d, 2 * p @ d, p @ p - 1
-        disc = B * B - 4 * A * C
-        if disc <= 0:
-            return None
-        t0, t1 = sorted(((-B - np.sqrt(disc)) / (2 * A), (-B + np.sqrt(disc)) / (2 * A)))
-        z0, dz = self.needle_point[2], self.needle_direction[2]
-        if abs(dz) > 1e-12:                      # clip to z >= 0
-            tb = -z0 / dz
-            t0, t1 = (max(t0, tb), t1) if dz > 0 else (t0, min(t1, tb))
-        elif z0 <= 0:
-            return None
-        return (t0, t1) if t1 > t0 else None
+        return self._line_crossing(self.needle_point)
 
     @property
     def needle_direction(self) -> np.ndarray:
@@ -164,13 +165,66 @@ class Phantom3D(NeedleTrack):
     def target(self) -> tuple:
         return tuple(self.entry + self.target_depth * self.chord * self.needle_direction)
 
+    def _line_crossing(self, point):
+        """(t_in, t_out) of the line point + t needle_direction inside the half-ellipsoid,
+        or None if it misses."""
+        semi = np.asarray(self.semi_axes, float)
+        p, d = np.asarray(point, float) / semi, self.needle_direction / semi
+        A, B, C = d @ d, 2 * p @ d, p @ p - 1
+        disc = B * B - 4 * A * C
+        if disc <= 0:
+            return None
+        t0, t1 = sorted(((-B - np.sqrt(disc)) / (2 * A), (-B + np.sqrt(disc)) / (2 * A)))
+        z0, dz = point[2], self.needle_direction[2]
+        if abs(dz) > 1e-12:                      # clip to z >= 0
+            tb = -z0 / dz
+            t0, t1 = (max(t0, tb), t1) if dz > 0 else (t0, min(t1, tb))
+        elif z0 <= 0:
+            return None
+        return (t0, t1) if t1 > t0 else None
+
+    @property
+    def tracks(self) -> np.ndarray:
+        """(K, 2, 3) the lines the mesh conforms to: the needle's axis, from the skin entry to
+        the target, and four lines on its surface (needle_radius off the axis along +-each
+        lateral direction) from the skin to the target's cross-section, so the needle is a
+        resolved cylinder of its physical radius at every mesh spacing. Each starts half a
+        track spacing inside the skin (gmsh cannot mesh a mirror face whose embedded line
+        touches its rim). For a mirror-symmetric mesh only the lines on the meshed side
+        y >= 0 (the mirror makes the others)."""
+        d = self.needle_direction
+        end = (np.asarray(self.target) - self.entry) @ d
+        inset = 0.5 * (self.track_spacing or self.spacing)
+        out = []
+        for offset in [np.zeros(3), *(s * self.needle_radius * e for e in self.lateral for s in (1, -1))]:
+            if self.mirror_symmetric and offset[1] < -1e-12:
+                continue
+            point = self.entry + offset
+            t_in, _ = self._line_crossing(point)
+            out.append([point + (t_in + inset) * d, point + end * d])
+        return np.asarray(out)
+
+    @property
+    def mirror_symmetric(self) -> bool:
+        """Whether the needle line lies in the phantom's symmetry plane y = 0: then the mesh is
+        made mirror-symmetric about it, so the no-paddle deviation has no sideways part from
+        mesh asymmetry (only the vertical one the fixed base causes)."""
+        return abs(self.needle_point[1]) < 1e-12 and abs(self.needle_direction[1]) < 1e-12
+
     # ------------------------------------------------------------------ geometry
+    def mesh(self):
+        """The tetrahedral half-ellipsoid (gmsh, at ``spacing``) conforming to the needle's
+        lines (``tracks``), mirror-symmetric when the needle lies in y = 0: a meshio.Mesh."""
+        from . import mesh
+        return mesh.half_ellipsoid(self.semi_axes, self.spacing, embed_segments=self.tracks,
+                                   segment_spacing=self.track_spacing,
+                                   symmetric="y" if self.mirror_symmetric else None)
+
     @property
     def body(self) -> Body:
-        """The tetrahedral half-ellipsoid (gmsh, at ``spacing``) as a particle body."""
+        """The phantom's mesh (``mesh``) as a particle body."""
         if "body" not in self._cache:
-            from . import mesh
-            self._cache["body"] = Body.from_mesh(mesh.half_ellipsoid(self.semi_axes, self.spacing))
+            self._cache["body"] = Body.from_mesh(self.mesh())
         return self._cache["body"]
 
     def level(self, X) -> np.ndarray:
@@ -184,12 +238,13 @@ class Phantom3D(NeedleTrack):
 
     @property
     def needle(self) -> np.ndarray:
-        """Particles within needle_radius x spacing of the first needle_length of the track."""
+        """Particles within needle_radius of the first needle_length of the axis: those on the
+        needle's axis and its four surface lines (``tracks``), and any between."""
         tip = self.entry + self.needle_length * self.needle_direction
-        idx = np.setdiff1d(self.body.near_segment(self.entry, tip, self.needle_radius * self.spacing), self.base)
+        idx = np.setdiff1d(self.body.near_segment(self.entry, tip, self.needle_radius * (1 + 1e-9)), self.base)
         if len(idx) < 2:
-            raise ValueError(f"only {len(idx)} particle(s) near the needle track: raise needle_radius "
-                             f"({self.needle_radius}) or refine the mesh (spacing {self.spacing})")
+            raise ValueError(f"only {len(idx)} particle(s) on the needle's first {self.needle_length}: "
+                             f"refine the track (track_spacing {self.track_spacing}, spacing {self.spacing})")
         return idx
 
     @property

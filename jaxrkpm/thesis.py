@@ -144,22 +144,26 @@ INCLUSIONS = {"none": None, "right": ((0.6, 0.7), (0.3, 0.4)), "left": ((0.3, 0.
 # ================================================================== beyond the thesis: 3D phantom
 # Chapter 6 lifted to 3D (:class:`jaxrkpm.phantom3d.Phantom3D`; our choices, not the thesis'):
 # a half-ellipsoid "breast" on the chest wall z = 0 (held fixed: "base"), a horizontal needle
-# entering through the skin from x < 0 along +x on the line y = 0.1, z = 0.2 (off the planes of
-# symmetry, so the target is pushed off the line in both lateral directions), the target at
-# 40% of the needle's chord through the phantom (as the thesis' target at 40% of the height). Paddle patches: centres on an angle grid of the upper skin,
-# theta (polar angle from the top) x phi (azimuth from +x), the needle side |phi| > 0.7 pi
+# entering through the skin from x < 0 along +x on the line y = 0, z = 0.3 (in the plane of
+# symmetry, so with no paddle the target leaves the line only vertically: the fixed base plays
+# the 2D phantom's immobile edge), a probe of radius 0.1 (resolved by the mesh: the no-paddle
+# deviation converges with it), the target at 40% of the needle's chord through the phantom
+# (as the thesis' target at 40% of the height). Paddle patches: centres on an angle grid of the upper skin,
+# theta (polar angle from the top) x phi (azimuth from +x), the needle side |phi| > 0.8 pi
 # and the skin near the base (theta > 0.9) left out; a patch is a compression paddle's
 # contact, ~0.5 in radius (smaller patches barely move the target: 4 particles at spacing
 # 0.25 cut the deviation at most 2x).
 PHANTOM_3D = {
     "semi_axes": (1.0, 0.8, 0.6),
-    "needle_point": (0.0, 0.1, 0.2),  # a point of the needle line
+    "needle_point": (0.0, 0.0, 0.3),  # a point of the needle line: in the symmetry plane y = 0
     "needle_axis": (1.0, 0.0, 0.0),   # its direction
     "target_depth": 0.4,              # fraction of the chord from the entry
     "needle_length": 0.3,             # the needle particles: near the first 0.3 of the track
+    "needle_radius": 0.1,             # the needle's physical radius (a probe: resolved by the mesh)
+    "track_spacing": 0.1,             # mesh size along the needle's lines
     "insertion": 0.12,                # needle advance (absolute; 6.5% of the chord)
     "theta": (0.15, 0.9, 4),          # patch centres: polar angles (lo, hi, count)
-    "phi": (-0.7 * np.pi, 0.7 * np.pi, 6),   # azimuths (lo, hi, count): 4 x 6 = 24 patches
+    "phi": (-0.8 * np.pi, 0.8 * np.pi, 5),   # azimuths (lo, hi, count; 0 included): 4 x 5 = 20 patches
     "patch_radius": 0.5,              # a paddle patch: the skin within ~0.5 of its centre
 }
 # inclusions (x100 stiffness): balls (centre offset from the target, radius) beside the target,

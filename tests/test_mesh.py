@@ -381,3 +381,35 @@ def test_selections_for_paddles_and_needles(breast):
     assert len(grid.surface_particles()) == 64 - 8 and grid.tags == {}
     with pytest.raises(ValueError, match="only mesh bodies carry tags"):
         grid.tagged("base")
+
+
+def test_embedded_segments_and_mirror_symmetric_shapes():
+    """``embed_segments``: mesh vertices along each segment at ``segment_spacing`` (a needle
+    track); ``symmetric``: the half meshed and mirrored, vertex for vertex, tags on both halves."""
+    a, b = np.array([-0.9, 0.0, 0.2]), np.array([0.3, 0.0, 0.2])
+    inside = a + [0.03, 0, 0]                        # a segment in the mirror plane starts inside
+    plain, fine, mirror = (jr.Body.from_mesh(mesh.half_ellipsoid(RADII, 0.25, **kw)) for kw in (
+        {}, {"embed_segments": [(a, b)], "segment_spacing": 0.1},
+        {"embed_segments": [(inside, b)], "segment_spacing": 0.1, "symmetric": "y"}))
+    assert len(plain.near_segment(a, b, 1e-9)) < 4
+    for body, start in ((fine, a), (mirror, inside)):
+        on = body.X[body.near_segment(start, b, 1e-9)]
+        x = np.sort(on[:, 0])
+        assert x[0] == pytest.approx(start[0]) and x[-1] == pytest.approx(b[0])
+        assert len(x) >= 12 and np.diff(x).max() < 0.1 * 1.3       # vertices every ~0.1 along it
+        assert abs(body.measure / (2 / 3 * np.pi * 0.6) - 1) < 0.05
+    X = mirror.X
+    image = np.array([np.flatnonzero(np.all(np.abs(X - x * [1, -1, 1]) < 1e-12, axis=1))[0] for x in X])
+    assert np.array_equal(image[image], np.arange(len(X)))              # an exact mirror image
+    assert np.array_equal(np.sort(image[mirror.tagged("skin")]), mirror.tagged("skin"))
+    assert set(mirror.tags) == {"base", "skin", "volume"} and np.any(X[:, 1] > 0.3) and np.any(X[:, 1] < -0.3)
+    assert np.array_equal(mirror.tagged("skin"), np.intersect1d(mirror.surface_particles(), mirror.tagged("skin")))
+    assert np.all(np.isin(mirror.surface_particles(), np.union1d(mirror.tagged("skin"), mirror.tagged("base"))))
+    with pytest.raises(ValueError, match="leaves the half-ellipsoid"):
+        mesh.half_ellipsoid(RADII, 0.25, embed_segments=[(a, [1.5, 0, 0.2])])
+    with pytest.raises(ValueError, match="mirrored half"):
+        mesh.half_ellipsoid(RADII, 0.25, embed_segments=[([0, -0.2, 0.2], b)], symmetric="y")
+    with pytest.raises(ValueError, match="pairs of 3D points"):
+        mesh.half_ellipsoid(RADII, 0.25, embed_segments=[(0, 1)])
+    with pytest.raises(ValueError, match="symmetric"):
+        mesh.half_ellipsoid(RADII, 0.25, symmetric="z")

@@ -167,7 +167,7 @@ def needle3d_parser():
     from jaxrkpm.thesis import INCLUSIONS_3D
     p = _needle_options("needle3d", INCLUSIONS_3D)
     p.add_argument("--spacing", type=number(float, 0.05, 0.4), default=0.2,
-                   help="mesh size of the phantom (0.2: 258 particles; 0.1: 1,260)")
+                   help="mesh size of the phantom (0.3: 231 particles; 0.2: 390; 0.1: 1,332)")
     p.add_argument("--increments", type=COUNT, default=4, help="insertion increments")
     p.add_argument("--paddle", type=COUNT, default=None,
                    help="dynamic mode: patch to move (default: the most controllable)")

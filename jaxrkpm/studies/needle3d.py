@@ -5,7 +5,7 @@ A half-ellipsoid on a fixed chest-wall base, a horizontal needle entering from x
 what a paddle holding a patch of the skin must prevent.
 
 ``--mode static``: every candidate paddle patch (an angle grid over the accessible skin,
-24 by default) x every insertion increment in one batched, compiled call, plus the
+20 by default) x every insertion increment in one batched, compiled call, plus the
 no-paddle run; the final lateral deviation per patch, the best patch and its reduction
 against no paddle; the controllability delta x_min per patch (the largest paddle travel
 per unit lateral correction, 1/sigma_min of the lateral rows of J^-1) as a map over the skin.
