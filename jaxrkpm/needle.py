@@ -321,8 +321,10 @@ def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, with_jacobian, batchin
     ``batching``: "map" runs the configurations one after another (``lax.map``); "vmap"
     advances all of them through each increment at once, their Newton while-loops in lock
     step (each increment costs the slowest member's iterations and step cuts). Measured on
-    the 2D phantom (5 configurations x 5 increments, one of them failing): vmap 2.9x slower
-    than map's Python-loop equivalent, so "map" is the default. (Vmapped solves deadlocked
+    the 2D phantom (5 paddles x 5 increments, inclusion "right" x 100, paddle 1 failing;
+    loaded 2-core machine): vmap 2.65 s warm against 0.92 s for the Python loop of the same
+    solves (experiments/bench_sweep.py --batching vmap), while map runs 1.4-1.9x faster
+    than that loop: "map" is the default. (Vmapped solves deadlocked
     XLA:CPU in jax 0.10 until the factorisations ran one member at a time:
     ``jaxrkpm.linear.one_at_a_time``.)"""
 
