@@ -9,7 +9,8 @@ a finer lattice, which changes the problem). Every configuration inserts the nee
 in ``increments`` warm-started increments and takes the paddle Jacobian at each one.
 
 - batched: ``needle.insert`` -- all configurations x all increments in one jitted call
-  (``lax.map`` over configurations of a ``scan`` over increments), one compile per batch size.
+  (``lax.map`` or, with ``--batching vmap``, ``vmap`` over configurations of a ``scan`` over
+  increments), one compile per batch size.
 - loop: the same work the way a user without the batched path writes it -- per configuration
   and increment, ``model.solve`` warm-started from the last increment, then
   ``model.jacobian`` -- a host round trip and a dispatch per call.
@@ -51,8 +52,8 @@ def configurations(phantom: nd.Phantom, count: int) -> list[Model]:
     return models
 
 
-def batched(models, depths, target):
-    out = nd.insert(models, depths, target)
+def batched(models, depths, target, batching="map"):
+    out = nd.insert(models, depths, target, batching=batching)
     jax.block_until_ready(out)
     return np.asarray(out.target_u[..., 0]), np.asarray(out.status)
 
@@ -83,6 +84,8 @@ def main(argv=None):
     ap.add_argument("--counts", type=int, nargs="+", default=[1, 5, 20, 80])
     ap.add_argument("--increments", type=int, default=15)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--batching", choices=nd.BATCHING, default="map",
+                    help="needle.insert's batching: lax.map of configurations, or vmap (lock step)")
     ap.add_argument("--loop-max", type=int, default=80,
                     help="time the Python loop only up to this many configurations")
     args = ap.parse_args(argv)
@@ -92,7 +95,7 @@ def main(argv=None):
     rows = []
     for count in args.counts:
         models = configurations(phantom, count)
-        cold_b, (dev_b, st_b) = timed(batched, models, depths, phantom.target)
+        cold_b, (dev_b, st_b) = timed(batched, models, depths, phantom.target, args.batching)
         row = {"configurations": count, "increments": args.increments,
                "solves": count * args.increments,
                "converged_fraction": float(np.mean(st_b == Status.CONVERGED)),
@@ -105,7 +108,7 @@ def main(argv=None):
             row["status_agree"] = bool(np.all(st_b == st_l))
         tb, tl = [], []
         for _ in range(args.repeats):
-            tb.append(timed(batched, models, depths, phantom.target)[0])
+            tb.append(timed(batched, models, depths, phantom.target, args.batching)[0])
             if do_loop:
                 tl.append(timed(loop, models, depths, phantom.target)[0])
         row["batched_warm_median_s"] = statistics.median(tb)
@@ -117,8 +120,9 @@ def main(argv=None):
         rows.append(row)
         print(json.dumps(row), flush=True)
     base = rows[0]["batched_warm_per_configuration_s"]
-    result = {"benchmark": "needle sweep: batched (lax.map of scan, one jitted call) vs Python loop "
-                           "of model.solve + model.jacobian per increment",
+    result = {"benchmark": f"needle sweep: batched ({args.batching} of scan, one jitted call) vs Python "
+                           "loop of model.solve + model.jacobian per increment",
+              "batching": args.batching,
               "device": str(jax.devices()[0]), "repeats": args.repeats, "rows": rows,
               "per_configuration_vs_single": {r["configurations"]: r["batched_warm_per_configuration_s"] / base
                                               for r in rows}}

@@ -1,6 +1,7 @@
 """jaxrkpm: a differentiable meshfree (RKPM) large-deformation solver in JAX.
 
-Importing the package enables float64 in JAX (``jax_enable_x64``): solid mechanics needs it.
+Importing the package enables float64 in JAX (``jax_enable_x64``): solid mechanics needs it,
+and makes BLAS/LAPACK single-threaded (``jaxrkpm.threads``; ``JAXRKPM_BLAS_THREADS`` overrides).
 The package itself imports no JAX: its public names (``jaxrkpm.Model``, ...) and submodules
 (``jaxrkpm.control``, ...) load on first use, so the command line (``jaxrkpm --help``)
 answers without the seconds a JAX import takes.
@@ -16,6 +17,12 @@ if "jax" in sys.modules:
     sys.modules["jax"].config.update("jax_enable_x64", True)
 else:
     os.environ["JAX_ENABLE_X64"] = "1"
+
+# BLAS threads before any BLAS library loads (jaxrkpm.threads says why; JAXRKPM_BLAS_THREADS
+# overrides)
+from . import threads as _threads  # noqa: E402
+
+_threads.configure()
 
 __version__ = "0.1.0"
 

@@ -72,26 +72,44 @@ def lowest_modes(K, k: int = 1):
     return lam[:k], vecs[:, :k]
 
 
+def one_at_a_time(factorise):
+    """``factorise`` (a LAPACK factorisation of one matrix) with a batching rule that runs the
+    members of a vmapped batch one after another (``lax.map``), each an unbatched LAPACK call.
+
+    Why: jaxlib 0.10's batched CPU LAPACK kernels split the batch over XLA's intra-op thread
+    pool and block the calling pool thread until the pieces are done (``ParallelBatchMap``).
+    XLA runs independent operations side by side on that pool, so two batched factorisations
+    at once (the Cholesky and the LU of a vmapped DenseSolver) can occupy every pool thread
+    (two on a 2-core machine) with waiting, and nothing is left to run the pieces: a deadlock
+    (tests/test_threads.py keeps the reduced pattern). Unbatched calls never wait on the pool."""
+    batched = jax.custom_batching.custom_vmap(factorise)
+
+    @batched.def_vmap
+    def _rule(axis_size, in_batched, *args):
+        args = [a if b else jnp.broadcast_to(a, (axis_size,) + a.shape) for a, b in zip(args, in_batched)]
+        out = jax.lax.map(lambda xs: batched(*xs), tuple(args))
+        return out, jax.tree.map(lambda _: True, out)
+
+    return batched
+
+
+_cholesky = one_at_a_time(lambda K: jnp.linalg.cholesky(K))
+_lu_factor = one_at_a_time(lambda K: jax.scipy.linalg.lu_factor(K))
+
+
 @dataclass(frozen=True)
 class DenseSolver:
-    """Dense Cholesky of K_ff (LU where it is not positive definite): small systems.
+    """Dense Cholesky of K_ff (LU where it is not positive definite): small systems. Both
+    factorisations run one batch member at a time under vmap (``one_at_a_time``)."""
 
-    ``branchless``: compute both the Cholesky and the LU solve and select, instead of a
-    lax.cond (XLA:CPU in jax 0.10.2 deadlocks on that cond inside a scan under vmap)."""
-
-    branchless: bool = False
     name: str = "dense"
 
     def matrix(self, ops, blocks):
         return dense_tangent(ops, blocks)
 
-    def batched(self) -> "DenseSolver":
-        """The variant for vmapped batches (see ``branchless``)."""
-        return DenseSolver(branchless=True)
-
     def init(self, ops, blocks) -> DenseState:
         K = dense_tangent(ops, blocks)
-        L = jnp.linalg.cholesky(K)
+        L = _cholesky(K)
         spd = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
         return DenseState(K, L, spd)
 
@@ -104,8 +122,8 @@ class DenseSolver:
         n = state.K.shape[0]
         b = rhs.reshape(n, -1)
         chol = lambda: jax.scipy.linalg.cho_solve((state.L, True), b)
-        lu = lambda: jnp.linalg.solve(state.K, b)
-        x = jnp.where(state.spd, chol(), lu()) if self.branchless else jax.lax.cond(state.spd, chol, lu)
+        lu = lambda: jax.scipy.linalg.lu_solve(_lu_factor(state.K), b)
+        x = jax.lax.cond(state.spd, chol, lu)   # under vmap: both, then a select
         return x.reshape(rhs.shape)
 
     def stability(self, state: DenseState):
@@ -147,9 +165,6 @@ class SparseSolver:
 
     def matrix(self, ops, blocks):
         return blocks  # the factorisation happens on the host
-
-    def batched(self) -> "SparseSolver":
-        return self     # host callbacks run batch members one after another
 
     @property
     def _pool(self):

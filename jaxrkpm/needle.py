@@ -9,8 +9,8 @@ target, the paddle positions of Table 6.2, inclusions as stiffness fields. Each 
 position is its own essential set, so each is its own ``Model``; the models share the
 particle layout and integration table, so their ``Ops`` differ only in the essential
 partition and stack (zero-padded) into one batch: every paddle position x every insertion
-increment runs in one compiled call (``lax.map`` over configurations of a ``scan`` over
-increments), optionally sharded over the visible devices.
+increment runs in one compiled call (``lax.map`` or ``vmap`` over configurations of a
+``scan`` over increments), optionally sharded over the visible devices.
 """
 from __future__ import annotations
 
@@ -309,17 +309,24 @@ class Insertion(NamedTuple):
     jacobian: jax.Array
 
 
-@partial(jax.jit, static_argnames=("with_jacobian",))
-def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, with_jacobian):
+BATCHING = ("map", "vmap")
+
+
+@partial(jax.jit, static_argnames=("with_jacobian", "batching"))
+def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, with_jacobian, batching="map"):
     """prob: the batched problems; G (B, n+1, Nb, d) prescribed values per increment (G[:, 0]
     the start); dG (B, m, Nb, d) the paddle directions for the Jacobian; idx, psi (P, K) the
     target's shape functions.
 
-    The configurations run through ``lax.map`` one at a time. There is deliberately no
-    vmapped batch (the former ``chunk`` parameter): vmapped members run their Newton
-    while-loops in lock step (every member iterates until the slowest converges), and
-    XLA:CPU in jax 0.10.2 deadlocks (all threads idle) on vmapped solves of 5
-    configurations x 15 increments."""
+    ``batching``: "map" runs the configurations one after another (``lax.map``); "vmap"
+    advances all of them through each increment at once, their Newton while-loops in lock
+    step (each increment costs the slowest member's iterations and step cuts). Measured on
+    the 2D phantom (5 paddles x 5 increments, inclusion "right" x 100, paddle 1 failing;
+    loaded 2-core machine): vmap 2.65 s warm against 0.92 s for the Python loop of the same
+    solves (experiments/bench_sweep.py --batching vmap), while map runs 1.4-1.9x faster
+    than that loop: "map" is the default. (Vmapped solves deadlocked
+    XLA:CPU in jax 0.10 until the factorisations ran one member at a time:
+    ``jaxrkpm.linear.one_at_a_time``.)"""
 
     def one(prob, G, dG):
         def step(carry, g1):
@@ -336,29 +343,34 @@ def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, with_jacobian):
         _, out = jax.lax.scan(step, (u0, G[0]), G[1:])
         return out
 
+    if batching == "vmap":
+        return Insertion(*jax.vmap(one)(prob, G, dG))
     return Insertion(*jax.lax.map(lambda a: one(*a), (prob, G, dG)))
 
 
 def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None = "paddle",
-           n_devices: int | None = 1, max_iter: int = 25, steps: int = 1, direction=None) -> Insertion:
+           n_devices: int | None = 1, max_iter: int = 25, steps: int = 1, direction=None,
+           batching: str = "map") -> Insertion:
     """Insert the needle of every model through ``depths`` (n,) in one compiled, batched call
     and record the displacement of ``point`` (d,) at every increment; with ``jacobian_set``,
     also the implicit Jacobian of the point w.r.t. a rigid translation of that set.
     ``direction`` (d,): the needle's unit direction (default: the last coordinate axis, +y
     in 2D as in Figure 6.1; pass ``phantom.needle_direction``).
-    The configurations run one at a time on each device (see ``_insert_batch``);
+    ``batching``: "map" (default) runs the configurations one after another on each device,
+    "vmap" all at once in lock step (see ``_insert_batch`` for which wins when);
     ``n_devices``: shard them over that many devices.
 
     Each model keeps its other sets fixed (zero). Failed solves do not raise: their status
     is recorded and the next increment starts from the last converged state."""
     if len(models) == 0:
         raise ValueError("insert needs at least one model")
+    if batching not in BATCHING:
+        raise ValueError(f"unknown batching {batching!r}: choose one of {list(BATCHING)}")
     depths = np.asarray(depths, float)
     if depths.ndim != 1 or len(depths) == 0 or not np.all(np.isfinite(depths)):
         raise ValueError(f"depths must be a non-empty 1D array of finite needle depths, got {depths!r}")
     ref = models[0]
     prob = stack_models(models)
-    prob = prob.with_config(linear=prob.config.linear.batched())
     depths = np.asarray(depths, float)
     d = ref.dim
     direction = np.eye(d)[-1] if direction is None else np.asarray(direction, float)
@@ -371,7 +383,7 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
         G.append(jnp.stack(rows))
         dG.append(m.directions(jacobian_set) if jacobian_set else jnp.zeros((1,) + rows[0].shape))
     sf = ref.shape_functions(np.atleast_2d(point), gradients=False)
-    fn = partial(_insert_batch, with_jacobian=jacobian_set is not None)
+    fn = partial(_insert_batch, with_jacobian=jacobian_set is not None, batching=batching)
     lim = Limits.of(steps, max_iter)
     idx, psi = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
     return run_batched(lambda pr, g, dg: fn(pr, g, dg, lim, idx, psi),

@@ -1,0 +1,98 @@
+"""Benchmark: does a workload's time survive one other CPU-bound process beside it?
+
+Each workload runs warm in this process, ``repeats`` times quiet and ``repeats`` times while
+a busy process (``python -c "while True: pass"``, started here and killed after each timed
+call) occupies one core, interleaved (quiet, busy, quiet, ...), so both see the same
+machine. Reported: medians and busy/quiet ratio (issue 20 asks <= 2.5), per workload, for the
+BLAS threading that ``import jaxrkpm`` sets (``jaxrkpm.threads``; run with
+``JAXRKPM_BLAS_THREADS=keep`` to measure the libraries' default threads instead).
+
+Workloads:
+- ``cholesky``: ``jnp.linalg.cholesky`` of a 1,152^2 SPD matrix (issue 20: 30 ms
+  single-threaded, 708 ms with OpenBLAS's default threads beside one busy process);
+- ``cube6``: neo-Hookean 6^3 cube, 30% compression in 10 load steps (dense path);
+- ``needle``: the 2D phantom's 5 paddle positions x 5 increments (``needle.insert``).
+Prints JSON (also the load average before and after: other jobs on the machine skew both)."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+import jaxrkpm  # noqa: F401  (BLAS threads before JAX loads)
+import jax
+import jax.numpy as jnp
+
+
+def cholesky_workload():
+    n = 1152
+    rng = np.random.default_rng(0)
+    M = rng.standard_normal((n, n))
+    A = jnp.asarray(M @ M.T + n * np.eye(n))
+    f = jax.jit(jnp.linalg.cholesky)
+    return lambda: jax.block_until_ready(f(A))
+
+
+def cube6_workload():
+    import jaxrkpm as jr
+    body = jr.Body.grid((6, 6, 6), 1.0 / 5)
+    sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
+    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets)
+    move = {"right": np.array([-0.3, 0.0, 0.0])}
+    return lambda: jax.block_until_ready(model.solve(move, steps=10).u)
+
+
+def needle_workload():
+    from jaxrkpm import needle as nd
+    ph = nd.Phantom()
+    models = [ph.model("none", p) for p in range(1, 6)]
+    depths = ph.depths(5)
+    return lambda: jax.block_until_ready(nd.insert(models, depths, ph.target, direction=ph.needle_direction))
+
+
+WORKLOADS = {"cholesky": cholesky_workload, "cube6": cube6_workload, "needle": needle_workload}
+
+
+def timed_call(fn, busy: bool) -> float:
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
+    try:
+        if hog is not None:
+            time.sleep(0.2)          # let it start spinning
+        t0 = time.perf_counter()
+        fn()
+        return time.perf_counter() - t0
+    finally:
+        if hog is not None:
+            hog.kill()
+            hog.wait()
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--workloads", nargs="+", choices=list(WORKLOADS), default=list(WORKLOADS))
+    ap.add_argument("--repeats", type=int, default=5)
+    args = ap.parse_args(argv)
+    result = {"blas_threads": os.environ.get(jaxrkpm.threads.ENV, str(jaxrkpm.threads.DEFAULT)),
+              "load_average_before": os.getloadavg(), "workloads": {}}
+    for name in args.workloads:
+        fn = WORKLOADS[name]()
+        fn()                                          # compile
+        quiet, busy = [], []
+        for _ in range(args.repeats):
+            quiet.append(timed_call(fn, False))
+            busy.append(timed_call(fn, True))
+        q, b = statistics.median(quiet), statistics.median(busy)
+        result["workloads"][name] = {"quiet_median_s": q, "busy_median_s": b, "busy_over_quiet": b / q}
+        print(json.dumps({name: result["workloads"][name]}), flush=True)
+    result["load_average_after"] = os.getloadavg()
+    print(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()

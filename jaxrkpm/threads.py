@@ -1,0 +1,63 @@
+"""Threading of the BLAS/LAPACK libraries under JAX: single-threaded by default.
+
+Why. jaxlib's CPU LAPACK kernels (Cholesky, LU, ...) call SciPy's OpenBLAS, and XLA runs
+independent operations of one program on its own thread pool at the same time. With
+OpenBLAS's default threads, several XLA threads call the threaded OpenBLAS at once: its
+worker threads spin-wait for each other, and a vmapped batch of Newton solves livelocks
+(tests/test_threads.py keeps the reduced pattern; measured here: a 30 s timeout against 3 s
+single-threaded). Beside another CPU-bound process the same oversubscription makes a 1,152^2
+Cholesky 24x slower than single-threaded (issue 20). The small and medium dense systems of
+this library do not gain from BLAS threads anyway; parallelism comes from XLA's own pool and
+from batching configurations (vmap).
+
+What. ``configure()`` (run by ``import jaxrkpm``, before JAX is loaded) sets
+OPENBLAS_NUM_THREADS, MKL_NUM_THREADS and OMP_NUM_THREADS to ``JAXRKPM_BLAS_THREADS``
+(default 1) unless they are already set, and limits BLAS libraries that are already loaded
+(numpy/scipy imported first) through threadpoolctl. Override: ``JAXRKPM_BLAS_THREADS=4``
+(four threads), ``JAXRKPM_BLAS_THREADS=keep`` (leave every library as it is; the
+OPENBLAS_/MKL_/OMP_NUM_THREADS variables then decide).
+"""
+from __future__ import annotations
+
+import os
+import sys
+
+ENV = "JAXRKPM_BLAS_THREADS"
+DEFAULT = 1
+LIBRARY_VARIABLES = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS")
+
+
+def blas_threads() -> int | None:
+    """The BLAS thread count asked for by ``JAXRKPM_BLAS_THREADS`` (default 1); None for
+    ``keep``. A value that is neither a positive integer nor ``keep`` is an error."""
+    raw = os.environ.get(ENV, str(DEFAULT)).strip().lower()
+    if raw == "keep":
+        return None
+    if not raw.isdigit() or int(raw) < 1:
+        raise ValueError(f"{ENV}={raw!r}: give a positive number of BLAS threads, or 'keep' to "
+                         "leave the BLAS libraries' own threading alone")
+    return int(raw)
+
+
+def configure() -> int | None:
+    """Apply ``blas_threads()``: the library variables (where unset) for libraries not yet
+    loaded, threadpoolctl for those already loaded. Returns the thread count (None: keep)."""
+    n = blas_threads()
+    if n is None:
+        return None
+    for name in LIBRARY_VARIABLES:
+        os.environ.setdefault(name, str(n))
+    limit_loaded(n)
+    return n
+
+
+def limit_loaded(n: int) -> None:
+    """Limit the BLAS libraries already loaded in this process to ``n`` threads (a no-op
+    when threadpoolctl is missing or nothing is loaded yet: the variables then apply)."""
+    if not any(m in sys.modules for m in ("numpy", "scipy", "jax")):
+        return    # nothing loaded BLAS yet (keeps ``jaxrkpm --help`` fast)
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        return
+    threadpool_limits(n, user_api="blas")

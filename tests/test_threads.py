@@ -1,0 +1,71 @@
+"""The vmapped-solve deadlock of XLA:CPU (jax 0.10), reduced, run in a subprocess that must
+finish within a timeout.
+
+The broken pattern (not run here: it hangs until killed), on a process limited to 2 CPUs so
+that XLA's intra-op pool has 2 threads:
+
+    def body(c):                       # inside a vmapped while_loop, n = 200, batch 5
+        i, A = c
+        return i + 1, A + 1e-6 * (jnp.sum(jnp.linalg.cholesky(A))
+                                  + jnp.sum(jax.scipy.linalg.lu_factor(A)[0]))
+
+Measured: with OPENBLAS_NUM_THREADS=1 it deadlocks every time (both pool threads wait in
+jaxlib's ``ParallelBatchMap`` of the batched dpotrf and dgetrf kernels for pieces queued on
+the same pool, gdb); with OpenBLAS's default threads it livelocks even with the Cholesky
+alone (threads spinning in OpenBLAS's dpotrf_L_parallel, called from two XLA threads at
+once). Each arm: 3 of 3 runs killed at 30 s; the fixed pattern below: 3 of 3 done in 6-8 s on
+the loaded machine. The fix is two parts, both needed: single-threaded BLAS
+(``jaxrkpm.threads``, applied by ``import jaxrkpm``) and factorisations that run one batch
+member at a time under vmap (``jaxrkpm.linear.one_at_a_time``). DenseSolver has both.
+"""
+import subprocess
+import sys
+import textwrap
+
+FIXED = textwrap.dedent("""
+    import os
+    os.sched_setaffinity(0, set(sorted(os.sched_getaffinity(0))[:2]))   # a 2-thread XLA pool
+    import jaxrkpm                                   # single-threaded BLAS, before JAX loads
+    import jax, jax.numpy as jnp
+    from jaxrkpm.linear import one_at_a_time
+    cholesky = one_at_a_time(lambda A: jnp.linalg.cholesky(A))
+    lu = one_at_a_time(lambda A: jax.scipy.linalg.lu_factor(A)[0])
+
+    def member(A):
+        def body(c):
+            i, A = c
+            return i + 1, A + 1e-6 * (jnp.sum(cholesky(A)) + jnp.sum(lu(A)))
+        return jax.lax.while_loop(lambda c: c[0] < 30, body, (0, A))[1]
+
+    A = 3.0 * jnp.eye(200) + jnp.zeros((5, 200, 200))
+    f = jax.jit(jax.vmap(member))
+    for _ in range(4):
+        out = jax.block_until_ready(f(A))
+    ref = jax.jit(member)(A[0])
+    print("max difference to the unbatched member", float(jnp.max(jnp.abs(out[0] - ref))))
+""")
+
+
+def test_vmapped_factorisations_in_a_loop_finish():
+    env = {"PATH": "/usr/bin:/bin", "HOME": "/tmp", "PYTHONPATH": ":".join(sys.path)}
+    done = subprocess.run([sys.executable, "-c", FIXED], capture_output=True, text=True, timeout=120, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    diff = float(done.stdout.split()[-1])
+    assert diff < 1e-12     # the batch rule changes the schedule, not the numbers
+
+
+def test_blas_threads_default_and_override(monkeypatch):
+    from jaxrkpm import threads
+    monkeypatch.delenv(threads.ENV, raising=False)
+    assert threads.blas_threads() == 1
+    monkeypatch.setenv(threads.ENV, "3")
+    assert threads.blas_threads() == 3
+    monkeypatch.setenv(threads.ENV, "keep")
+    assert threads.blas_threads() is None
+    monkeypatch.setenv(threads.ENV, "many")
+    try:
+        threads.blas_threads()
+    except ValueError as e:
+        assert threads.ENV in str(e) and "keep" in str(e)
+    else:
+        raise AssertionError("a bad JAXRKPM_BLAS_THREADS must raise")
