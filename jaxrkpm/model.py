@@ -46,6 +46,24 @@ def _pair_keys(lists, N):
     return np.unique(P.row.astype(np.int64) * N + P.col)
 
 
+_KEY_CHUNK = 2**22   # pair keys looked up at once (int64 temporaries of 32 MB each)
+
+
+def _pair_ids(uniq, lists, N):
+    """Positions in ``uniq`` of the keys lists[r, k] * N + lists[r, m]: (R, K, K) int32.
+
+    Looked up a few rows at a time straight into the int32 table: the int64 keys of all
+    rows at once are R K^2 x 8 bytes (1.3 GB per temporary for a 2,000-particle tetrahedral
+    body with K ~ 133), and they set the peak memory of a 3D model build."""
+    R, K = lists.shape
+    out = np.empty((R, K, K), np.int32)
+    rows = max(1, _KEY_CHUNK // max(K * K, 1))
+    for a in range(0, R, rows):
+        blk = lists[a:a + rows].astype(np.int64)
+        out[a:a + rows] = np.searchsorted(uniq, blk[:, :, None] * N + blk[:, None, :])
+    return out
+
+
 def _split_groups(grp_of, counts, size):
     """Group ids (Q,) and counts with every group cut into consecutive pieces of at most
     ``size`` points."""
@@ -163,8 +181,8 @@ class Model:
         # from one neighbour list per group (per point it would be Q K^2 keys: GBs in 3D)
         rep = idx[groups[:, 0]]
         uniq = _pair_keys(rep, N) if len(sp_idx) == 0 else np.union1d(_pair_keys(rep, N), _pair_keys(sp_idx, N))
-        pair_id = np.searchsorted(uniq, rep[:, :, None] * N + rep[:, None, :])
-        sp_pair = np.searchsorted(uniq, (sp_idx[:, :, None] * N + sp_idx[:, None, :]).astype(np.int64))
+        pair_id = _pair_ids(uniq, rep, N)
+        sp_pair = _pair_ids(uniq, sp_idx, N)
         pair_i, pair_j = uniq // N, uniq % N
 
         Nf = len(self.sets.free)
