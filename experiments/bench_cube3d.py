@@ -95,7 +95,7 @@ def main(argv=None):
     p.add_argument("--n", type=int, nargs="*", default=[6, 10], help="particles per edge")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--solver", default="auto", choices=["auto", "dense", "sparse"])
-    p.add_argument("--reuse", type=float, default=0.5, help="Config.reuse of the modified-Newton solve")
+    p.add_argument("--reuse", type=float, default=0.1, help="Config.reuse of the modified-Newton solve")
     p.add_argument("--case", type=int, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.case:

@@ -417,9 +417,9 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
     must lower |r|; a ``state`` that is not stable gives UNSTABLE_TANGENT at once.
     ``cfg.reuse`` > 0 (with ``chord=False``): an iteration solves with the kept, stable
     ``state`` (no assembly) where the previous step cut |r| by at least ``cfg.reuse`` (the
-    predictor: where ``state`` is stable, i.e. from the previous load step), else assembles
-    and factorises; the line search stays. Convergence needs a factorisation made in this
-    solve, so the stability reported is, as without reuse, that of a tangent at g1."""
+    predictor: where ``state``, the previous load step's last, is stable), else assembles and
+    factorises; the line search stays. Convergence is declared, as in full Newton, on a step
+    whose tangent was factorised at its start (its stability is the one reported)."""
     W = cfg.W
     res = partial(residual, ops, params, W)
     r_pred, kfg_dg = jax.jvp(lambda g: res(u, g, l1), (g0,), (g1 - g0,))
@@ -468,7 +468,7 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
     reusing = (not chord) and cfg.reuse > 0 and cfg.linear.name == "dense"
 
     def body(c):
-        it, u, Pi, r, _, state, keep, fresh = c
+        it, u, Pi, r, _, state, keep = c
         first = it == 0
         rhs = jnp.where(first, rhs0, r)
         if chord:
@@ -477,16 +477,21 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
             dx, state, stab, made = jax.lax.cond(
                 keep, lambda: (cfg.linear.solve(state, rhs), state, cfg.linear.stability(state), False),
                 lambda: (*assemble_and_solve(u, first, rhs, state), True))
-            fresh = fresh | made
         else:
             dx, state, stab = assemble_and_solve(u, first, rhs, state)
         ok, v, Pi_v, r_v, why = line_search(u, Pi, r, -dx, first)
         rn = jnp.linalg.norm(r_v)
         scale = internal_force_scale(ops, params, W, coefficients(ops, v, g1))
         converged = ok & (rn <= jnp.maximum(cfg.rtol * jnp.maximum(r_ref, scale), floor))
-        if reusing:   # no equilibrium is declared on a tangent factorised before this solve
-            converged = converged & (fresh | (not cfg.check_stability))
-            keep = ok & (rn <= cfg.reuse * jnp.linalg.norm(r)) & (cfg.linear.stability(state) == Stability.STABLE)
+        if reusing:
+            # the equilibrium is declared only on a step with a tangent factorised at its
+            # start (so the stability reported is, as in full Newton, that of the iterate
+            # before the converged one, measured: one factorised earlier lets a solve pass a
+            # critical point); a chord step that meets the tolerance is followed by one
+            met = converged
+            converged = converged & (made | (not cfg.check_stability))
+            keep = ok & ~met & (rn <= cfg.reuse * jnp.linalg.norm(r)) & \
+                (cfg.linear.stability(state) == Stability.STABLE)
         # stability from the last factorised tangent (at the iterate before the converged one)
         if cfg.check_stability:
             done = jnp.where(stab == Stability.STABLE, Status.CONVERGED,
@@ -496,8 +501,7 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
             done = Status.CONVERGED
         status = jnp.where(~ok, why, jnp.where(converged, done,
                                                jnp.where(it + 1 >= max_iter, Status.MAX_ITERATIONS, -1)))
-        return (it + 1, jnp.where(ok, v, u), jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), status, state,
-                keep, fresh)
+        return (it + 1, jnp.where(ok, v, u), jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), status, state, keep)
 
     def assemble_and_solve(u, first, rhs, state):
         """A Newton step with the tangent at u (at g0 for the predictor): (dx, state, stability)."""
@@ -518,8 +522,8 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
     if chord:
         status0 = jnp.where(cfg.linear.stability(state) == Stability.STABLE, -1, Status.UNSTABLE_TANGENT)
     keep0 = jnp.asarray(reusing) & (cfg.linear.stability(state) == Stability.STABLE)
-    it, u_new, _, r, status, state, _, _ = jax.lax.while_loop(
-        cond, body, (jnp.array(0), u, Pi0, r0, status0, state, keep0, jnp.array(False)))
+    it, u_new, _, r, status, state, _ = jax.lax.while_loop(
+        cond, body, (jnp.array(0), u, Pi0, r0, status0, state, keep0))
     return u_new, status, it, jnp.linalg.norm(r), state
 
 
