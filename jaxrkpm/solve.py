@@ -106,6 +106,12 @@ class Config:
     #                               failures (loss of ellipticity with K_ff still positive definite)
     locate: int = 6               # halvings of the initial load step that pin a critical point
     #                               before the branch switch (it lies within dt0 / 2**locate)
+    reuse: float = 0.0            # modified Newton (``newton``): 0 assembles and factorises the
+    #                               tangent at every iteration; in (0, 1) a kept factorisation
+    #                               serves the next iteration (the next load step's predictor
+    #                               too) while the last step cut |r| by at least this factor.
+    #                               Same residual tolerance; assembly dominates 3D solves.
+    #                               Dense solver only (ignored by the sparse one)
 
     def __post_init__(self):
         if not callable(self.W):
@@ -116,6 +122,8 @@ class Config:
                 raise ValueError(f"{name} must be a positive number, got {v!r}")
         if int(self.line_search) < 0 or int(self.easy) < 0 or int(self.locate) < 0:
             raise ValueError("line_search, easy and locate must be >= 0")
+        if not (isinstance(self.reuse, (int, float)) and 0 <= self.reuse < 1):
+            raise ValueError(f"reuse must be a number in [0, 1) (0: full Newton), got {self.reuse!r}")
 
 
 MAX_STEPS = 1000   # initial load steps of one solve (Limits.of)
@@ -406,7 +414,12 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
     backtracking line search (energy decrease or residual decrease).
     ``chord=True``: every solve uses the factorisation ``state`` as it is (no assembly: the
     chord, or modified Newton, iteration of a kept tangent); no line search, each correction
-    must lower |r|; a ``state`` that is not stable gives UNSTABLE_TANGENT at once."""
+    must lower |r|; a ``state`` that is not stable gives UNSTABLE_TANGENT at once.
+    ``cfg.reuse`` > 0 (with ``chord=False``): an iteration solves with the kept, stable
+    ``state`` (no assembly) where the previous step cut |r| by at least ``cfg.reuse`` (the
+    predictor: where ``state``, the previous load step's last, is stable), else assembles and
+    factorises; the line search stays. Convergence is declared, as in full Newton, on a step
+    whose tangent was factorised at its start (its stability is the one reported)."""
     W = cfg.W
     res = partial(residual, ops, params, W)
     r_pred, kfg_dg = jax.jvp(lambda g: res(u, g, l1), (g0,), (g1 - g0,))
@@ -450,28 +463,35 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
     def cond(c):
         return c[4] < 0
 
+    # dense only: the sparse solver's newton_solve already reuses its factorisation (as a CG
+    # preconditioner), and its kept state may factorise an older tangent than the last step's
+    reusing = (not chord) and cfg.reuse > 0 and cfg.linear.name == "dense"
+
     def body(c):
-        it, u, Pi, r, _, state = c
+        it, u, Pi, r, _, state, keep = c
         first = it == 0
         rhs = jnp.where(first, rhs0, r)
         if chord:
             dx, stab = cfg.linear.solve(state, rhs), cfg.linear.stability(state)
+        elif reusing:
+            dx, state, stab, made = jax.lax.cond(
+                keep, lambda: (cfg.linear.solve(state, rhs), state, cfg.linear.stability(state), False),
+                lambda: (*assemble_and_solve(u, first, rhs, state), True))
         else:
-            blocks = pair_blocks(ops, params, W, coefficients(ops, u, jnp.where(first, g0, g1)))
-            # inexact Newton (only without the stability check): far from equilibrium the
-            # linear solve need only be as accurate as the step is good (a forcing term
-            # proportional to the residual keeps the convergence quadratic), near it solves
-            # are tight. With the check, every solve is tight: an iterative solver finds
-            # negative curvature only in a rich Krylov space
-            forcing = None
-            if not cfg.check_stability:
-                rel = jnp.linalg.norm(rhs) / jnp.maximum(r_ref, 1e-300)
-                forcing = jnp.where(rel > 1e-4, jnp.minimum(1e-2 * rel, 1e-4), 1e-11)
-            dx, state, stab = cfg.linear.newton_solve(state, ops, blocks, rhs, forcing)
+            dx, state, stab = assemble_and_solve(u, first, rhs, state)
         ok, v, Pi_v, r_v, why = line_search(u, Pi, r, -dx, first)
         rn = jnp.linalg.norm(r_v)
         scale = internal_force_scale(ops, params, W, coefficients(ops, v, g1))
         converged = ok & (rn <= jnp.maximum(cfg.rtol * jnp.maximum(r_ref, scale), floor))
+        if reusing:
+            # the equilibrium is declared only on a step with a tangent factorised at its
+            # start (so the stability reported is, as in full Newton, that of the iterate
+            # before the converged one, measured: one factorised earlier lets a solve pass a
+            # critical point); a chord step that meets the tolerance is followed by one
+            met = converged
+            converged = converged & (made | (not cfg.check_stability))
+            keep = ok & ~met & (rn <= cfg.reuse * jnp.linalg.norm(r)) & \
+                (cfg.linear.stability(state) == Stability.STABLE)
         # stability from the last factorised tangent (at the iterate before the converged one)
         if cfg.check_stability:
             done = jnp.where(stab == Stability.STABLE, Status.CONVERGED,
@@ -481,13 +501,29 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
             done = Status.CONVERGED
         status = jnp.where(~ok, why, jnp.where(converged, done,
                                                jnp.where(it + 1 >= max_iter, Status.MAX_ITERATIONS, -1)))
-        return (it + 1, jnp.where(ok, v, u), jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), status, state)
+        return (it + 1, jnp.where(ok, v, u), jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), status, state, keep)
+
+    def assemble_and_solve(u, first, rhs, state):
+        """A Newton step with the tangent at u (at g0 for the predictor): (dx, state, stability)."""
+        blocks = pair_blocks(ops, params, W, coefficients(ops, u, jnp.where(first, g0, g1)))
+        # inexact Newton (only without the stability check): far from equilibrium the
+        # linear solve need only be as accurate as the step is good (a forcing term
+        # proportional to the residual keeps the convergence quadratic), near it solves
+        # are tight. With the check, every solve is tight: an iterative solver finds
+        # negative curvature only in a rich Krylov space
+        forcing = None
+        if not cfg.check_stability:
+            rel = jnp.linalg.norm(rhs) / jnp.maximum(r_ref, 1e-300)
+            forcing = jnp.where(rel > 1e-4, jnp.minimum(1e-2 * rel, 1e-4), 1e-11)
+        return cfg.linear.newton_solve(state, ops, blocks, rhs, forcing)
 
     Pi0, _, r0 = evaluate(u)
     status0 = jnp.array(-1)
     if chord:
         status0 = jnp.where(cfg.linear.stability(state) == Stability.STABLE, -1, Status.UNSTABLE_TANGENT)
-    it, u_new, _, r, status, state = jax.lax.while_loop(cond, body, (jnp.array(0), u, Pi0, r0, status0, state))
+    keep0 = jnp.asarray(reusing) & (cfg.linear.stability(state) == Stability.STABLE)
+    it, u_new, _, r, status, state, _ = jax.lax.while_loop(
+        cond, body, (jnp.array(0), u, Pi0, r0, status0, state, keep0))
     return u_new, status, it, jnp.linalg.norm(r), state
 
 

@@ -1,0 +1,117 @@
+"""Benchmark of issue 20's table: a neo-Hookean n^3 cube (left face immobile, right face
+pushed 30% in 10 load steps), its warm full solve and a model-based control step.
+
+"Control step" (one iteration of ``jaxrkpm.control.track_loop``): at the converged 30% state,
+one factorisation of K_ff, the implicit Jacobian of the control point (the cube's centre) to
+the paddle's 3 rigid translations from it, and a 1% paddle increment settled from the previous
+state (Newton predictor + chord corrections with that factorisation; the adaptive path only if
+they fail). "Jacobian": ``Model.jacobian`` as a user calls it (its own factorisation).
+The full solve is timed with full Newton and with modified Newton (``Config.reuse``: a kept
+factorisation while the residual contracts; same tolerance). Medians of warm repeats; each size runs in a fresh subprocess (its peak RSS is its own).
+Prints JSON; quote ratios within one run (the machine may be shared: the load average is
+printed)."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+
+def timed(f, repeats):
+    """Median wall time of ``f()`` over ``repeats`` warm calls (after one untimed call), and
+    the last result."""
+    import jax
+    out = jax.block_until_ready(f())
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(f())
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), out
+
+
+def run_case(n, repeats, solver, reuse):
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxrkpm as jr
+    from jaxrkpm.control import ControlledModel
+    from jaxrkpm.solve import Limits
+
+    body = jr.Body.grid((n, n, n), 1.0 / (n - 1))
+    sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
+    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets, solver=solver)
+    g = jnp.array([-0.3, 0.0, 0.0])
+    solve_s, sol = timed(lambda: model.solve({"right": g}, steps=10), repeats)
+    # modified Newton (Config.reuse): a kept factorisation while the residual contracts
+    reuse_s, re = timed(lambda: model.solve({"right": g}, steps=10, reuse=reuse), repeats)
+    centre = np.array([[0.5, 0.5, 0.5]])
+    jac_s, _ = timed(lambda: model.jacobian(sol, "right", centre), repeats)
+
+    ctrl = ControlledModel.of(model, "right", centre)
+    lim = Limits.of(steps=1)
+    dg = jnp.einsum("a,abi->bi", jnp.array([-0.01, 0.0, 0.0]), ctrl.G)
+
+    @jax.jit
+    def factorise(c, s):
+        return c.problem.factorise(s.u, s.g)
+
+    @jax.jit
+    def jacobian_from(c, s, state):
+        return c.jacobian(s, state)
+
+    @jax.jit
+    def settle(c, s, state):
+        return c.settle(s, state, s.g + dg, lim, 6)
+
+    @jax.jit
+    def control_step(c, s):
+        state = c.problem.factorise(s.u, s.g)
+        return c.jacobian(s, state), c.settle(s, state, s.g + dg, lim, 6)
+
+    step_s, (J, moved) = timed(lambda: control_step(ctrl, sol), repeats)
+    fact_s, state = timed(lambda: factorise(ctrl, sol), repeats)
+    jfrom_s, _ = timed(lambda: jacobian_from(ctrl, sol, state), repeats)
+    settle_s, _ = timed(lambda: settle(ctrl, sol, state), repeats)
+    return {"n": n, "dof": int(len(model.sets.free) * 3), "path": model.linear.name,
+            "status": sol.outcome.name, "newton_iterations": int(sol.iterations),
+            "warm_solve_s": solve_s, "reuse": reuse, "reuse_warm_solve_s": reuse_s,
+            "reuse_status": re.outcome.name, "reuse_newton_iterations": int(re.iterations),
+            "reuse_max_du_difference": float(abs(re.u - sol.u).max()), "jacobian_s": jac_s, "control_step_s": step_s,
+            "control_step_parts_s": {"factorise": fact_s, "jacobian_from_state": jfrom_s, "settle": settle_s},
+            "control_step_newton": int(moved.iterations), "control_step_status": int(moved.status),
+            "control_step_residual": float(moved.residual_norm),
+            "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--n", type=int, nargs="*", default=[6, 10], help="particles per edge")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--solver", default="auto", choices=["auto", "dense", "sparse"])
+    p.add_argument("--reuse", type=float, default=0.1, help="Config.reuse of the modified-Newton solve")
+    p.add_argument("--case", type=int, help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    if a.case:
+        print(json.dumps(run_case(a.case, a.repeats, a.solver, a.reuse)))
+        return
+    out = {"load_average_before": os.getloadavg()}
+    for n in a.n:
+        r = subprocess.run([sys.executable, "-m", "experiments.bench_cube3d", "--case", str(n),
+                            "--repeats", str(a.repeats), "--solver", a.solver,
+                            "--reuse", str(a.reuse)], capture_output=True, text=True)
+        out[f"cube_{n}"] = json.loads(r.stdout.strip().splitlines()[-1]) if r.returncode == 0 else \
+            {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}
+        print(n, json.dumps(out[f"cube_{n}"]), file=sys.stderr)
+    out["load_average_after"] = os.getloadavg()
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
