@@ -56,7 +56,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import solve as S
-from .linear import DenseSolver, Stability
+from .linear import Stability
 from .model import Model
 from .outcome import Outcome
 
@@ -163,23 +163,12 @@ class EquilibriumPath:
 
 
 # ----------------------------------------------------------------------- inside jit
-def negative_eigenvalues(linear, state):
-    """Number of negative eigenvalues of the factorised K_ff (-1: unknown). Sparse: the
-    factorisation's inertia. Dense: 0 where Cholesky succeeded (positive definite), else
-    counted from the eigenvalues (only for the points past a critical point)."""
-    if isinstance(linear, DenseSolver):
-        def count():
-            return jnp.sum(jnp.linalg.eigvalsh(state.K) < 0).astype(jnp.int64)
-        return jax.lax.cond(state.spd, lambda: jnp.zeros((), jnp.int64), count)
-    return jnp.maximum(state.inertia, -1).astype(jnp.int64)
-
-
 @partial(jax.jit, static_argnames=("cfg",))
 def start_point(ops, params, cfg, u, g, load):
     """The path's first point: (factorisation of K_ff, stability, negative eigenvalues, |r|)."""
     state = S.linear_state(ops, params, cfg, u, g)
     rn = jnp.linalg.norm(S.residual(ops, params, cfg.W, u, g, load))
-    return state, cfg.linear.stability(state), negative_eigenvalues(cfg.linear, state), rn
+    return state, cfg.linear.stability(state), cfg.linear.negative_eigenvalues(state), rn
 
 
 def _residual_and_load(ops, params, W, u, g0, dg, lam0, lam):
@@ -265,7 +254,7 @@ def arc_step(ops, params, cfg, max_iter, u0, g0, dg, lam0, state0, du_prev, dlam
     it, du, dlam, status, rn, state = jax.lax.while_loop(cond, body, init)
     u, g, lam = at(du, dlam)
     return (u, g, lam, status, it - 1, rn, state, cfg.linear.stability(state),
-            negative_eigenvalues(cfg.linear, state))
+            cfg.linear.negative_eigenvalues(state))
 
 
 # ------------------------------------------------------------------------ the driver

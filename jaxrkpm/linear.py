@@ -6,6 +6,7 @@ changes between calls is its *state*, a pytree returned and passed explicitly:
     state = solver.init(ops, blocks)          # factorise the tangent given as pair blocks
     x = solver.solve(state, rhs)              # K_ff x = rhs with that factorisation
     solver.stability(state)                   # Stability: STABLE / UNSTABLE / UNKNOWN
+    solver.negative_eigenvalues(state)        # inertia: negative eigenvalues of K_ff (-1: unknown)
     x, state, stab = solver.newton_solve(state, ops, blocks, rhs, rtol)
                                               # a Newton step with the current tangent, reusing
                                               # ``state`` where the solver can
@@ -129,6 +130,12 @@ class DenseSolver:
     def stability(self, state: DenseState):
         return jnp.where(state.spd, Stability.STABLE, Stability.UNSTABLE)
 
+    def negative_eigenvalues(self, state: DenseState):
+        """Number of negative eigenvalues of K_ff: 0 where the Cholesky factorisation
+        succeeded, else counted from its eigenvalues (only past a critical point)."""
+        count = lambda: jnp.sum(jnp.linalg.eigvalsh(state.K) < 0).astype(jnp.int64)
+        return jax.lax.cond(state.spd, lambda: jnp.zeros((), jnp.int64), count)
+
     def newton_solve(self, state, ops, blocks, rhs, rtol=None):
         """Exact: the current tangent is factorised (``state`` and ``rtol`` are not needed)."""
         new = self.init(ops, blocks)
@@ -186,6 +193,10 @@ class SparseSolver:
 
     def stability(self, state: SparseState):
         return _sparse_stability(state.inertia)
+
+    def negative_eigenvalues(self, state: SparseState):
+        """Number of negative eigenvalues of K_ff: the factorisation's inertia (-1: unknown)."""
+        return jnp.maximum(state.inertia, -1).astype(jnp.int64)
 
     def newton_solve(self, state: SparseState, ops, blocks, rhs, rtol=None):
         """CG with the current tangent preconditioned by the held factorisation while it is
