@@ -371,7 +371,6 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
         raise ValueError(f"depths must be a non-empty 1D array of finite needle depths, got {depths!r}")
     ref = models[0]
     prob = stack_models(models)
-    depths = np.asarray(depths, float)
     d = ref.dim
     direction = np.eye(d)[-1] if direction is None else np.asarray(direction, float)
     if direction.shape != (d,) or not np.isclose(np.linalg.norm(direction), 1.0):
