@@ -530,6 +530,8 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
 # ------------------------------------------------------------------ the stable branch
 SWITCH_AMPLITUDE = 0.05   # the kick along the critical mode: its largest entry, in particle spacings
 SHIFT_FLOOR = 1e-10       # smallest tangent shift, relative to the largest diagonal entry of K_ff
+COLLAPSE_DET = 1e-3       # a descent whose iterate has det F below this at an integration point is
+#                           running into det F = 0 (the material collapsing: see ``descend``)
 
 
 def switches_branch(cfg: Config) -> bool:
@@ -567,7 +569,17 @@ def descend(ops, params, cfg: Config, max_iter, u, g, load):
     by a Cholesky factorisation at the state returned (every accepted state is stable). A step
     that finds no energy decrease in the line search is retried with a shift at least 4x larger
     (a shorter, more gradient-like step: Levenberg-Marquardt damping), which relaxes again by 4x
-    after each good step; so the descent fails only at its iteration cap (``max_iter``)."""
+    after each good step.
+
+    It fails at its iteration cap (``max_iter``), or at once where an accepted iterate has
+    det F < COLLAPSE_DET at an integration point: the energy then falls toward det F = 0 (a
+    material collapse). Measured on the compressed Fung and Quadratic squares (issue 19), past
+    their last stable state the energy has no minimum with det F > 0 near the path: an exact
+    trust-region minimisation (scipy trust-exact, dense Hessian) from there drives the
+    smallest det F geometrically to 1e-14 while |r| stays O(1) and the energy keeps falling
+    (the energies of eqs 5.1-5.2 stay bounded as det F -> 0, so nothing stops a corner from
+    folding flat). Without this stop the descent spent its whole cap (186 iterations, most
+    of a 428 s solve at 33x33) finding no stable state."""
     W = cfg.W
     n = u.size
 
@@ -610,7 +622,7 @@ def descend(ops, params, cfg: Config, max_iter, u, g, load):
         rn = jnp.linalg.norm(r)
 
         def ls_body(c2):
-            k, _, _, _, _ = c2
+            k = c2[0]
             alpha = 0.5 ** k
             w = v + alpha * p
             Pi_w, det_w, r_w = evaluate(w)
@@ -619,16 +631,18 @@ def descend(ops, params, cfg: Config, max_iter, u, g, load):
             # holds no saddle to converge to
             ok = jnp.isfinite(Pi_w) & jnp.all(jnp.isfinite(r_w)) & (det_w > 0) & \
                 ((Pi_w <= Pi + cfg.armijo * alpha * slope) | ((tau == 0) & (jnp.linalg.norm(r_w) < rn)))
-            return k + 1, ok, w, Pi_w, r_w
+            return k + 1, ok, w, Pi_w, r_w, det_w
 
-        _, ls_ok, w, Pi_w, r_w = jax.lax.while_loop(lambda c2: (~c2[1]) & (c2[0] <= cfg.line_search), ls_body,
-                                                    (jnp.array(0), jnp.array(False), v, Pi, r))
+        _, ls_ok, w, Pi_w, r_w, det_w = jax.lax.while_loop(
+            lambda c2: (~c2[1]) & (c2[0] <= cfg.line_search), ls_body,
+            (jnp.array(0), jnp.array(False), v, Pi, r, jnp.asarray(1.0, u.dtype)))
         ok = chol_ok & ls_ok
         done = ok & (tau == 0) & (jnp.linalg.norm(r_w) <= tol(w))
+        collapsing = ok & ~done & (det_w < COLLAPSE_DET)
         # no decrease along p: the next step is shorter, by a larger shift (Levenberg-Marquardt
         # damping) instead of giving up; after a good step the damping relaxes
         tau_min = jnp.where(ls_ok, jnp.where(tau_min / 4 < beta, 0.0, tau_min / 4), jnp.maximum(4 * tau, beta))
-        status = jnp.where(done, 1, jnp.where(~chol_ok | (it + 1 >= max_iter), 0, -1))
+        status = jnp.where(done, 1, jnp.where(~chol_ok | collapsing | (it + 1 >= max_iter), 0, -1))
         return (it + 1, jnp.where(ok, w, v), jnp.where(ok, Pi_w, Pi), jnp.where(ok, r_w, r), tau, tau_min, status)
 
     Pi0, _, r0 = evaluate(u)
