@@ -4,10 +4,11 @@ particles on the unit square, left edge x = 0 held, the whole right edge moved r
 Gauss, SCNI and MSCNI. Per case: the stable-branch solve's status, the load fraction reached,
 whether the final state lies on a secondary branch, the critical points passed, the smallest
 eigenvalue of K_ff at the end, the run time; then an independent check of whether stable
-states exist past the point where the solve stopped (``beyond``): from the last stable
-state, an exact trust-region minimisation of the energy (scipy's trust-exact, dense Hessian,
-det F <= 0 refused) at load fractions increasing by ``--dt``, until it fails to end on an
-equilibrium with K_ff positive definite. Writes every row to a JSON file.
+states exist past the point where the solve stopped: from the last stable
+state, an exact trust-region minimisation of the energy (``jaxrkpm.minimise.stable_beyond``:
+scipy's trust-exact, dense Hessian, det F <= 0 refused) at load fractions increasing by
+``--dt``, until it fails to end on an equilibrium with K_ff positive definite. Writes every
+row to a JSON file.
 
     python experiments/compress_block.py            # 33x33 (the issue's case), all six
     python experiments/compress_block.py --n 17 --case compression --integration gauss
@@ -29,17 +30,15 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.optimize import minimize
 
 import jaxrkpm as jr
+from jaxrkpm.minimise import stable_beyond
 
 CASES = {
     "compression": (lambda: jr.Fung(alpha=1.0, beta=1.0), (-0.2, 0.0)),
     "compression_shear": (lambda: jr.Quadratic(alpha=1.0), (-0.2, 0.1)),
 }
 
-_ENERGY = jax.jit(lambda prob, u, g: (prob.energy(u, g), prob.min_det_f(u, g)))
-_RESIDUAL = jax.jit(lambda prob, u, g: prob.residual(u, g))
 _TANGENT = jax.jit(lambda prob, u, g: prob.tangent(u, g))
 
 
@@ -48,69 +47,6 @@ def block_model(n: int, integration: str, material) -> jr.Model:
     body = jr.Body.grid((n, n), 1.0 / (n - 1))
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "edge": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
     return jr.Model(body, material, integration=integration, essential=sets)
-
-
-def minimise(prob, u, g, max_iter: int = 300):
-    """A local minimum of the energy at the prescribed values g from u, by scipy's exact
-    trust-region Newton (every iterate keeps det F > 0: inverted trial points have infinite
-    energy). Returns (u, energy, smallest det F, |r|, lowest eigenvalues of K_ff (3,),
-    iterations)."""
-    shape = u.shape
-    g = jnp.asarray(g)
-    last = {}
-
-    def valid(x):
-        e, det = (float(v) for v in _ENERGY(prob, jnp.asarray(x.reshape(shape)), g))
-        return (e, True) if det > 0 and np.isfinite(e) else (np.inf, False)
-
-    def fun(x):
-        return valid(x)[0]
-
-    def jac(x):   # at a refused (inverted) trial point: the last valid values (the step is rejected)
-        if valid(x)[1]:
-            last["r"] = np.asarray(_RESIDUAL(prob, jnp.asarray(x.reshape(shape)), g)).ravel()
-        return last["r"]
-
-    def hess(x):
-        if valid(x)[1]:
-            K = np.asarray(_TANGENT(prob, jnp.asarray(x.reshape(shape)), g))
-            last["K"] = 0.5 * (K + K.T)
-        return last["K"]
-
-    x0 = np.asarray(u, float).ravel()
-    if not valid(x0)[1]:
-        raise ValueError("minimise: the start u inverts the material at g (det F <= 0); start closer")
-    res = minimize(fun, x0, jac=jac, hess=hess, method="trust-exact", options={"maxiter": max_iter, "gtol": 1e-9})
-    x = res.x.reshape(shape)
-    e, det = (float(v) for v in _ENERGY(prob, jnp.asarray(x), g))
-    lam = np.linalg.eigvalsh(hess(res.x))[:3]
-    return x, e, det, float(np.linalg.norm(jac(res.x))), lam, int(res.nit)
-
-
-def beyond(model: jr.Model, sol, push, dt: float = 0.002, rtol: float = 1e-6) -> dict:
-    """Stable states past the last converged state ``sol`` of a solve towards ``push``: energy
-    minima (``minimise``) at load fractions t + dt, t + 2 dt, ... up to 1, each from the last.
-    Stops at the first that is not an equilibrium (|r| > rtol x the internal force scale) with
-    K_ff positive definite, and reports it."""
-    prob = model.problem()
-    push = np.asarray(push, float)
-    u, t = np.asarray(sol.u), float(sol.t)
-    g1 = np.asarray(sol.g) / t if t > 0 else None
-    out = {"from_t": t, "last_stable_t": t}
-    while t < 1 - 1e-12 and g1 is not None:
-        t1 = min(1.0, t + dt)
-        v, e, det, rn, lam, its = minimise(prob, u, g1 * t1)
-        scale = float(prob.force_scale(jnp.asarray(v), jnp.asarray(g1 * t1)))
-        stable = rn <= rtol * scale and lam[0] > 0
-        if not stable:
-            out.update({"failed_t": t1, "min_detF": det, "residual": rn, "force_scale": scale,
-                        "lowest_eigenvalues": lam.tolist(), "iterations": its,
-                        "collapse": bool(det < 1e-6)})
-            break
-        u, t = v, t1
-        out["last_stable_t"] = t
-    out["full_load_stable"] = out["last_stable_t"] >= 1 - 1e-12
-    return out
 
 
 def run_case(n: int, integration: str, case: str, steps: int = 10, warm: bool = False, check: bool = True,
@@ -136,9 +72,14 @@ def run_case(n: int, integration: str, case: str, steps: int = 10, warm: bool = 
                 "min_eig": float(np.linalg.eigvalsh(K)[0]), "min_detF": float(prob.min_det_f(sol.u, sol.g)),
                 "iterations": int(sol.iterations), "cuts": int(sol.cuts), "time_cold_s": cold})
     if check and float(sol.t) < 1.0:
+        # minima every dt of the whole load, from the last stable state to the full load
         t0 = time.perf_counter()
-        row["beyond"] = beyond(model, sol, push, dt)
-        row["beyond"]["time_s"] = time.perf_counter() - t0
+        b = stable_beyond(model, sol, model.prescribed({"edge": jnp.asarray(push)}), min(1.0, dt / (1 - float(sol.t))))
+        t = float(sol.t)
+        b.update({"from_t": t, "last_stable_t": t + b["reached"] * (1 - t), "time_s": time.perf_counter() - t0})
+        if "failed_at" in b:
+            b["failed_t"] = t + b["failed_at"] * (1 - t)
+        row["beyond"] = b
     return row
 
 

@@ -102,8 +102,9 @@ class Config:
     stable_branch: bool = False   # past a critical point, go on to a stable equilibrium of the same
     #                               load (see ``switch_branch``); dense solver and check_stability only.
     #                               Off by default: it makes every dense solve_path compile ~70% longer
-    #                               (9x9: 6.2 -> 10.7 s CPU) and does not yet pass the Fung squares'
-    #                               failures (loss of ellipticity with K_ff still positive definite)
+    #                               (9x9: 6.2 -> 10.7 s CPU). The compressed Fung / Quadratic squares
+    #                               stop with or without it: past their last stable state the energy
+    #                               has no minimum with det F > 0 (a corner collapses; see ``descend``)
     locate: int = 6               # halvings of the initial load step that pin a critical point
     #                               before the branch switch (it lies within dt0 / 2**locate)
     reuse: float = 0.0            # modified Newton (``newton``): 0 assembles and factorises the

@@ -175,12 +175,12 @@ def test_small_strip_passes_its_bifurcation_in_one_solve():
 
 def test_branch_switch_gives_up_at_once_where_the_square_collapses(fung_block):
     """Past the 9x9 Fung square's last stable state under 60% compression (near 31%) the
-    energy has no minimum with det F > 0: an exact trust-region minimisation 0.1% further
-    (experiments/compress_block.py ``beyond``) drives det F to ~0 with |r| = O(1). The solve
-    stops at that last stable state, and its branch switch, whose descent runs into det F = 0,
-    gives up at once (``COLLAPSE_DET``) instead of spending its iteration cap: the stable-branch
-    solve costs no more Newton iterations than the plain one (82 against 63 without the stop)."""
-    from experiments.compress_block import beyond
+    energy has no minimum with det F > 0: an exact trust-region minimisation 0.12% further
+    (``jaxrkpm.minimise.stable_beyond``) drives det F to ~0 with |r| = O(1). The solve stops at
+    that last stable state, and its branch switch, whose descent runs into det F = 0, gives up
+    at once (``COLLAPSE_DET``) instead of spending its iteration cap: the stable-branch solve
+    costs no more Newton iterations than the plain one (82 against 63 without the stop)."""
+    from jaxrkpm.minimise import stable_beyond
 
     push = {"edge": jnp.array([-0.6, 0.0])}
     plain = fung_block.solve(push, steps=10, throw=False)
@@ -188,6 +188,11 @@ def test_branch_switch_gives_up_at_once_where_the_square_collapses(fung_block):
     assert sol.outcome == jr.Status.UNSTABLE_TANGENT and float(sol.t) == pytest.approx(float(plain.t))
     assert 0.3 < 0.6 * float(sol.t) < 0.32 and min_eig(fung_block, sol) > 0
     assert int(sol.iterations) <= int(plain.iterations) + 2
-    past = beyond(fung_block, sol, (-0.6, 0.0), dt=0.002)
-    assert past["last_stable_t"] == float(sol.t)         # the solve stopped at the end of the stable path
+    # minima every 0.2% of the load (the solve stopped on a step of 1/(10 x 2**cuts))
+    past = stable_beyond(fung_block, sol, fung_block.prescribed(push), fraction=0.002 / (1 - float(sol.t)))
+    assert past["reached"] == 0.0 and past["failed_at"] > 0   # the solve stopped at the end of the stable path
     assert past["collapse"] and past["min_detF"] < 1e-6 and past["residual"] > 1e-4 * past["force_scale"]
+    # the check is not blind: it finds the stable states of the 0.6% before the end
+    near = fung_block.solve({"edge": jnp.array([-0.6 * (float(sol.t) - 0.01), 0.0])}, steps=10)
+    back = stable_beyond(fung_block, near, sol.g, fraction=0.5)
+    assert back["full"] and "failed_at" not in back

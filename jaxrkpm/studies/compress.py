@@ -16,6 +16,11 @@ the eigenvalues there, the critical mode, drawn in a figure) and the solve goes 
 stable equilibrium of the same compression (the buckled shape). Every state kept is stable
 (the study checks the smallest eigenvalue itself). The run stops at the first of: a solve
 that fails (its status), det F <= 0 at an integration point, or the requested maximum.
+After a failed step, ``end_of_stable_path`` minimises the energy by exact trust-region Newton
+from the last converged sub-step towards the step's target: it tells a Newton failure
+(stable states go on) from the end of the stable path (measured: the minimisation runs
+into det F = 0 at a paddle corner: the Fung energy stays bounded as det F -> 0, so a corner
+folds flat; no solver can pass it).
 ``--through`` instead follows the primary (possibly unstable) branch with the stability check
 off, as before the stable-branch solve, until the solve fails.
 """
@@ -33,6 +38,7 @@ import numpy as np
 import jaxrkpm as jr
 from jaxrkpm import cli, plot
 from jaxrkpm import solve as jsolve
+from jaxrkpm.minimise import stable_beyond
 from jaxrkpm.solve import coefficients, deformation_gradients
 from jaxrkpm.studies import interface
 from jaxrkpm.thesis import PADDLE_HALF_WIDTH, planar_square
@@ -101,6 +107,28 @@ def critical_points(model, new, c_prev: float, step: float, lam0: float) -> list
     return out
 
 
+def end_of_stable_path(model, sol, c_from: float, paddle_to, parts: int = 10) -> dict:
+    """Where a failed step's stable states end (``jaxrkpm.minimise.stable_beyond``): exact
+    trust-region energy minima at ``parts`` equal increments from the last converged sub-step
+    ``sol`` (compression ``c_from``) to the step's target paddle displacement ``paddle_to``
+    (d,). Tells a Newton failure (stable states go on) from the end of the stable path (the
+    first minimisation past it runs into det F = 0: a collapse, or ends on no stable state)."""
+    c_to = float(-np.asarray(paddle_to)[0])
+    end = stable_beyond(model, sol, model.prescribed({"paddle": jnp.asarray(paddle_to)}, base=sol.g),
+                        fraction=1.0 / parts)
+    out = {"compression": c_from + end["reached"] * (c_to - c_from), **{k: v for k, v in end.items()}}
+    if end["full"]:
+        out["words"] = (f"stable states go on to {100 * c_to:.2f}% (trust-region energy minima): a Newton "
+                        f"failure, not the end of the stable path")
+    else:
+        out["failed_compression"] = c_from + end["failed_at"] * (c_to - c_from)
+        how = (f"runs into det F = 0 (min det F {end['min_detF']:.1e}, |r| {end['residual']:.2g}: the "
+               f"material collapses)" if end["collapse"] else "ends on no stable equilibrium")
+        out["words"] = (f"stable states (trust-region energy minima) end at {100 * out['compression']:.2f}%; "
+                        f"the minimisation at {100 * out['failed_compression']:.2f}% {how}")
+    return out
+
+
 def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_compression: float = 0.9,
         step: float = 0.01, through: bool = False, material: str = "fung", keep_states: bool = True,
         half_width: float = PADDLE_HALF_WIDTH):
@@ -116,6 +144,7 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
     lam0, _, ac0 = (float(v) for v in diag(model.ops, model.params, sol.u, sol.g))
     rows, states, crits = [], {0.0: np.zeros_like(model.body.X)}, []
     reason, first_unstable, limit = "reached the requested maximum compression", None, None
+    stable_end = None
     first_nonelliptic = None
     k_max = int(round(max_compression / step))
     bar = interface.progress(range(1, k_max + 1), desc=f"compress {mode} {integration}", unit="step")
@@ -139,6 +168,9 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
             reason = (f"Newton failure in the step to {100 * c:.0f}% ({status.name}); at the last "
                       f"converged sub-step, {100 * c_part:.2f}%, the smallest tangent eigenvalue is "
                       f"{lam_p / lam0:.3f} x its rest value and the smallest det F {det_p:.3f}")
+            if not through:   # from the last stable state (--through keeps unstable ones)
+                stable_end = end_of_stable_path(model, new, c_part, c * direction)
+                reason += "; " + stable_end["words"]
             rows.append({"compression": c, "status": status.name, "time_s": dt,
                          "t_reached": float(new.t), "last_converged_compression": c_part,
                          "min_eig_rel_there": lam_p / lam0, "min_detF_there": det_p})
@@ -179,6 +211,7 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
         "max_stable_compression": max(stable) if stable else 0.0,
         "reason": reason,
         "limit_state": limit,
+        "stable_path_end": stable_end,
         "first_unstable_compression": first_unstable,
         "critical_points": crits,
         "first_loss_of_ellipticity": first_nonelliptic,
