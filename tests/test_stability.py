@@ -180,7 +180,7 @@ def test_branch_switch_gives_up_at_once_where_the_square_collapses(fung_block):
     that last stable state, and its branch switch, whose descent runs into det F = 0, gives up
     at once (``COLLAPSE_DET``) instead of spending its iteration cap: the stable-branch solve
     costs no more Newton iterations than the plain one (82 against 63 without the stop)."""
-    from jaxrkpm.minimise import stable_beyond
+    from jaxrkpm.minimise import minimise, stable_beyond
 
     push = {"edge": jnp.array([-0.6, 0.0])}
     plain = fung_block.solve(push, steps=10, throw=False)
@@ -196,3 +196,7 @@ def test_branch_switch_gives_up_at_once_where_the_square_collapses(fung_block):
     near = fung_block.solve({"edge": jnp.array([-0.6 * (float(sol.t) - 0.01), 0.0])}, steps=10)
     back = stable_beyond(fung_block, near, sol.g, fraction=0.5)
     assert back["full"] and "failed_at" not in back
+    with pytest.raises(ValueError, match="fraction"):
+        stable_beyond(fung_block, near, sol.g, fraction=0.0)
+    with pytest.raises(ValueError, match="inverts the material"):   # the undeformed state at 18% compression
+        minimise(fung_block.problem(), np.zeros(sol.u.shape), sol.g, radius=0.01)
