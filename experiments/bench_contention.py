@@ -89,7 +89,8 @@ def main(argv=None):
             busy.append(timed_call(fn, True))
         q, b = statistics.median(quiet), statistics.median(busy)
         result["workloads"][name] = {"quiet_median_s": q, "busy_median_s": b, "busy_over_quiet": b / q}
-        print(json.dumps({name: result["workloads"][name]}), flush=True)
+        # progress on stderr: stdout holds only the final JSON (one document to parse)
+        print(json.dumps({name: result["workloads"][name]}), file=sys.stderr, flush=True)
     result["load_average_after"] = os.getloadavg()
     print(json.dumps(result, indent=1))
 

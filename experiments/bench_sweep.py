@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 import time
 
 import jax
@@ -118,7 +119,8 @@ def main(argv=None):
             row["speedup_warm"] = statistics.median(tl) / statistics.median(tb)
             row["speedup_cold"] = cold_l / cold_b
         rows.append(row)
-        print(json.dumps(row), flush=True)
+        # progress on stderr: stdout holds only the final JSON (one document to parse)
+        print(json.dumps(row), file=sys.stderr, flush=True)
     base = rows[0]["batched_warm_per_configuration_s"]
     result = {"benchmark": f"needle sweep: batched ({args.batching} of scan, one jitted call) vs Python "
                            "loop of model.solve + model.jacobian per increment",
