@@ -11,6 +11,10 @@ state (the linear solver's explicit state, dense or sparse alike), shared by the
 (m solves), the Newton predictor of the next solve and its chord corrections
 (``jaxrkpm.solve.newton(chord=True)``); the adaptive ``solve_path`` runs only if those fail
 (a tangent that is not positive definite, no residual decrease, det F <= 0).
+With ``track(reuse=...)`` the factorisation is kept across iterations instead (quasi-Newton
+chord corrections, ``linear.QuasiNewton``) and made again only where a correction cuts the
+residual by less than ``reuse``: same residual tolerance, and the Jacobian then comes from the
+kept factorisation (of a nearby earlier state: an approximation the tracking gain absorbs).
 """
 from __future__ import annotations
 
