@@ -1,13 +1,23 @@
 """Benchmark of issue 20's table: a neo-Hookean n^3 cube (left face immobile, right face
-pushed 30% in 10 load steps), its warm full solve and a model-based control step.
+pushed 30% in 10 load steps), its warm full solve and model-based control steps.
 
 "Control step" (one iteration of ``jaxrkpm.control.track_loop``): at the converged 30% state,
 one factorisation of K_ff, the implicit Jacobian of the control point (the cube's centre) to
 the paddle's 3 rigid translations from it, and a 1% paddle increment settled from the previous
 state (Newton predictor + chord corrections with that factorisation; the adaptive path only if
 they fail). "Jacobian": ``Model.jacobian`` as a user calls it (its own factorisation).
+"Control loop": ``track_loop`` run for --loop-steps iterations towards a waypoint out of reach
+(every iteration a clamped 1% move), per iteration, with a factorisation per iteration
+(reuse 0) and with kept factorisations (``track(reuse=...)``: quasi-Newton chord corrections on
+a factorisation of an earlier state, refactorised only where a correction cuts |r| by less than
+--reuse; both to the solver's residual tolerance rtol = 1e-10 x the internal force scale); the
+loop includes its one initial factorisation (``loop_*_s`` / iterations is the amortised cost).
 The full solve is timed with full Newton and with modified Newton (``Config.reuse``: a kept
-factorisation while the residual contracts; same tolerance). Medians of warm repeats; each size runs in a fresh subprocess (its peak RSS is its own).
+factorisation while the residual contracts; same tolerance). --integration runs each case
+with Gauss and/or nodal (SCNI) integration and reports the displacement of a probe point (the
+top edge's midpoint, which bulges), so that integrations and sizes can be compared against the
+finest case run.
+Medians of warm repeats; each size runs in a fresh subprocess (its peak RSS is its own).
 Prints JSON; quote ratios within one run (the machine may be shared: the load average is
 printed)."""
 from __future__ import annotations
@@ -35,18 +45,20 @@ def timed(f, repeats):
     return statistics.median(times), out
 
 
-def run_case(n, repeats, solver, reuse):
+def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep=0.5):
     import jax
     import jax.numpy as jnp
     import numpy as np
 
     import jaxrkpm as jr
-    from jaxrkpm.control import ControlledModel
+    from jaxrkpm.control import ControlledModel, track_loop
     from jaxrkpm.solve import Limits
 
     body = jr.Body.grid((n, n, n), 1.0 / (n - 1))
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
-    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets, solver=solver)
+    t0 = time.perf_counter()
+    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), integration=integration, essential=sets, solver=solver)
+    build_s = time.perf_counter() - t0
     g = jnp.array([-0.3, 0.0, 0.0])
     solve_s, sol = timed(lambda: model.solve({"right": g}, steps=10), repeats)
     # modified Newton (Config.reuse): a kept factorisation while the residual contracts
@@ -68,18 +80,38 @@ def run_case(n, repeats, solver, reuse):
 
     @jax.jit
     def settle(c, s, state):
-        return c.settle(s, state, s.g + dg, lim, 6)
+        return c.settle(s, state, s.g + dg, lim, 6)[0]
 
     @jax.jit
     def control_step(c, s):
         state = c.problem.factorise(s.u, s.g)
-        return c.jacobian(s, state), c.settle(s, state, s.g + dg, lim, 6)
+        return c.jacobian(s, state), c.settle(s, state, s.g + dg, lim, 6)[0]
 
     step_s, (J, moved) = timed(lambda: control_step(ctrl, sol), repeats)
     fact_s, state = timed(lambda: factorise(ctrl, sol), repeats)
     jfrom_s, _ = timed(lambda: jacobian_from(ctrl, sol, state), repeats)
     settle_s, _ = timed(lambda: settle(ctrl, sol, state), repeats)
-    return {"n": n, "dof": int(len(model.sets.free) * 3), "path": model.linear.name,
+    loop = {}
+    for kept in (0.0, keep):
+        side = ControlledModel.of(model, "right", centre, reuse=kept)
+        far = jnp.asarray(side.measure(sol)[None] + jnp.array([[0.05, 0.02, 0.0]]))   # out of reach
+
+        def run_loop():
+            return track_loop(side, side, True, lim, sol, sol, far, 0.5, 0.01, 1e-9, 0.0, 10**6,
+                              loop_steps, 10**6)
+
+        t, (k, _, hist, *_) = timed(run_loop, max(1, repeats - 1))
+        loop[kept] = {"s_per_iteration": t / int(k), "iterations": int(k),
+                      "newton_per_iteration": np.asarray(hist["newton"])[1:int(k) + 1].tolist(),
+                      "error_after": float(np.asarray(hist["error"])[int(k)])}
+    return {"n": n, "integration": integration, "build_s": build_s,
+            # the centre moves by half the push whatever the discretisation (measured: -0.15
+            # to 1e-15 at 6^3 with Gauss and SCNI); the bulge of the top edge's midpoint does not
+            "probe_displacement_at_0.5_1_1": np.asarray(model.displacement(sol, np.array([[0.5, 1.0, 1.0]])))[0].tolist(),
+            "loop_factorise_every_step": loop[0.0], "loop_kept_factorisation": loop[keep], "keep": keep,
+            "loop_ratio_kept_over_every_step": loop[keep]["s_per_iteration"] / loop[0.0]["s_per_iteration"],
+            "full_newton_over_reuse_solve": solve_s / reuse_s,
+            "dof": int(len(model.sets.free) * 3), "path": model.linear.name,
             "status": sol.outcome.name, "newton_iterations": int(sol.iterations),
             "warm_solve_s": solve_s, "reuse": reuse, "reuse_warm_solve_s": reuse_s,
             "reuse_status": re.outcome.name, "reuse_newton_iterations": int(re.iterations),
@@ -96,19 +128,27 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--solver", default="auto", choices=["auto", "dense", "sparse"])
     p.add_argument("--reuse", type=float, default=0.1, help="Config.reuse of the modified-Newton solve")
+    p.add_argument("--keep", type=float, default=0.5, help="track(reuse=...) of the kept-factorisation control loop")
+    p.add_argument("--integration", nargs="*", default=["gauss"], choices=["gauss", "scni", "mscni"])
+    p.add_argument("--loop-steps", type=int, default=10, help="control loop iterations timed")
     p.add_argument("--case", type=int, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.case:
-        print(json.dumps(run_case(a.case, a.repeats, a.solver, a.reuse)))
+        print(json.dumps(run_case(a.case, a.repeats, a.solver, a.reuse, a.integration[0], a.loop_steps, a.keep)))
         return
     out = {"load_average_before": os.getloadavg()}
     for n in a.n:
-        r = subprocess.run([sys.executable, "-m", "experiments.bench_cube3d", "--case", str(n),
-                            "--repeats", str(a.repeats), "--solver", a.solver,
-                            "--reuse", str(a.reuse)], capture_output=True, text=True)
-        out[f"cube_{n}"] = json.loads(r.stdout.strip().splitlines()[-1]) if r.returncode == 0 else \
-            {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}
-        print(n, json.dumps(out[f"cube_{n}"]), file=sys.stderr)
+        for integration in a.integration:
+            r = subprocess.run([sys.executable, "-m", "experiments.bench_cube3d", "--case", str(n),
+                                "--repeats", str(a.repeats), "--solver", a.solver, "--reuse", str(a.reuse),
+                                "--integration", integration, "--loop-steps", str(a.loop_steps),
+                                "--keep", str(a.keep)],
+                               capture_output=True, text=True)
+            key = f"cube_{n}" + ("" if integration == "gauss" else f"_{integration}")
+            out[key] = json.loads(r.stdout.strip().splitlines()[-1]) if r.returncode == 0 else \
+                {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}
+            out[key]["load_average"] = os.getloadavg()
+            print(key, json.dumps(out[key]), file=sys.stderr)
     out["load_average_after"] = os.getloadavg()
     print(json.dumps(out, indent=2))
 

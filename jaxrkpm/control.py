@@ -11,6 +11,10 @@ state (the linear solver's explicit state, dense or sparse alike), shared by the
 (m solves), the Newton predictor of the next solve and its chord corrections
 (``jaxrkpm.solve.newton(chord=True)``); the adaptive ``solve_path`` runs only if those fail
 (a tangent that is not positive definite, no residual decrease, det F <= 0).
+With ``track(reuse=...)`` the factorisation is kept across iterations instead (quasi-Newton
+chord corrections, ``linear.QuasiNewton``) and made again only where a correction cuts the
+residual by less than ``reuse``: same residual tolerance, and the Jacobian then comes from the
+kept factorisation (of a nearby earlier state: an approximation the tracking gain absorbs).
 """
 from __future__ import annotations
 
@@ -22,11 +26,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .linear import DenseSolver, QuasiNewton
 from .model import Model
 from .outcome import Outcome
 from .polygons import distance_to_segment
 from .problem import Problem
-from .solve import Limits, Solution, Status, reached_equilibrium, solve_path
+from .solve import Limits, Solution, Status, reached_equilibrium, solve_path, when
 from .thesis import PATHS, TABLE_5_1  # noqa: F401  (re-exported: the thesis' paths)
 
 
@@ -56,6 +61,11 @@ def control_increment(J, e, gain, clamp, damping=0.0):
     return jnp.where(biggest > clamp, step * (clamp / biggest), step)
 
 
+QN_MEMORY = 8   # secant pairs a kept factorisation carries (``ControlledModel.of`` with reuse)
+KEPT_CORRECTIONS = 30   # chord corrections allowed with a kept factorisation (each must still
+#                         cut |r| by Config.reuse: 0.5**30 ~ 1e-9 of the predictor's residual)
+
+
 class ControlledModel(NamedTuple):
     """One model inside the tracking loop (a pytree): its problem, the rigid directions of
     the driven set and the control points' shape functions."""
@@ -66,10 +76,26 @@ class ControlledModel(NamedTuple):
     psi: jax.Array   # (C, K)
 
     @staticmethod
-    def of(model: Model, driven: str, control_points, params=None) -> "ControlledModel":
+    def of(model: Model, driven: str, control_points, params=None, reuse: float = 0.0) -> "ControlledModel":
+        """``reuse`` in (0, 1): keep factorisations across control steps (``keeps``); the
+        chord corrections must then cut |r| by at least this factor each (Config.reuse).
+        A dense model then solves with ``QuasiNewton(DenseSolver(inverse=True))``: L^-1 is
+        kept (solves are matrix-vector products, and a kept factorisation serves many) and
+        the corrections' secant pairs improve it (L-BFGS), across control steps too."""
         sf = model.shape_functions(np.atleast_2d(np.asarray(control_points, float)), gradients=False)
-        return ControlledModel(model.problem(params), model.directions(driven),
-                               jnp.asarray(sf.idx), jnp.asarray(sf.psi))
+        problem = model.problem(params)
+        if reuse:
+            problem = problem.with_config(reuse=reuse)
+            if isinstance(model.linear, DenseSolver):
+                problem = problem.with_config(linear=QuasiNewton(DenseSolver(inverse=True), QN_MEMORY))
+        return ControlledModel(problem, model.directions(driven), jnp.asarray(sf.idx), jnp.asarray(sf.psi))
+
+    @property
+    def keeps(self) -> bool:
+        """Whether a factorisation is kept across control steps (static: Config.reuse > 0)
+        and refactorised only where the chord corrections contract too slowly; else every
+        control step factorises K_ff at its converged state."""
+        return self.problem.config.reuse > 0
 
     def measure(self, sol: Solution):
         """Control point displacements, flattened (C*d,)."""
@@ -80,14 +106,38 @@ class ControlledModel(NamedTuple):
         J = self.problem.jacobian(sol, self.G, self.idx, self.psi, state)
         return J.reshape(-1, self.G.shape[0])
 
-    def settle(self, sol: Solution, state, g1, lim: Limits, max_corr: int) -> Solution:
-        """Equilibrium at the prescribed values g1 from the converged ``sol``: the Newton
-        predictor and up to ``max_corr`` chord corrections with the factorisation ``state``
-        of ``sol`` (no assembly), else (a tangent that is not positive definite, no residual
-        decrease, det F <= 0) the full adaptive Newton path."""
+    def settle(self, sol: Solution, state, g1, lim: Limits, max_corr: int):
+        """Equilibrium at the prescribed values g1 from the converged ``sol``: returns
+        (Solution, the factorisation to keep).
+
+        The Newton predictor and up to ``max_corr`` (with ``keeps``: KEPT_CORRECTIONS) chord corrections with the factorisation
+        ``state`` (no assembly), to the solver's residual tolerance. Where they fail (a
+        tangent that is not positive definite, no residual decrease, det F <= 0, or with
+        ``keeps`` a correction that cuts |r| by less than Config.reuse): with ``keeps``, a
+        fresh factorisation at the chord's last iterate and chord corrections from there
+        (that factorisation is the one kept); then, if still not converged, the full
+        adaptive Newton path (and, with ``keeps``, a factorisation at its end).
+
+        With ``keeps`` the ``state`` may factorise an earlier state than ``sol``: the
+        stability reported is that of the factorisation used (of a nearby, earlier state),
+        and a loss of stability shows as a chord that stops contracting (a refactorisation,
+        whose stability is then checked)."""
         prob = self.problem
-        u, st, its, rn, _ = prob.newton(sol.u, sol.g, g1, sol.load, sol.load, max_iter=max_corr + 1,
-                                        state=state, chord=True)
+        # a kept factorisation is given up by its contraction (Config.reuse), not a count
+        cap = max(max_corr, KEPT_CORRECTIONS) if self.keeps else max_corr
+
+        def chord(u, g0, st):
+            return prob.newton(u, g0, g1, sol.load, sol.load, max_iter=cap + 1, state=st, chord=True)
+
+        u, st, its, rn, learned = chord(sol.u, sol.g, state)
+        if self.keeps:
+            state = learned   # with a quasi-Newton solver: the secant pairs of the corrections
+
+            def refactorised():
+                v, st2, its2, rn2, fresh = chord(u, g1, prob.factorise(u, g1))
+                return v, st2, its + its2, rn2, fresh
+
+            u, st, its, rn, state = when(st != Status.CONVERGED, refactorised, (u, st, its, rn, state))
         quick = Solution(u, g1, sol.load, jnp.zeros_like(sol.status), jnp.ones_like(sol.t),
                          its.astype(sol.iterations.dtype), jnp.ones_like(sol.steps),
                          jnp.zeros_like(sol.cuts), rn.astype(sol.residual_norm.dtype),
@@ -95,9 +145,10 @@ class ControlledModel(NamedTuple):
 
         def full():
             new = solve_path(prob.ops, prob.params, prob.config, lim, sol.u, sol.g, g1, sol.load, sol.load)
-            return jax.tree.map(lambda a, b: a.astype(b.dtype), new, sol)   # the carry's dtypes
+            new = jax.tree.map(lambda a, b: a.astype(b.dtype), new, sol)   # the carry's dtypes
+            return new, (prob.factorise(new.u, new.g) if self.keeps else state)
 
-        return jax.lax.cond(st == Status.CONVERGED, lambda: quick, full)
+        return when(st != Status.CONVERGED, full, (quick, state))
 
 
 @dataclass(frozen=True)
@@ -177,6 +228,8 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
         reached: jax.Array
         achieved: jax.Array
         status: jax.Array
+        c_state: object   # the kept factorisations (``ControlledModel.keeps``; else unused)
+        p_state: object
 
     class Step(NamedTuple):   # what one iteration changes (the history is written outside the cond)
         mp: jax.Array
@@ -185,29 +238,41 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
         cp: jax.Array
         newton: jax.Array
         solve_status: jax.Array
+        c_state: object
+        p_state: object
 
     def cond(s):
         return (s.status < 0) & (s.wp < n_wp)
 
+    def factorisation(side, sol, kept):
+        return kept if side.keeps else side.problem.factorise(sol.u, sol.g)
+
     def step(s, e):
-        state = ctrl.problem.factorise(s.c.u, s.c.g)
+        state = factorisation(ctrl, s.c, s.c_state)
         dmp = control_increment(ctrl.jacobian(s.c, state), e, gain, clamp, damping)
         mp = s.mp + dmp
-        c = ctrl.settle(s.c, state, g_of(ctrl, cg_base, mp), lim, max_corr)
+        c, c_state = ctrl.settle(s.c, state, g_of(ctrl, cg_base, mp), lim, max_corr)
         if same:
-            p = c
+            p, p_state = c, c_state
         else:
-            p = plant.settle(s.p, plant.problem.factorise(s.p.u, s.p.g), g_of(plant, pg_base, mp), lim, max_corr)
+            p, p_state = plant.settle(s.p, factorisation(plant, s.p, s.p_state), g_of(plant, pg_base, mp),
+                                      lim, max_corr)
         return Step(mp, c, p, plant.measure(p), c.iterations + (0 if same else p.iterations),
-                    jnp.maximum(c.status, p.status))
+                    jnp.maximum(c.status, p.status), c_state, p_state)
 
     def body(s):
         e = desired[s.wp] - s.cp
         hit = jnp.linalg.norm(e) < tol
-        keep = Step(s.mp, s.c, s.p, s.cp, jnp.array(0, s.c.iterations.dtype), jnp.array(0, s.c.status.dtype))
+        keep = Step(s.mp, s.c, s.p, s.cp, jnp.array(0, s.c.iterations.dtype), jnp.array(0, s.c.status.dtype),
+                    s.c_state, s.p_state)
         # the step is taken and discarded on the (few) iterations that hit a waypoint: cheaper
-        # than a lax.cond around it on every iteration
-        st = jax.tree.map(lambda a, b: jnp.where(hit, a, b), keep, step(s, e))
+        # than a lax.cond around it on every iteration. The factorisations it made are kept
+        # even then (and after a failed solve): each is of a nearby state, which is all a kept
+        # factorisation is (the residual test decides convergence), and a select would copy
+        # them (3 n^2 doubles) at every iteration
+        new = step(s, e)
+        st = jax.tree.map(lambda a, b: jnp.where(hit, a, b), keep._replace(c_state=None, p_state=None),
+                          new._replace(c_state=None, p_state=None))
         moved = ~hit
         ok = reached_equilibrium(st.c.status) & reached_equilibrium(st.p.status)
         k = s.k + moved
@@ -217,6 +282,7 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
         p = jax.tree.map(lambda a, b: jnp.where(ok, a, b), st.p, s.p)
         mp = jnp.where(ok, st.mp, s.mp)
         cp = jnp.where(ok, st.cp, s.cp)
+        c_state, p_state = new.c_state, new.p_state
         e_new = jnp.linalg.norm(desired[s.wp] - cp)
         improved = e_new < 0.99 * s.best
         best = jnp.where(improved, e_new, s.best)
@@ -238,10 +304,19 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
             k=k, wp=s.wp + hit, it_wp=jnp.where(hit, 0, s.it_wp + 1), best=jnp.where(hit, jnp.inf, best),
             since_best=jnp.where(hit, 0, since), mp=mp, c=c, p=p, cp=cp, hist=h,
             reached=s.reached.at[at_wp].set(s.k, mode="drop"),
-            achieved=s.achieved.at[at_wp].set(s.cp, mode="drop"), status=jnp.where(hit, s.status, status))
+            achieved=s.achieved.at[at_wp].set(s.cp, mode="drop"), status=jnp.where(hit, s.status, status),
+            c_state=c_state, p_state=p_state)
 
+    def first_state(side, sol):   # the factorisation kept from the start (a placeholder if none is)
+        if side.keeps:
+            return side.problem.factorise(sol.u, sol.g)
+        return side.problem.config.linear.empty(side.problem.ops, sol.u.dtype)
+
+    c_state0 = first_state(ctrl, c0)
+    p_state0 = c_state0 if same else first_state(plant, p0)
     s0 = S(jnp.array(0), jnp.array(0), jnp.array(0), jnp.array(jnp.inf), jnp.array(0), jnp.zeros(dim_mp),
-           c0, p0, cp0, hist, -jnp.ones(n_wp, jnp.int32), jnp.zeros((n_wp, n_cp)), jnp.array(-1))
+           c0, p0, cp0, hist, -jnp.ones(n_wp, jnp.int32), jnp.zeros((n_wp, n_cp)), jnp.array(-1),
+           c_state0, p_state0)
     s = jax.lax.while_loop(cond, body, s0)
     status = jnp.where(s.status < 0, TrackStatus.DONE, s.status)
     return s.k, status, s.hist, s.reached, s.achieved, s.c, s.p
@@ -251,12 +326,15 @@ def track(model: Model, path, driven: str, control_points, *, plant: Model | Non
           plant_driven: str | None = None, gain: float = 0.05, clamp: float = 0.01,
           tol: float = 1e-4, damping: float = 0.0, max_iter: int = 2000, max_steps: int = 20000,
           window: int = 300, initial: Solution | None = None, plant_initial: Solution | None = None,
-          params=None, plant_params=None) -> TrackResult:
+          params=None, plant_params=None, reuse: float = 0.0) -> TrackResult:
     """Track a path of control point displacements (W, C*d) by moving the rigidly driven set
     ``driven`` (Algorithm 3). ``plant``: a second model that is actually moved and measured
     (its driven set ``plant_driven``, default the same name); the controller's Jacobian
     drives it. Stops with a status (never raises on an unreachable waypoint) and keeps the
-    whole history."""
+    whole history. ``reuse`` in (0, 1): keep factorisations across iterations, refactorised
+    only where a chord correction cuts the residual by less than this factor (see
+    ``ControlledModel.of``; same residual tolerance; the Jacobian then comes from the kept
+    factorisation, of a nearby earlier state); 0: one factorisation per iteration."""
     path = np.atleast_2d(np.asarray(path, float))
     cps = np.atleast_2d(np.asarray(control_points, float))
     if path.ndim != 2 or path.shape[1] != cps.size or len(path) == 0:
@@ -271,10 +349,12 @@ def track(model: Model, path, driven: str, control_points, *, plant: Model | Non
     for name, v in (("max_iter", max_iter), ("max_steps", max_steps), ("window", window)):
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 1:
             raise ValueError(f"{name} must be an int >= 1, got {v!r}")
-    ctrl = ControlledModel.of(model, driven, cps, params)
+    if not (isinstance(reuse, (int, float)) and 0 <= reuse < 1):
+        raise ValueError(f"reuse must be a number in [0, 1) (0: factorise at every iteration), got {reuse!r}")
+    ctrl = ControlledModel.of(model, driven, cps, params, reuse)
     same = plant is None
     plant_model = model if same else plant
-    pside = ctrl if same else ControlledModel.of(plant_model, plant_driven or driven, cps, plant_params)
+    pside = ctrl if same else ControlledModel.of(plant_model, plant_driven or driven, cps, plant_params, reuse)
     if pside.G.shape[0] != ctrl.G.shape[0]:
         raise ValueError("controller and plant must drive the same number of coordinates")
     c0 = model.initial() if initial is None else initial
