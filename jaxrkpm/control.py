@@ -14,7 +14,9 @@ state (the linear solver's explicit state, dense or sparse alike), shared by the
 With ``track(reuse=...)`` the factorisation is kept across iterations instead (quasi-Newton
 chord corrections, ``linear.QuasiNewton``) and made again only where a correction cuts the
 residual by less than ``reuse``: same residual tolerance, and the Jacobian then comes from the
-kept factorisation (of a nearby earlier state: an approximation the tracking gain absorbs).
+kept factorisation (of a nearby earlier state) by iterative refinement with exact
+Hessian-vector products (``jaxrkpm.solve.sensitivity(refine=True)``): the implicit Jacobian of
+the current state to 1e-10, not an approximation of it.
 """
 from __future__ import annotations
 
@@ -102,8 +104,9 @@ class ControlledModel(NamedTuple):
         return self.problem.point_values(self.idx, self.psi, sol.u, sol.g).ravel()
 
     def jacobian(self, sol: Solution, state):
-        """J = d CP / d MP (C*d, d_mp) at ``sol`` from its factorisation ``state``."""
-        J = self.problem.jacobian(sol, self.G, self.idx, self.psi, state)
+        """J = d CP / d MP (C*d, d_mp) at ``sol`` from its factorisation ``state`` (with
+        ``keeps``, of an earlier state: refined with exact products to the Jacobian at ``sol``)."""
+        J = self.problem.jacobian(sol, self.G, self.idx, self.psi, state, refine=self.keeps)
         return J.reshape(-1, self.G.shape[0])
 
     def settle(self, sol: Solution, state, g1, lim: Limits, max_corr: int):

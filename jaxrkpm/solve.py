@@ -818,10 +818,18 @@ def _zero_tangent(x):
     return jnp.zeros_like(x)
 
 
-def sensitivity(ops, params, cfg: Config, u, g, load, rhs, state=None):
+REFINE_RTOL = 1e-10   # iterative refinement on a kept factorisation: |rhs - K x| <= this x |rhs|
+REFINE_MAX = 20       # ... within this many corrections (each m Hessian-vector products)
+
+
+def sensitivity(ops, params, cfg: Config, u, g, load, rhs, state=None, refine: bool = False):
     """x = K_ff^-1 rhs at the equilibrium (u, g, load), rhs (Nf, d) or (Nf, d, m): the one
     linearised solve behind every implicit derivative (solve's JVP, ``response``, Jacobians).
     ``state``: a factorisation of K_ff there to reuse (default: factorise now).
+    ``refine``: ``state`` factorises a nearby, earlier tangent (a factorisation kept across
+    control steps): iterative refinement with the exact product, x += solve(rhs - K x), until
+    |rhs - K x| <= REFINE_RTOL |rhs| (at most REFINE_MAX corrections; each contracts the error
+    by the kept factorisation's chord factor), so the result is K_ff^-1 rhs of this state.
 
     A custom linear solve: the matrix-vector product is the exact Hessian-vector product of
     the energy, the solve uses the factorisation, and symmetry makes it transposable (so
@@ -834,8 +842,22 @@ def sensitivity(ops, params, cfg: Config, u, g, load, rhs, state=None):
 
     # several right-hand sides (Nf, d, m) are one block: the product column by column
     matvec = hvp if rhs.ndim == u.ndim else jax.vmap(hvp, in_axes=-1, out_axes=-1)
-    return jax.lax.custom_linear_solve(matvec, rhs, solve=lambda _, b: cfg.linear.solve(state, b),
-                                       symmetric=True)
+
+    def solve(mv, b):
+        x = cfg.linear.solve(state, b)
+        if not refine:
+            return x
+        goal = REFINE_RTOL * jnp.linalg.norm(b)
+
+        def body(c):
+            k, x, r = c
+            x = x + cfg.linear.solve(state, r)
+            return k + 1, x, b - mv(x)
+
+        return jax.lax.while_loop(lambda c: (c[0] < REFINE_MAX) & (jnp.linalg.norm(c[2]) > goal), body,
+                                  (0, x, b - mv(x)))[1]
+
+    return jax.lax.custom_linear_solve(matvec, rhs, solve=solve, symmetric=True)
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(2,))
@@ -865,12 +887,13 @@ def _solve_path_jvp(cfg, primals, tangents):
 solve_path_jit = jax.jit(solve_path_diff, static_argnames=("cfg",))
 
 
-def response(ops, params, cfg: Config, u, g, load, dG, state=None):
+def response(ops, params, cfg: Config, u, g, load, dG, state=None, refine: bool = False):
     """Implicit sensitivity of the free coefficients to m prescribed directions dG (m, Nb, d):
-    K_ff du = -K_fg dG with one factorisation (``state``, or a new one). Returns (m, Nf, d)."""
+    K_ff du = -K_fg dG with one factorisation (``state``, or a new one; ``refine``: see
+    ``sensitivity``). Returns (m, Nf, d)."""
     dr = jax.vmap(lambda dg: jax.jvp(lambda x: residual(ops, params, cfg.W, u, x, load),
                                      (g,), (dg,))[1])(dG)                      # (m, Nf, d)
-    du = -sensitivity(ops, params, cfg, u, g, load, jnp.moveaxis(dr, 0, -1), state)   # (Nf, d, m)
+    du = -sensitivity(ops, params, cfg, u, g, load, jnp.moveaxis(dr, 0, -1), state, refine)   # (Nf, d, m)
     return jnp.moveaxis(du, -1, 0)
 
 
