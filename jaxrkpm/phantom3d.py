@@ -345,8 +345,12 @@ class Phantom3D(NeedleTrack):
 
     @property
     def paddle_bounds(self):
-        """(lower (2,), upper (2,)) of the continuous paddle coordinates (theta, phi)."""
-        return np.array([self.theta[0], self.phi[0]]), np.array([self.theta[1], self.phi[1]])
+        """(lower (2,), upper (2,)) of the continuous paddle coordinates (theta, phi): the
+        azimuths of the patch grid, and polar angles up to the grid's largest on either side
+        of the pole (``ellipsoid_point(-t, phi) = ellipsoid_point(t, phi + pi)``, so the
+        paddle slides smoothly over the dome's top, where the best patches lie, instead of
+        stopping at the grid's first ring)."""
+        return np.array([-self.theta[1], self.phi[0]]), np.array([self.theta[1], self.phi[1]])
 
     def paddle_frame(self, q):
         """(centre (3,), frame (3, 3)) of the paddle at q = (theta, phi): its centre on the
