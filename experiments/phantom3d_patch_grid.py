@@ -23,8 +23,9 @@ paddle) to about zero; its residual (+-1e-3 at spacing 0.3, +-3e-4 at 0.2, of 6.
 The continuous paddle (``optimize_paddle`` on ``Phantom3D.with_footprint(best)``, Adam, learning
 rate 0.05, 2 increments) starts on the best patch's own particles, reproducing it to 1e-5
 relative (penalty springs 1e6), and slides off it: spacing 0.3, default grid: 1.12e-3 ->
-4.05e-4 in 4 iterations (2.8x below the best patch, over the pole at theta 0.011); the grid
-0.5pi..1.5pi: 4.87e-4 -> 2.40e-4 (2.0x). Confined to the grid's own theta range (before the
+4.05e-4 in 4 iterations (2.8x below the best patch, over the pole at theta 0.011); spacing
+0.2: 3.54e-4 -> 1.29e-4 in 4 (2.7x; 57x below no paddle); the grid 0.5pi..1.5pi at 0.3:
+4.87e-4 -> 2.40e-4 (2.0x). Confined to the grid's own theta range (before the
 bounds crossed the pole) it stopped at once on the bounds' corner (the best patch's centre).
 
 Earlier (2026-11-24; the old grid, 25 patches 5 x 5): spacing 0.3 (10 per patch) 3.60x, 0.2
