@@ -11,14 +11,14 @@ the grid over the target's side of the dome top is the default (thesis.PHANTOM_3
   grid (theta lo..hi x count, phi lo..hi x count)    spacing 0.3     0.2          0.15
   0.15..0.9 x 4, -0.8pi..0.8pi x 5 (the old default)   6.2x (12)      7.2x (27)    33x (42, top)
   0.1..0.45 x 4,  0.5pi..1.5pi x 5                    13.3x (15)*    110x (32)        -
-  0.1..0.45 x 4,  0.4pi..1.6pi x 5 (the default)       5.75x (17)    20.8x (30)   {S015}
+  0.1..0.45 x 4,  0.4pi..1.6pi x 5 (the default)       5.75x (17)    20.8x (30)   116x (47)
   (* only 18 distinct patches at 0.3: the centres at theta 0.1 crowd together)
 
 Only patches on the dome's top help (the best always in the row theta = 0.1 of the target
 grid; flank patches 0.8-2x). The held top turns the target's vertical motion from up (no
 paddle) to about zero; its residual (+-1e-3 at spacing 0.3, +-3e-4 at 0.2, of 6.4e-3 and
 7.4e-3 without a paddle) changes with the patch's particle count, so >= 10x holds at spacing
-0.2 and finer for both target grids but not at 0.3 (17 particles per patch).
+0.2 and 0.15 but not at 0.3 (17 particles per patch).
 
 The continuous paddle (``optimize_paddle`` on ``Phantom3D.with_footprint(best)``, Adam, learning
 rate 0.05, 2 increments) starts on the best patch's own particles, reproducing it to 1e-5
