@@ -5,18 +5,32 @@ target's two lateral displacement components per patch (x 1e4), e.g.
     PYTHONPATH=. python experiments/phantom3d_patch_grid.py 0.25 0.2 0.15 [--increments 2]
         [--set key=value ...]   (Phantom3D fields as JSON, e.g. --set patch_radius=0.4)
 
-Measured 2026-11-24 (default set-up, see phantom3d_convergence.py; grid theta 0.15..1.05 x 5,
-phi -0.8 pi..0.8 pi x 5 = 25 patches, 2 increments; shared machine):
-  spacing 0.3 (231 particles, 10 per patch): best = top patch, 3.60x; median 0.89x (416 s)
-  spacing 0.2 (390 particles, 24 per patch): best = top patch, 17.5x; median 0.97x (906 s, 8 GB)
-  the default 4 x 5 grid at 0.3 (12 per patch): best 6.2x (tests/test_needle3d.py)
-Only patches on the top of the dome help (row theta = 0.15: 2-18x); flank patches give
-0.65-1.05x (they make the deviation larger). The top patch turns the vertical motion from up
-(no paddle) to about zero, its residual's sign changing with mesh and patch size
-(phantom3d_convergence.py --paddle), so >= 10x at the best patch holds at some meshes and
-patch sizes (18x, 33x, 16x) but not others (3.6x, 6.6x): not a mesh-robust result.
-A needle at z = 0.4 (spacing 0.3, 24 patches): 28x at one grid point whose neighbours give
-0.7x and 6.4x, a cancellation again.
+Issue 17 (shared 2-core machine, 2 increments): best patch reduction (particles per patch);
+the grid over the target's side of the dome top is the default (thesis.PHANTOM_3D):
+
+  grid (theta lo..hi x count, phi lo..hi x count)    spacing 0.3     0.2          0.15
+  0.15..0.9 x 4, -0.8pi..0.8pi x 5 (the old default)   6.2x (12)      7.2x (27)    33x (42, top)
+  0.1..0.45 x 4,  0.5pi..1.5pi x 5                    13.3x (15)*    110x (32)        -
+  0.1..0.45 x 4,  0.4pi..1.6pi x 5 (the default)       5.75x (17)    20.8x (30)   116x (47)
+  (* only 18 distinct patches at 0.3: the centres at theta 0.1 crowd together)
+
+Only patches on the dome's top help (the best always in the row theta = 0.1 of the target
+grid; flank patches 0.8-2x). The held top turns the target's vertical motion from up (no
+paddle) to about zero; its residual (+-1e-3 at spacing 0.3, +-3e-4 at 0.2, of 6.4e-3 and
+7.4e-3 without a paddle) changes with the patch's particle count, so >= 10x holds at spacing
+0.2 and 0.15 but not at 0.3 (17 particles per patch).
+
+The continuous paddle (``optimize_paddle`` on ``Phantom3D.with_footprint(best)``, Adam, learning
+rate 0.05, 2 increments) starts on the best patch's own particles, reproducing it to 1e-5
+relative (penalty springs 1e6), and slides off it: spacing 0.3, default grid: 1.12e-3 ->
+4.05e-4 in 4 iterations (2.8x below the best patch, over the pole at theta 0.011); spacing
+0.2: 3.54e-4 -> 1.29e-4 in 4 (2.7x; 57x below no paddle); the grid 0.5pi..1.5pi at 0.3:
+4.87e-4 -> 2.40e-4 (2.0x). Confined to the grid's own theta range (before the
+bounds crossed the pole) it stopped at once on the bounds' corner (the best patch's centre).
+
+Earlier (2026-11-24; the old grid, 25 patches 5 x 5): spacing 0.3 (10 per patch) 3.60x, 0.2
+(24) 17.5x; the top patch at spacings 0.3/0.2/0.15/0.12: 3.4x/6.6x/33x/11x; a needle at
+z = 0.4 (spacing 0.3, 24 patches): 28x at one grid point whose neighbours give 0.7x and 6.4x.
 """
 import sys
 import time

@@ -608,6 +608,11 @@ class PaddleOptimum:
     message: str
     solve_status: Status = Status.CONVERGED   # of the start position's insertion
 
+    @property
+    def start_deviation(self) -> float:
+        """The final lateral deviation at the start position (the first iterate)."""
+        return float(self.history[0, (self.history.shape[1] - 1) // 2]) if len(self.history) else np.nan
+
 
 def spring_insertion(model: Model, phantom: Phantom, q, depths):
     """Insert the needle through ``depths`` with the spring paddle at position q, each

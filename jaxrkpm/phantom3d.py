@@ -16,12 +16,14 @@ sits on it); its lateral deviation (its displacement across the needle) is what 
 must prevent.
 
 Paddle positions: contact patches = the ``patch_size`` skin particles nearest to centres on
-an angle grid (theta, phi) of the accessible skin (the upper dome away from the needle entry
-and the base): the same size for all, so the patch models stack into one batch and the
-static sweep of ``jaxrkpm.needle`` runs every patch x every increment in one compiled call.
-The continuous paddle of the optimiser is a small patch of stiff zero-length springs at
-surface points parametrised by the same two angles (``paddle_points``), movable through
-``Model.springs_at``; ``jaxrkpm.needle.optimize_paddle`` moves it by Adam through the solve.
+an angle grid (theta, phi) of the accessible skin over the target (the dome's top on the
+needle's side, clear of the needle entry): the same size for all, so the patch models stack
+into one batch and the static sweep of ``jaxrkpm.needle`` runs every patch x every increment
+in one compiled call. The continuous paddle of the optimiser is one discrete patch's contact
+points (``paddle_footprint``, ``with_footprint``) as stiff zero-length springs, carried
+rigidly over the skin by the same two angles (``paddle_points``), movable through
+``Model.springs_at``: at that patch's centre it is the held patch again, so
+``jaxrkpm.needle.optimize_paddle`` (Adam through the solve) compares like with like.
 
 Everything the generic needle functions need comes from :class:`jaxrkpm.needle.NeedleTrack`
 (needle direction, lateral basis y-z); ``insert``, ``static_sweep``, ``dynamic_paddle``,
@@ -29,7 +31,7 @@ Everything the generic needle functions need comes from :class:`jaxrkpm.needle.N
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import jax.numpy as jnp
 import numpy as np
@@ -75,6 +77,8 @@ class Phantom3D(NeedleTrack):
     track_spacing  mesh size along those lines (default ``spacing``); a particle sits on
                    the target
     patch_radius   a paddle patch: the skin near its centre (see ``patch_size``)
+    paddle_footprint  the patch (1-based) whose contact points form the continuous paddle
+                   (``paddle_points``): start the optimiser there (``with_footprint``)
     material_law   "neohookean" (default) or "fung" (chapter 6's law with the 3D Table 5.2
                    pattern); see ``material``
     mu, lam        neo-Hookean constants; alpha, beta the Fung ones
@@ -95,6 +99,7 @@ class Phantom3D(NeedleTrack):
     theta: tuple = PHANTOM_3D["theta"]
     phi: tuple = PHANTOM_3D["phi"]
     patch_radius: float = PHANTOM_3D["patch_radius"]
+    paddle_footprint: int = 1
     stiffness_ratio: float = 100.0
     material_law: str = "neohookean"
     mu: float = 1.0
@@ -129,6 +134,11 @@ class Phantom3D(NeedleTrack):
             raise ValueError(f"needle_radius must be a positive length, got {self.needle_radius}")
         if not (np.isfinite(self.patch_radius) and self.patch_radius > 0):
             raise ValueError(f"patch_radius must be a positive length, got {self.patch_radius}")
+        n = len(self.patch_coordinates)
+        if isinstance(self.paddle_footprint, bool) or not isinstance(self.paddle_footprint, (int, np.integer)) \
+                or not 1 <= self.paddle_footprint <= n:
+            raise ValueError(f"paddle_footprint must be a 1-based patch index in 1..{n} (the patch whose "
+                             f"particles form the continuous paddle), got {self.paddle_footprint!r}")
 
     # ----------------------------------------------------------- the needle and target
     def _crossing(self):
@@ -328,17 +338,24 @@ class Phantom3D(NeedleTrack):
         return self._cache[key]
 
     # ------------------------------------------------- continuous paddle (the optimiser's)
+    def with_footprint(self, patch: int) -> "Phantom3D":
+        """This phantom with the continuous paddle made of patch ``patch``'s contact points
+        (``paddle_footprint``), sharing the mesh and the models built so far."""
+        return replace(self, paddle_footprint=patch, _cache=self._cache)
+
     @property
     def paddle_bounds(self):
-        """(lower (2,), upper (2,)) of the continuous paddle coordinates (theta, phi)."""
-        return np.array([self.theta[0], self.phi[0]]), np.array([self.theta[1], self.phi[1]])
+        """(lower (2,), upper (2,)) of the continuous paddle coordinates (theta, phi): the
+        azimuths of the patch grid, and polar angles up to the grid's largest on either side
+        of the pole (``ellipsoid_point(-t, phi) = ellipsoid_point(t, phi + pi)``, so the
+        paddle slides smoothly over the dome's top, where the best patches lie, instead of
+        stopping at the grid's first ring)."""
+        return np.array([-self.theta[1], self.phi[0]]), np.array([self.theta[1], self.phi[1]])
 
-    def paddle_points(self, q):
-        """(7, 3) the spring points of the continuous paddle at q = (theta, phi): the centre
-        on the skin and six around it at 0.6 patch_radius (in the tangent plane, projected
-        back onto the skin), all set 0.15 spacing below the skin so they lie inside the
-        faceted mesh (whose flat triangles cut inside the curved surface by up to h^2/8R).
-        JAX: differentiable in q."""
+    def paddle_frame(self, q):
+        """(centre (3,), frame (3, 3)) of the paddle at q = (theta, phi): its centre on the
+        skin and the rows t_theta, t_phi (unit tangents) and n (the unit outward normal)
+        there. JAX: differentiable in q."""
         q = jnp.asarray(q, jnp.float64)
         semi = jnp.asarray(self.semi_axes, jnp.float64)
         theta, phi = q[0], q[1]
@@ -346,20 +363,36 @@ class Phantom3D(NeedleTrack):
         t1 = semi * jnp.stack([jnp.cos(theta) * jnp.cos(phi), jnp.cos(theta) * jnp.sin(phi), -jnp.sin(theta)])
         t1 = t1 / jnp.linalg.norm(t1)
         n = c / semi**2
+        n = n / jnp.linalg.norm(n)
         t2 = jnp.cross(n, t1)
-        t2 = t2 / jnp.linalg.norm(t2)
-        alpha = jnp.arange(6) * (jnp.pi / 3)
-        ring = c + 0.6 * self.patch_radius * (jnp.cos(alpha)[:, None] * t1 + jnp.sin(alpha)[:, None] * t2)
-        pts = jnp.concatenate([c[None], ring])
-        level = jnp.sqrt(jnp.sum((pts / semi) ** 2, axis=1, keepdims=True))
-        inset = 1.0 - 0.15 * self.spacing / min(self.semi_axes)
-        return inset * pts / level
+        return c, jnp.stack([t1, t2 / jnp.linalg.norm(t2), n])
+
+    @property
+    def footprint(self) -> np.ndarray:
+        """(k, 3) the continuous paddle's contact points in its own frame (``paddle_frame``):
+        the particles of discrete patch ``paddle_footprint`` relative to that patch's centre."""
+        key = ("footprint", self.paddle_footprint)
+        if key not in self._cache:
+            p = self.paddle_footprint
+            c, frame = self.paddle_frame(self.patch_coordinates[p - 1])
+            self._cache[key] = (self.body.X[self.patch(p)] - np.asarray(c)) @ np.asarray(frame).T
+        return self._cache[key]
+
+    def paddle_points(self, q):
+        """(k, 3) the spring points of the continuous paddle at q = (theta, phi): the contact
+        points of discrete patch ``paddle_footprint`` carried rigidly with the paddle's frame
+        (``paddle_frame``) over the skin. At that patch's centre they are its particles, so
+        the spring paddle there is the held patch (to the penalty error O(1/stiffness)): the
+        optimiser moves the same contact patch as the discrete sweep holds. JAX:
+        differentiable in q."""
+        c, frame = self.paddle_frame(q)
+        return c + jnp.asarray(self.footprint) @ frame
 
     def spring_model(self, inclusion: str = "none", stiffness: float = 1e6) -> Model:
         """Base and needle as essential sets; the paddle as stiff zero-length springs at
         ``paddle_points`` (movable through ``model.springs_at``), their region the particles
         whose windows cover the paddle anywhere within ``paddle_bounds``."""
-        key = ("spring_model", inclusion, float(stiffness))
+        key = ("spring_model", inclusion, float(stiffness), self.paddle_footprint)
         if key not in self._cache:
             lo, hi = self.paddle_bounds
             grid = np.stack(np.meshgrid(np.linspace(lo[0], hi[0], 9), np.linspace(lo[1], hi[1], 17),
@@ -368,7 +401,9 @@ class Phantom3D(NeedleTrack):
             a = self.support * self.spacing
             nb = self.body.neighbours(pts, a)
             region = np.unique(nb.idx[nb.mask])
-            q0 = 0.5 * (lo + hi)
+            # placed first on the footprint patch's own particles (in the body; elsewhere the
+            # rigid footprint may stand just off the faceted skin, where the RK fit still holds)
+            q0 = self.patch_coordinates[self.paddle_footprint - 1]
             springs = Springs(np.asarray(self.paddle_points(q0)), stiffness, region)
             self._cache[key] = Model(self.body, self.material(inclusion), self.integration,
                                      essential=self.sets(None), support=self.support, order=self.order,

@@ -60,16 +60,15 @@ def test_static_sweep_reduces_deviation(sweep):
     """No paddle: the target leaves the needle line only vertically (the needle lies in the
     plane of the mirror-symmetric mesh, so the sideways part is zero to round-off; the fixed
     base pushes the target up, as the immobile edge does in 2D). The best of the 20 patches
-    cuts the final lateral deviation >= 4x at this coarse test mesh (6.2x measured). Not the
-    issue's 10x: a held patch over the dome's top drives the vertical motion through zero,
-    and the residual's size depends on the patch's particle count and the mesh (3.4x-33x at
-    spacings 0.3-0.12, experiments/phantom3d_patch_grid.py), so no grid is asserted >= 10x."""
+    over the target cuts the final lateral deviation >= 5x at this coarse test mesh (5.75x:
+    17 particles per patch); issue 17's >= 10x holds at spacing 0.2 and 0.15 (20.8x, 116x: README,
+    experiments/phantom3d_patch_grid.py). Placement matters: the median patch is far worse."""
     assert np.all(sweep.no_paddle_status == Status.CONVERGED) and np.all(sweep.converged_paddles)
     u = sweep.no_paddle_u[-1]
     assert abs(u[1]) < 1e-12 and u[2] > 1e-3, u
     assert np.all(np.diff(np.abs(sweep.no_paddle)) > 0)
     reduction = abs(sweep.no_paddle[-1]) / abs(sweep.final[sweep.best - 1])
-    assert reduction >= 4.0, reduction
+    assert reduction >= 5.0, reduction
     assert np.median(np.abs(sweep.final)) > 3 * abs(sweep.final[sweep.best - 1])   # placement matters
 
 
@@ -113,18 +112,24 @@ def test_dynamic_paddle_holds_target(phantom, sweep):
 
 
 def test_optimised_patch_through_the_solve(phantom, sweep):
-    """Adam on the two surface coordinates, through the solve, from the best discrete patch:
-    within the bounds, finite gradients, the best iterate returned, and the spring paddle
-    (7 stiff springs, not the held patch) cuts the no-paddle deviation >= 3x (4x here; at
-    the old, mesh-dependent needle it beat the best discrete patch, see the issue 17 note)."""
-    start = phantom.patch_coordinates[sweep.best - 1]
-    opt = nd.optimize_paddle(phantom, "none", start=start, increments=INCREMENTS, iterations=4,
+    """Adam on the two surface coordinates, through the solve, from the best discrete patch,
+    the continuous paddle being that patch's own contact points as stiff springs slid over
+    the skin (``with_footprint``): its first iterate is the held patch again (to the penalty
+    error), and the best iterate, returned, lies well below it (2.8x in 4 iterations here:
+    the paddle slides over the pole, beyond the grid's first ring)."""
+    best = sweep.best
+    start = phantom.patch_coordinates[best - 1]
+    sliding = phantom.with_footprint(best)
+    assert np.abs(np.asarray(sliding.paddle_points(start)) - phantom.body.X[phantom.patch(best)]).max() < 1e-12
+    opt = nd.optimize_paddle(sliding, "none", start=start, increments=INCREMENTS, iterations=4,
                              learning_rate=0.05)
     lo, hi = phantom.paddle_bounds
     assert opt.q.shape == (2,) and np.all(opt.q >= lo) and np.all(opt.q <= hi)
     assert opt.history.shape[1] == 5 and np.all(np.isfinite(opt.history))
     assert abs(opt.deviation) == np.min(np.abs(opt.history[:, 2]))
-    assert abs(sweep.no_paddle[-1]) / abs(opt.deviation) >= 3.0
+    discrete = sweep.final[best - 1]
+    assert abs(opt.start_deviation - discrete) < 1e-3 * abs(discrete), (opt.start_deviation, discrete)
+    assert abs(opt.deviation) < 0.75 * abs(discrete), (opt.deviation, discrete)
 
 
 def test_shape_servoing_on_loaded_mesh(tmp_path, phantom):
@@ -153,6 +158,8 @@ def test_bad_input():
         Phantom3D(insertion=0.6)
     with pytest.raises(ValueError, match="start"):
         nd.optimize_paddle(Phantom3D(), start=[0.5])
+    with pytest.raises(ValueError, match="paddle_footprint"):
+        Phantom3D(paddle_footprint=21)
 
 
 def test_cli_static(tmp_path, phantom, sweep):
@@ -163,7 +170,7 @@ def test_cli_static(tmp_path, phantom, sweep):
     s = cli.static_report(phantom, sweep, tmp_path)
     (tmp_path / "summary.json").write_text(json.dumps(s))
     saved = json.loads((tmp_path / "summary.json").read_text())
-    assert saved["patches"] == 20 and saved["converged"] and saved["best_reduction"] >= 3.0
+    assert saved["patches"] == 20 and saved["converged"] and saved["best_reduction"] >= 5.0
     assert len(saved["controllability"]) == 20 and 1 <= saved["most_controllable"] <= 20
     for name in ("patches_none.png", "deviation_none.png", "phantom_static_none.png"):
         assert (tmp_path / name).stat().st_size > 10_000
