@@ -72,6 +72,35 @@ def test_static_sweep_reduces_deviation(sweep):
     assert np.median(np.abs(sweep.final)) > 3 * abs(sweep.final[sweep.best - 1])   # placement matters
 
 
+FINE_SPACING = 0.2   # the mesh-converged phantom (no-paddle deviation within 4% of 0.15, 0.12, 0.1)
+COARSE_TIE = 1.5     # coarse-mesh deviations within this factor of the best are not told apart
+
+
+def test_best_patch_reduces_10x_on_the_converged_mesh(phantom, sweep):
+    """Issue 17's >= 10x, on the mesh where the no-paddle deviation has converged (spacing
+    0.2; the coarse test mesh gives 5.75x). Coarse search, fine check: the coarse mesh cannot
+    rank patches whose deviations lie within COARSE_TIE of its best (the five around the pole
+    lie within 1.1x there, and their fine-mesh order differs), so all of them are solved on
+    the fine mesh, in one batched call, the needle inserted in one increment (hyperelastic:
+    the same equilibrium as in several). The best of them cuts the deviation >= 10x (20.8x
+    measured); the fine sweep's best patch does at least as well, so its reduction is >= that."""
+    fine = Phantom3D(spacing=FINE_SPACING)
+    best = abs(sweep.final[sweep.best - 1])
+    candidates = [p + 1 for p in np.flatnonzero(np.abs(sweep.final) <= COARSE_TIE * best)]
+    depths = fine.depths(1)
+
+    def final_deviations(paddles):
+        out = nd.insert([fine.model("none", p) for p in paddles], depths, fine.target, jacobian_set=None,
+                        direction=fine.needle_direction)
+        assert np.all(np.asarray(out.status) == Status.CONVERGED)
+        return fine.deviation_of(np.asarray(out.target_u)[:, -1])
+
+    none = float(final_deviations([None])[0])
+    devs = final_deviations(candidates)
+    assert abs(none - 7.37e-3) < 0.05 * 7.37e-3, none        # the converged value (README)
+    assert none / devs.min() >= 10.0, dict(zip(candidates, devs))
+
+
 def test_batched_equals_unbatched(phantom, sweep):
     """The batched sweep equals warm-started model.solve per increment, Jacobians included."""
     p = sweep.best
