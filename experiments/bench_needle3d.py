@@ -23,12 +23,38 @@ shared, load ~6-8 on 2 cores, so indicative only):
                          increment (dense, 1,197 DOF); peak 1.7 GB
   2,089 particles (0.085): build 16.5 s (model 15.9); warm solve 23.3 s per increment
                          (sparse, 4,740 DOF); peak 4.4 GB
-  ~6,200 particles (0.055): the model build alone passes 8 GB (bench_needle3d_memory.py):
-                         Model's tangent pattern makes (G, K, K) int64 pair keys and ids (G =
-                         integration-point groups = tetrahedra at order 1, K ~ 133 neighbours):
-                         1.3 GB per copy at 2,089 particles (peak 3.8 GB in the build), ~4.2 GB
-                         per copy at 6,200 and ~5.5 GB at 8,000; ops.pair_id then holds it as
-                         int32 on the device. Not the dense path, not _BLOCK_BUDGET.
+  7,875 particles (0.05, case resolution:8000; 1 increment, 1 repeat; load 1.1-2.8, the
+                         warm run beside a test run of ours):
+    {"spacing": 0.05, "particles": 7875, "tetrahedra": 38840, "free_dof": 19539,
+     "integration_points": 38840, "neighbours": 143, "solver": "sparse", "mesh_s": 1.46,
+     "body_s": 0.35, "model_s": 80.1, "build_s": 81.7, "first_insertion_s": 247.6,
+     "warm_insertion_s_median": 263.9, "warm_solve_s_median": 263.9, "increments": 1,
+     "final_deviation": 0.0063, "status": "CONVERGED", "peak_rss_gb": 11.79}
+                         resident peak per stage (polled every 3 s): build 9.5 GB, first
+                         insertion 9.9 GB, warm insertion 11.7 GB.
+  What limits it (bench_needle3d_memory.py: the peak per stage, the arrays held there,
+  PARDISO's own report; 6,197 particles, spacing 0.055, one increment):
+    - the (G, K, K) int32 pair-id table of the tangent assembly: 2.28 GB at 6,197 particles
+      (G = 29,960 tetrahedra, K = 138), ~3.2 GB at 7,875. It is the floor of every stage;
+      it grows as N K^2 (a dense N x N pair map would be 0.15 GB at 6,197, not yet done).
+    - the build's peak is in the sparse pattern (sparse.SaddlePointSystem._pattern: int64
+      row, column, source and value arrays of the 28-38 M tangent entries, sorted and
+      filtered to the lower triangle): 7.4 GB at 6,197 and 10.0 GB at 7,875 particles over
+      4.7 GB held after the build; the arrays its frames name are ~2.5 GB of that, the rest
+      was not traced to a Python frame (whether a host copy of the pair-id table is still
+      alive there was not settled: a 1 GB int32 jnp.asarray aliased its host array in one
+      probe and copied it in another). Not reduced here.
+    - the solve: the pair-block sweep used to pad the pair-id table to whole chunks inside
+      jit (a full copy, +2.3 GB); it now slices it in place: one increment's peak 9.9 ->
+      7.7 GB at 6,197 particles (147 s, converged in both). XLA's temporaries of
+      the jitted solve: 0.78 GB at 2,089 particles (compiled memory_analysis).
+    - PARDISO fill: 95 M factor entries at 6,197 particles (15,153 free DOF), 0.87 GB
+      factorisation + 0.47 GB permanent; the pool keeps up to two factorisations (and an
+      evicted spare) across solves (jaxrkpm.sparse.FactorPool), the likely (not measured)
+      reason the warm insertion's peak is 1.8 GB above the first's at 7,875; left to the
+      factorisation-reuse work.
+    - time: the model build 80 s (not split further); one 3D increment ~4-4.5 min at 7,875
+      particles single-threaded (MKL/OpenBLAS/OMP threads 1), the first including compile.
   sweep (20 patches x 4 increments, 231 particles): did not finish in 600 s under that load.
 """
 from __future__ import annotations
@@ -47,7 +73,7 @@ import sys  # noqa: E402
 import time  # noqa: E402
 
 # mesh size -> target particle count (the mesher decides the exact count)
-RESOLUTIONS = {"230": 0.3, "500": 0.15, "2000": 0.085, "8000": 0.055}
+RESOLUTIONS = {"230": 0.3, "500": 0.15, "2000": 0.085, "6000": 0.055, "8000": 0.05}
 
 
 def timed(fn, *args, **kw):

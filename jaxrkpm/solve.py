@@ -329,7 +329,9 @@ def roundoff_floor(ops, params, W, d):
     return ROUNDOFF_FACTOR * eps * jnp.linalg.norm(jnp.zeros_like(d).at[ops.idx].add(contrib))
 
 
-_BLOCK_BUDGET = 2**25  # doubles of (chunk, K, K, d, d) tangent blocks held at once
+# doubles of (chunk, K, K, d, d) local tangent blocks held at once by pair_blocks (public: a
+# test sweeps a small table in several windows by lowering it)
+BLOCK_BUDGET = 2**25
 
 
 def pair_blocks(ops, params, W, d):
@@ -364,21 +366,22 @@ def pair_blocks(ops, params, W, d):
         return jax.ops.segment_sum(blocks.reshape(-1, dim, dim), pid.transpose(0, 2, 1).reshape(-1),
                                    num_segments=n_pairs)
 
-    chunk = max(1, _BLOCK_BUDGET // (K * K * dim * dim))
+    chunk = max(1, BLOCK_BUDGET // (K * K * dim * dim))
     if G <= chunk:
         return chunk_sum(ops.groups, ops.pair_id) + spring_blocks(ops, params, n_pairs, dim)
     n_chunks = -(-G // chunk)
-    pad = n_chunks * chunk - G
 
-    def split(x, fill):
-        x = jnp.concatenate([x, jnp.full((pad,) + x.shape[1:], fill, x.dtype)])
-        return x.reshape((n_chunks, chunk) + x.shape[1:])
+    def body(i, acc):
+        # a window of ``chunk`` groups sliced in place (padding the (G, K, K) pair-id table to
+        # whole chunks would copy it: GBs for a 3D body); the last window is shifted back to
+        # end at G, and its groups already summed point at the zero padding row Q instead
+        start = jnp.minimum(i * chunk, G - chunk)
+        grp = jax.lax.dynamic_slice_in_dim(ops.groups, start, chunk)
+        seen = (start + jnp.arange(chunk) < i * chunk)[:, None]
+        pid = jax.lax.dynamic_slice_in_dim(ops.pair_id, start, chunk)
+        return acc + chunk_sum(jnp.where(seen, Q, grp), pid)
 
-    def body(acc, xs):
-        return acc + chunk_sum(*xs), None
-
-    acc, _ = jax.lax.scan(body, jnp.zeros((n_pairs, dim, dim), d.dtype),
-                          (split(ops.groups, Q), split(ops.pair_id, 0)))
+    acc = jax.lax.fori_loop(0, n_chunks, body, jnp.zeros((n_pairs, dim, dim), d.dtype))
     return acc + spring_blocks(ops, params, n_pairs, dim)
 
 
