@@ -55,7 +55,12 @@ shared, load ~6-8 on 2 cores, so indicative only):
       factorisation-reuse work.
     - time: the model build 80 s (not split further); one 3D increment ~4-4.5 min at 7,875
       particles single-threaded (MKL/OpenBLAS/OMP threads 1), the first including compile.
-  sweep (20 patches x 4 increments, 231 particles): did not finish in 600 s under that load.
+  sweep (20 patches x 2 increments, 231 particles; --case sweep:230 --increments 2 --repeats 2,
+  2026-11-24, quiet: nothing else running, load 1.4): batched 69.5 s warm (median of 2) against
+  77.2 s for the loop (1.11x); cold 73.1 against 112.3 s (1.54x: the loop compiles per call
+  shape); batched = loop to 7e-15; peak 6.0 GB. lax.map runs the patches one after another,
+  so batching saves only dispatch and compile: the per-solve work (assembly, factorisation)
+  is the same. (4 increments did not finish in 600 s under load 6-8.)
 """
 from __future__ import annotations
 
