@@ -138,6 +138,7 @@ def static_report(phantom, sw, out: Path, wall=None):
     ax.bar(idx, np.abs(final), color=["C0" if o else "0.6" for o in ok])
     ax.axhline(abs(free), color="r", ls="--", label="no paddle")
     ax.set_yscale("log")
+    ax.set_xticks(idx)             # one tick per patch: patches are numbered, not a continuum
     ax.set_xlabel("paddle patch")
     ax.set_ylabel("|lateral target deviation|")
     ax.set_title(f"3D phantom, inclusion {inclusion}: final deviation per patch", fontsize=10)
