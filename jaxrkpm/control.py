@@ -337,7 +337,8 @@ def track(model: Model, path, driven: str, control_points, *, plant: Model | Non
     whole history. ``reuse`` in (0, 1): keep factorisations across iterations, refactorised
     only where a chord correction cuts the residual by less than this factor (see
     ``ControlledModel.of``; same residual tolerance; the Jacobian then comes from the kept
-    factorisation, of a nearby earlier state); 0: one factorisation per iteration."""
+    factorisation of a nearby earlier state, refined to this state's: ``ControlledModel.jacobian``);
+    0: one factorisation per iteration."""
     path = np.atleast_2d(np.asarray(path, float))
     cps = np.atleast_2d(np.asarray(control_points, float))
     if path.ndim != 2 or path.shape[1] != cps.size or len(path) == 0:
