@@ -22,7 +22,6 @@ from scipy.special import ellipe, ellipk
 
 import jaxrkpm as jr
 from experiments.elastica import E_PLANE, EULER, H, L, elastica_force, path, strip_model
-from jaxrkpm import solve as S
 
 _TANGENT = jax.jit(lambda prob, u, g: prob.tangent(u, g))
 
@@ -122,9 +121,10 @@ def test_square_reaches_full_load_on_stable_states(fung_block, case):
 def test_failure_costs_a_small_multiple_of_a_converging_solve(fung_block):
     """A solve that cannot proceed (60% compression: the path stops near 31%, where the Fung
     square's tangent loses positive definiteness and no stable state is found) gives up after
-    a bounded amount of work: its Newton iterations are within (1 + FAILED_WORK) x the larger
-    of its useful work and steps x easy, plus 2 x max_iter (solve_path's budget), and its run
-    time a small multiple of a converging solve of the same model, steps and size."""
+    a bounded amount of work (solve_path's budget: failed attempts may cost FAILED_WORK x the
+    larger of its useful work and steps x easy, plus 2 x max_iter): its Newton iterations at
+    most 4x, and its run time at most 15x, those of a converging solve of the same model,
+    steps and size."""
     def timed(c):
         best = np.inf
         for _ in range(2):          # the first call of each compiles (the same function)
@@ -137,12 +137,9 @@ def test_failure_costs_a_small_multiple_of_a_converging_solve(fung_block):
     good, t_good = timed(0.2)
     bad, t_bad = timed(0.6)
     assert good.converged and not bad.converged and 0.3 < 0.6 * float(bad.t) < 0.4
-    cfg = fung_block.config()
-    nominal = 10 * cfg.easy
     print(f"converging: {int(good.iterations)} iterations, {t_good:.3f} s; failing ({bad.outcome.name} at "
           f"{60 * float(bad.t):.1f}%): {int(bad.iterations)} iterations, {int(bad.cuts)} cuts, {t_bad:.3f} s: "
           f"ratio {t_bad / t_good:.1f}")
-    assert int(bad.iterations) <= (1 + S.FAILED_WORK) * max(int(bad.iterations), nominal) + 2 * 25
     # measured here: 82 vs 30 iterations, time ratio 8 (without the budget and the stop after a
     # failed switch: 163 iterations, ratio 16)
     assert int(bad.iterations) <= 4 * int(good.iterations)
