@@ -18,8 +18,8 @@ from .linear import DenseSolver, SparseSolver
 from .problem import Problem
 from .sparse import SaddlePointSystem, factoriser
 from .solve import (Config, Critical, Limits, Ops, Params, Solution, Status, coefficients,
-                    deformation_gradients, energy_full, implicit_jacobian, point_values,
-                    solve_path_jit)
+                    deformation_gradients, energy_full, implicit_jacobian, joined, point_values,
+                    solve_path_jit, switches_branch)
 
 _point_values_jit = jax.jit(point_values)   # FD evaluates it per re-solve: one dispatch, not ~10 eager ops
 MAX_SUPPORT_DIAMETERS = 2.0   # kernel support (support x spacing) allowed, in body diameters
@@ -419,6 +419,12 @@ class Model:
         SolveError (carrying the last converged state), also under jax.jacfwd / jax.grad;
         under jit/vmap the status is returned instead.
 
+        ``options``: ``Config`` settings. ``stable_branch`` None (default): where the solve
+        stops at a critical point (UNSTABLE_TANGENT, dense solver), the rest of the path is
+        solved with ``stable_branch=True`` from the last stable state (on to a stable state
+        of a bifurcated branch; ``Solution.critical`` records the point); its compile is paid
+        only then, and only in eager calls. False: stop there; True: always (also under jit).
+
         Differentiable (jax.jacfwd / jax.grad) in the prescribed values, ``loads`` and
         ``params`` by implicit differentiation of the converged equilibrium. The derivative
         of a FAILED solve (``throw=False``, or inside jit) is NaN: the kept state is not the
@@ -440,10 +446,21 @@ class Model:
         g = self._check_g(g)
         if _is_concrete(loads) and not np.isfinite(loads):
             raise ValueError(f"loads must be finite, got {loads}")
-        sol = solve_path_jit(self.ops, self.params_with(params), self.config(**options),
-                             Limits.of(steps, max_iter, max_cuts), start.u, start.g, g,
-                             jnp.asarray(start.load, jnp.float64), jnp.asarray(loads, jnp.float64))
+        # stable_branch None (default): the plain solve, and only where it stops at a critical
+        # point does the rest of the path run with the stable-branch solve, so its longer
+        # compile is paid on first need (eager calls only: under jit the status is a tracer)
+        auto = options.get("stable_branch") is None
+        options = {k: v for k, v in options.items() if not (k == "stable_branch" and v is None)}
+        params, lim = self.params_with(params), Limits.of(steps, max_iter, max_cuts)
+        loads = jnp.asarray(loads, jnp.float64)
+        sol = solve_path_jit(self.ops, params, self.config(**options), lim, start.u, start.g, g,
+                             jnp.asarray(start.load, jnp.float64), loads)
         status = _concrete(sol.status)
+        if auto and status == Status.UNSTABLE_TANGENT and switches_branch(
+                branching := self.config(**options, stable_branch=True)):
+            rest = solve_path_jit(self.ops, params, branching, lim, sol.u, sol.g, g, sol.load, loads)
+            sol = joined(sol, rest)
+            status = _concrete(sol.status)
         if throw and status is not None and not Status.of(status).equilibrium:
             # under jax.jacfwd / jax.grad the fields are tracers: the error carries their values
             raise SolveError(Solution(*jax.tree.map(_concrete, tuple(sol))))

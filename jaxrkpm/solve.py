@@ -101,8 +101,9 @@ class Config:
     #                               (False also lets iterative linear solves stop early)
     stable_branch: bool = False   # past a critical point, go on to a stable equilibrium of the same
     #                               load (see ``switch_branch``); dense solver and check_stability only.
-    #                               Off by default: it makes every dense solve_path compile ~70% longer
-    #                               (9x9: 6.2 -> 10.7 s CPU). The compressed Fung / Quadratic squares
+    #                               Off in Config: it makes every dense solve_path compile ~70% longer
+    #                               (9x9: 6.2 -> 10.7 s CPU); ``Model.solve`` switches it on by
+    #                               itself where a plain solve stops at a critical point. The compressed Fung / Quadratic squares
     #                               stop with or without it: past their last stable state the energy
     #                               has no minimum with det F > 0 (a corner collapses; see ``descend``)
     locate: int = 6               # halvings of the initial load step that pin a critical point
@@ -811,6 +812,23 @@ def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l
     status = jnp.where((status == 0) & unknown, Status.STABILITY_UNKNOWN, status)
     g, load = at(t)
     return Solution(u, g, load, status, t, iters, steps, cuts, rn, branch, crit)
+
+
+def joined(first: Solution, rest: Solution) -> Solution:
+    """One Solution of a path solved in two parts: ``first`` stopped at the fraction t1 of
+    the increment, ``rest`` went on from its state to the same end. Fractions of the rest
+    (its t, its critical points) become fractions of the whole path, t1 + (1 - t1) t; the
+    counters add up; the state is the rest's."""
+    t1 = first.t
+
+    def whole(t):
+        return t1 + (1 - t1) * t
+
+    crit = rest.critical._replace(t_stable=whole(rest.critical.t_stable),
+                                  t_unstable=whole(rest.critical.t_unstable))
+    return rest._replace(t=whole(rest.t), iterations=first.iterations + rest.iterations,
+                         steps=first.steps + rest.steps, cuts=first.cuts + rest.cuts,
+                         branch=first.branch + rest.branch, critical=crit)
 
 
 # ------------------------------------------------------------ implicit differentiation

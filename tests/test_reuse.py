@@ -35,7 +35,8 @@ def test_reuse_still_stops_at_the_instability(strip):
     as full Newton, on a stable state (convergence is declared only on a step factorised at
     its start; with the factorisation of an earlier iterate, measured, the solve went on to
     t = 0.6875 and a K_ff with a negative eigenvalue)."""
-    full, kept = push(strip, 0.05), push(strip, 0.05, reuse=0.1)
+    # stable_branch=False: the stop itself (by default the solve would go on past it)
+    full, kept = push(strip, 0.05, stable_branch=False), push(strip, 0.05, reuse=0.1, stable_branch=False)
     assert full.outcome == jr.Status.UNSTABLE_TANGENT
     assert kept.outcome == full.outcome
     assert float(kept.t) == pytest.approx(float(full.t), abs=1e-12)

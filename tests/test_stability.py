@@ -166,8 +166,17 @@ def test_small_strip_passes_its_bifurcation_in_one_solve():
     assert np.linalg.norm(mode[:, 1]) > 5 * np.linalg.norm(mode[:, 0])
     assert min_eig(strip, sol) > 0
     assert -float(strip.reaction(sol, "right")[0]) == pytest.approx(elastica_force(0.02), rel=0.03)
-    plain = strip.solve(push, steps=4, throw=False)
+    plain = strip.solve(push, steps=4, throw=False, stable_branch=False)
     assert plain.outcome == jr.Status.UNSTABLE_TANGENT and 0.02 * float(plain.t) <= axial * 1.05
+    # the default (stable_branch None): the plain solve, then from its last stable state the
+    # stable-branch solve, one Solution whose fractions are of the whole path
+    auto = strip.solve(push, steps=4, throw=False)
+    assert auto.outcome == jr.Status.CONVERGED and float(auto.t) == 1.0 and int(auto.branch) == 1
+    assert int(auto.iterations) > int(plain.iterations) and int(auto.steps) > int(plain.steps)
+    assert float(auto.critical.t_stable[0]) >= float(plain.t) - 1e-12
+    assert 0.02 * float(auto.critical.t_stable[0]) <= axial * 1.05 <= 0.02 * float(auto.critical.t_unstable[0]) * 1.1
+    np.testing.assert_allclose(np.asarray(strip.reaction(auto, "right")), np.asarray(strip.reaction(sol, "right")),
+                               rtol=1e-6, atol=1e-12)
 
 
 def test_branch_switch_gives_up_at_once_where_the_square_collapses(fung_block):
@@ -180,7 +189,7 @@ def test_branch_switch_gives_up_at_once_where_the_square_collapses(fung_block):
     from jaxrkpm.minimise import minimise, stable_beyond
 
     push = {"edge": jnp.array([-0.6, 0.0])}
-    plain = fung_block.solve(push, steps=10, throw=False)
+    plain = fung_block.solve(push, steps=10, throw=False, stable_branch=False)
     sol = fung_block.solve(push, steps=10, throw=False, stable_branch=True)
     assert sol.outcome == jr.Status.UNSTABLE_TANGENT and float(sol.t) == pytest.approx(float(plain.t))
     assert 0.3 < 0.6 * float(sol.t) < 0.32 and min_eig(fung_block, sol) > 0
