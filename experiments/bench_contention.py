@@ -11,7 +11,10 @@ Workloads:
 - ``cholesky``: ``jnp.linalg.cholesky`` of a 1,152^2 SPD matrix (issue 20: 30 ms
   single-threaded, 708 ms with OpenBLAS's default threads beside one busy process);
 - ``cube6``: neo-Hookean 6^3 cube, 30% compression in 10 load steps (dense path);
-- ``needle``: the 2D phantom's 5 paddle positions x 5 increments (``needle.insert``).
+- ``needle``: the 2D phantom's 5 paddle positions x 5 increments (``needle.insert``);
+- ``box``: the 2D box path (Gauss, 9x9) of the tracking study;
+- ``cube10`` / ``cube10_control``: the 10^3 cube's full solve and one control step;
+- ``sweep20``: the needle sweep of experiments/bench_sweep.py, 20 configurations.
 Prints JSON (also the load average before and after: other jobs on the machine skew both)."""
 from __future__ import annotations
 
@@ -56,7 +59,58 @@ def needle_workload():
     return lambda: jax.block_until_ready(nd.insert(models, depths, ph.target, direction=ph.needle_direction))
 
 
-WORKLOADS = {"cholesky": cholesky_workload, "cube6": cube6_workload, "needle": needle_workload}
+def box_workload():
+    """The 2D box path (Table 5.3: 9x9 Fung square, Gauss, gain 0.05, clamp 0.01)."""
+    from jaxrkpm.studies import track as T
+    exp = T.build("box", 2, "gauss")
+    return lambda: T.execute(exp)
+
+
+def cube10_models():
+    import jaxrkpm as jr
+    body = jr.Body.grid((10, 10, 10), 1.0 / 9)
+    sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
+    return jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets)
+
+
+def cube10_workload():
+    """The 10^3 cube's full solve: 30% compression in 10 load steps."""
+    model = cube10_models()
+    move = {"right": np.array([-0.3, 0.0, 0.0])}
+    return lambda: jax.block_until_ready(model.solve(move, steps=10).u)
+
+
+def cube10_control_workload():
+    """One control step of the 10^3 cube at 30% (factorisation, Jacobian of the centre, a 1%
+    paddle increment settled): what experiments/bench_cube3d.py times as ``control_step_s``."""
+    from jaxrkpm.control import ControlledModel
+    from jaxrkpm.solve import Limits
+    model = cube10_models()
+    sol = model.solve({"right": np.array([-0.3, 0.0, 0.0])}, steps=10)
+    ctrl = ControlledModel.of(model, "right", np.array([[0.5, 0.5, 0.5]]))
+    lim = Limits.of(steps=1)
+    dg = jnp.einsum("a,abi->bi", jnp.array([-0.01, 0.0, 0.0]), ctrl.G)
+
+    @jax.jit
+    def control_step(c, s):
+        state = c.problem.factorise(s.u, s.g)
+        return c.jacobian(s, state), c.settle(s, state, s.g + dg, lim, 6)[0]
+
+    return lambda: jax.block_until_ready(control_step(ctrl, sol))
+
+
+def sweep_workload():
+    """The needle sweep of experiments/bench_sweep.py at 20 configurations x 15 increments."""
+    from bench_sweep import batched, configurations   # beside this script (sys.path[0])
+    from jaxrkpm import needle as nd
+    ph = nd.Phantom()
+    models, depths = configurations(ph, 20), ph.depths(15)
+    return lambda: batched(models, depths, ph.target)
+
+
+WORKLOADS = {"cholesky": cholesky_workload, "cube6": cube6_workload, "needle": needle_workload,
+             "box": box_workload, "cube10": cube10_workload, "cube10_control": cube10_control_workload,
+             "sweep20": sweep_workload}
 
 
 def timed_call(fn, busy: bool) -> float:
