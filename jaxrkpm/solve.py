@@ -535,7 +535,13 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
             forcing = jnp.where(rel > 1e-4, jnp.minimum(1e-2 * rel, 1e-4), 1e-11)
         return cfg.linear.newton_solve(state, ops, blocks, rhs, forcing)
 
-    Pi0, _, r0 = evaluate(u)
+    if chord:
+        # the chord's first solve is the predictor (right-hand side rhs0, accepted whenever
+        # admissible): the energy and residual at (u, g1) would go unused, so they are not
+        # evaluated (one energy-gradient pass per settle saved)
+        Pi0, r0 = jnp.array(jnp.inf, u.dtype), rhs0
+    else:
+        Pi0, _, r0 = evaluate(u)
     status0 = jnp.array(-1)
     if chord:
         status0 = jnp.where(cfg.linear.stability(state) == Stability.STABLE, -1, Status.UNSTABLE_TANGENT)
