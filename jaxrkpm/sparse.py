@@ -38,6 +38,7 @@ import glob
 import os
 import sys
 import threading
+import time
 import weakref
 
 import numpy as np
@@ -225,6 +226,39 @@ def factoriser(name: str):
     return FACTORISATIONS[name]
 
 
+class Elimination:
+    """The thesis transformation T = [I; -A] on the host, with A = (C_b)^-1 C_f applied through
+    a sparse LU of C_b (A itself is dense per essential set): all coefficients dd = T v from
+    the free ones v, and T^T y. So K_ff v = T^T K T v needs only K (``kff``)."""
+
+    def __init__(self, C, free_dofs: np.ndarray, bnd_dofs: np.ndarray):
+        C = sp.csr_matrix(C)
+        self.n_dof = C.shape[1]
+        self.free_dofs, self.bnd_dofs = free_dofs, bnd_dofs
+        self.Cf = C[:, free_dofs].tocsr()
+        self.Cf_T = self.Cf.T.tocsr()
+        self.Cb_lu = spla.splu(C[:, bnd_dofs].tocsc()) if C.shape[0] else None
+
+    def expand(self, v):
+        """T v: (n_dof,) all coefficients from the free ones v (n_free,)."""
+        full = np.zeros(self.n_dof)
+        full[self.free_dofs] = v
+        if self.Cb_lu is not None:
+            full[self.bnd_dofs] = -self.Cb_lu.solve(self.Cf @ v)
+        return full
+
+    def reduce(self, y):
+        """T^T y (n_free,) for y (n_dof,)."""
+        out = y[self.free_dofs]
+        if self.Cb_lu is not None:
+            out = out - self.Cf_T @ self.Cb_lu.solve(y[self.bnd_dofs], trans="T")
+        return out
+
+    def kff(self, K):
+        """v -> K_ff v = T^T K T v for the full tangent K (any x -> K @ x)."""
+        return lambda v: self.reduce(K @ self.expand(v))
+
+
 class SaddlePointSystem:
     """The saddle-point pattern and its data map: immutable once built (it is part of the
     static solver configuration of jitted functions). Factorisations are not kept here but
@@ -254,9 +288,7 @@ class SaddlePointSystem:
         self.lower = self.Backend.lower
         (self.indices, self.indptr, self.pos_K, self.take_K,
          self.template) = self._pattern(rows, cols, self.inv, self.lower)
-        self.Cf = C[:, self.free_dofs].tocsr()
-        self.Cf_T = self.Cf.T.tocsr()
-        self.Cb_lu = spla.splu(C[:, self.bnd_dofs].tocsc()) if nc else None
+        self.elimination = Elimination(C, self.free_dofs, self.bnd_dofs)
         for a in (self.free_dofs, self.bnd_dofs, self.inv, self.indices, self.indptr, self.pos_K,
                   self.take_K, self.template):
             a.setflags(write=False)
@@ -313,27 +345,36 @@ class SaddlePointSystem:
 
     def matrix(self, blocks) -> sp.csc_matrix:
         """The stored saddle-point matrix (the lower triangle for PARDISO)."""
+        t0 = time.perf_counter()
         data = self.template.copy()
         data[self.pos_K] = np.asarray(blocks, np.float64).ravel()[self.take_K]
-        return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+        A = sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+        STATS["matrix_s"] += time.perf_counter() - t0
+        return A
 
     def factorise(self, A, fac=None):
         """A new factorisation of the stored matrix A: (factor, number of negative eigenvalues
         of K_ff: -1 unknown (perturbed or pivoted), -2 failed: a singular matrix). ``fac``:
         a released factor object of this system to reuse (PARDISO keeps its analysis)."""
         fac = self.Backend(self.n, self.indptr, self.indices) if fac is None else fac
+        t0 = time.perf_counter()
         try:
             neg = fac.factor(A.data)
         except FactorisationError:
             return None, FAILED
+        finally:
+            STATS["factorise_s"] += time.perf_counter() - t0
         STATS["factorisations"] += 1
         return fac, (UNKNOWN if neg is None else neg - self.nc)
 
     def direct(self, fac, b):
         """K_ff x = b (n_free, m) with a factorisation of the saddle-point matrix."""
+        t0 = time.perf_counter()
         B = np.zeros((self.n, b.shape[1]))
         B[self.inv[self.free_dofs]] = b
-        return fac.solve(B)[self.inv[self.free_dofs]]
+        x = fac.solve(B)[self.inv[self.free_dofs]]
+        STATS["triangular_s"] += time.perf_counter() - t0
+        return x
 
     def _product(self, A):
         """x -> A x for the stored matrix (symmetric: its CSC is the CSR of itself)."""
@@ -345,16 +386,8 @@ class SaddlePointSystem:
     def _matvec(self, product, v):
         """K_ff v = T^T K T v with the current K (``product``: x -> A x)."""
         dd = np.zeros(self.n)
-        full = np.zeros(self.n_dof)
-        full[self.free_dofs] = v
-        if self.nc:
-            full[self.bnd_dofs] = -self.Cb_lu.solve(self.Cf @ v)
-        dd[self.inv[:self.n_dof]] = full
-        y = product(dd)[self.inv[:self.n_dof]]
-        out = y[self.free_dofs]
-        if self.nc:
-            out = out - self.Cf_T @ self.Cb_lu.solve(y[self.bnd_dofs], trans="T")
-        return out
+        dd[self.inv[:self.n_dof]] = self.elimination.expand(v)
+        return self.elimination.reduce(product(dd)[self.inv[:self.n_dof]])
 
     def _pcg(self, fac, product, b, rtol):
         """CG on K_ff x = b preconditioned by the factorisation ``fac`` of another matrix,
@@ -386,6 +419,13 @@ class SaddlePointSystem:
     def preconditioned(self, fac, A, b, rtol):
         """K_ff x = b for the matrix A by CG preconditioned with ``fac`` (every column), or
         None when any column fails."""
+        t0, tri0 = time.perf_counter(), STATS["triangular_s"]
+        try:
+            return self._preconditioned(fac, A, b, rtol)
+        finally:   # cg_s: CG's own work (products, updates); its triangular solves are apart
+            STATS["cg_s"] += time.perf_counter() - t0 - (STATS["triangular_s"] - tri0)
+
+    def _preconditioned(self, fac, A, b, rtol):
         product = self._product(A)
         cols = []
         for j in range(b.shape[1]):
@@ -402,8 +442,11 @@ UNKNOWN = -1    # pivots were perturbed (PARDISO) or permuted (SuperLU): the cou
 FAILED = -2     # the factorisation failed (a singular matrix)
 NONE = -3       # no factorisation held yet
 
-# instrumentation only (never read by the solver): counts since the last reset_stats()
-STATS = {"factorisations": 0, "cg_solves": 0, "cg_iterations": 0, "refactorisations": 0}
+# instrumentation only (never read by the solver): counts and host seconds since the last
+# reset_stats() (a solve's profile; the *_s are disjoint: factorisations, triangular solves,
+# CG's own work apart from its triangular solves, the sparse matrix made from the blocks)
+STATS = {"factorisations": 0, "cg_solves": 0, "cg_iterations": 0, "refactorisations": 0,
+         "factorise_s": 0.0, "triangular_s": 0.0, "cg_s": 0.0, "matrix_s": 0.0}
 
 
 def reset_stats():
