@@ -72,7 +72,7 @@ def run_case(n, solver, repeats, out_npz):
         sol = jax.block_until_ready(model.solve({"right": g}, steps=10))
         times.append(time.perf_counter() - t0)
     solve_s = sorted(times)[len(times) // 2]
-    host = {k: v for k, v in {**sparse.STATS, **krylov.STATS}.items() if v}
+    host = {k: v for k, v in {**sparse.STATS, **krylov.STATS, **sparse.TIMES, **krylov.TIMES}.items() if v}
     # assembly: the pair blocks at the converged state, alone, times the assemblies made
     # (one per Newton iteration: the sparse and Krylov paths assemble at every iteration)
     prob = model.problem()

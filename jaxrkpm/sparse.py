@@ -226,6 +226,23 @@ def factoriser(name: str):
     return FACTORISATIONS[name]
 
 
+def block_pattern(pair_i: np.ndarray, pair_j: np.ndarray, N: int):
+    """(indptr, indices) of the block-sparse (BSR) matrix whose blocks are the particle pairs
+    (pair_i, pair_j), which must be sorted by (i, j) and unique (as the model builds them):
+    then the (P, d, d) pair blocks are its data as they are."""
+    pair_i, pair_j = np.asarray(pair_i, np.int64), np.asarray(pair_j, np.int64)
+    if np.any(np.diff(pair_i * N + pair_j) <= 0):
+        raise ValueError("the particle pairs must be sorted by (i, j) and unique")
+    return np.searchsorted(pair_i, np.arange(N + 1)).astype(np.int32), pair_j.astype(np.int32)
+
+
+def block_matrix(blocks, indptr, indices) -> sp.bsr_matrix:
+    """The tangent K (N d, N d) with the (P, d, d) pair ``blocks`` as its data (no copy)."""
+    d = blocks.shape[-1]
+    n = (len(indptr) - 1) * d
+    return sp.bsr_matrix((np.asarray(blocks, np.float64), indices, indptr), shape=(n, n))
+
+
 class Elimination:
     """The thesis transformation T = [I; -A] on the host, with A = (C_b)^-1 C_f applied through
     a sparse LU of C_b (A itself is dense per essential set): all coefficients dd = T v from
@@ -289,8 +306,11 @@ class SaddlePointSystem:
         (self.indices, self.indptr, self.pos_K, self.take_K,
          self.template) = self._pattern(rows, cols, self.inv, self.lower)
         self.elimination = Elimination(C, self.free_dofs, self.bnd_dofs)
+        # the block pattern of K (rows, cols come pair-major, d*d entries a pair): CG's products
+        # with the current tangent use its blocks as they are (no saddle-point matrix made)
+        self.block_indptr, self.block_indices = block_pattern(rows[::d * d] // d, cols[::d * d] // d, N)
         for a in (self.free_dofs, self.bnd_dofs, self.inv, self.indices, self.indptr, self.pos_K,
-                  self.take_K, self.template):
+                  self.take_K, self.template, self.block_indptr, self.block_indices):
             a.setflags(write=False)
 
     @property
@@ -349,7 +369,7 @@ class SaddlePointSystem:
         data = self.template.copy()
         data[self.pos_K] = np.asarray(blocks, np.float64).ravel()[self.take_K]
         A = sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
-        STATS["matrix_s"] += time.perf_counter() - t0
+        TIMES["matrix_s"] += time.perf_counter() - t0
         return A
 
     def factorise(self, A, fac=None):
@@ -363,7 +383,7 @@ class SaddlePointSystem:
         except FactorisationError:
             return None, FAILED
         finally:
-            STATS["factorise_s"] += time.perf_counter() - t0
+            TIMES["factorise_s"] += time.perf_counter() - t0
         STATS["factorisations"] += 1
         return fac, (UNKNOWN if neg is None else neg - self.nc)
 
@@ -373,23 +393,10 @@ class SaddlePointSystem:
         B = np.zeros((self.n, b.shape[1]))
         B[self.inv[self.free_dofs]] = b
         x = fac.solve(B)[self.inv[self.free_dofs]]
-        STATS["triangular_s"] += time.perf_counter() - t0
+        TIMES["triangular_s"] += time.perf_counter() - t0
         return x
 
-    def _product(self, A):
-        """x -> A x for the stored matrix (symmetric: its CSC is the CSR of itself)."""
-        if not self.lower:
-            return lambda x: A.T @ x            # A.T of a CSC is a CSR view: a fast product
-        diag = A.diagonal()
-        return lambda x: A.T @ x + A @ x - diag * x
-
-    def _matvec(self, product, v):
-        """K_ff v = T^T K T v with the current K (``product``: x -> A x)."""
-        dd = np.zeros(self.n)
-        dd[self.inv[:self.n_dof]] = self.elimination.expand(v)
-        return self.elimination.reduce(product(dd)[self.inv[:self.n_dof]])
-
-    def _pcg(self, fac, product, b, rtol):
+    def _pcg(self, fac, kff, b, rtol):
         """CG on K_ff x = b preconditioned by the factorisation ``fac`` of another matrix,
         to the relative residual rtol; x, or None when it stalls or meets negative curvature."""
         bn = np.linalg.norm(b)
@@ -401,7 +408,7 @@ class SaddlePointSystem:
         p = z.copy()
         rz = r @ z
         for it in range(1, self.cg_maxiter + 1):
-            Ap = self._matvec(product, p)
+            Ap = kff(p)
             pAp = p @ Ap
             if not pAp > 0:
                 return None
@@ -416,23 +423,20 @@ class SaddlePointSystem:
             p = z + (rz / rz_old) * p
         return None
 
-    def preconditioned(self, fac, A, b, rtol):
-        """K_ff x = b for the matrix A by CG preconditioned with ``fac`` (every column), or
-        None when any column fails."""
-        t0, tri0 = time.perf_counter(), STATS["triangular_s"]
-        try:
-            return self._preconditioned(fac, A, b, rtol)
-        finally:   # cg_s: CG's own work (products, updates); its triangular solves are apart
-            STATS["cg_s"] += time.perf_counter() - t0 - (STATS["triangular_s"] - tri0)
-
-    def _preconditioned(self, fac, A, b, rtol):
-        product = self._product(A)
+    def preconditioned(self, fac, blocks, b, rtol):
+        """K_ff x = b for the tangent ``blocks`` by CG preconditioned with ``fac`` (every
+        column), or None when any column fails."""
+        t0, tri0 = time.perf_counter(), TIMES["triangular_s"]
+        kff = self.elimination.kff(block_matrix(blocks, self.block_indptr, self.block_indices))
         cols = []
-        for j in range(b.shape[1]):
-            xj = self._pcg(fac, product, b[:, j], rtol)
-            if xj is None:
-                return None
-            cols.append(xj)
+        try:
+            for j in range(b.shape[1]):
+                xj = self._pcg(fac, kff, b[:, j], rtol)
+                if xj is None:
+                    return None
+                cols.append(xj)
+        finally:   # cg_s: CG's own work (products, updates); its triangular solves are apart
+            TIMES["cg_s"] += time.perf_counter() - t0 - (TIMES["triangular_s"] - tri0)
         STATS["cg_solves"] += 1
         return np.stack(cols, 1)
 
@@ -442,16 +446,18 @@ UNKNOWN = -1    # pivots were perturbed (PARDISO) or permuted (SuperLU): the cou
 FAILED = -2     # the factorisation failed (a singular matrix)
 NONE = -3       # no factorisation held yet
 
-# instrumentation only (never read by the solver): counts and host seconds since the last
-# reset_stats() (a solve's profile; the *_s are disjoint: factorisations, triangular solves,
-# CG's own work apart from its triangular solves, the sparse matrix made from the blocks)
-STATS = {"factorisations": 0, "cg_solves": 0, "cg_iterations": 0, "refactorisations": 0,
-         "factorise_s": 0.0, "triangular_s": 0.0, "cg_s": 0.0, "matrix_s": 0.0}
+# instrumentation only (never read by the solver): counts since the last reset_stats(), and
+# the host seconds of a solve's parts (disjoint: factorisations, triangular solves, CG's own
+# work apart from its triangular solves, the sparse matrix made from the blocks)
+STATS = {"factorisations": 0, "cg_solves": 0, "cg_iterations": 0, "refactorisations": 0}
+TIMES = {"factorise_s": 0.0, "triangular_s": 0.0, "cg_s": 0.0, "matrix_s": 0.0}
 
 
 def reset_stats():
     for k in STATS:
         STATS[k] = 0
+    for k in TIMES:
+        TIMES[k] = 0.0
 
 
 class FactorPool:
@@ -523,7 +529,7 @@ class FactorPool:
             if int(neg) == 0 and int(handle) > 0:
                 fac = self.factor(int(handle), kept_blocks)
                 if fac is not None:
-                    x = self.system.preconditioned(fac, self.system.matrix(blocks), b, float(rtol))
+                    x = self.system.preconditioned(fac, blocks, b, float(rtol))
                     if x is not None:
                         return x.reshape(rhs.shape), np.int64(handle), np.int64(neg), np.bool_(True)
             fac, neg = self._factorise(blocks)
