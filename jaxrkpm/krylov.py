@@ -70,6 +70,9 @@ def reset_stats():
         TIMES[k] = 0.0
 
 
+DROP = 0.02   # pair blocks weaker than this (relative) are left out of the multigrid hierarchy
+
+
 def rigid_modes(X: np.ndarray) -> np.ndarray:
     """The rigid-body modes at the points X (n, d) as (n d, m) columns (m = 3 in 2D, 6 in 3D):
     translations and infinitesimal rotations about the centroid, in coefficient order
@@ -105,11 +108,13 @@ class KrylovSystem:
         self.keep_ff = np.flatnonzero(keep)                     # pairs of two free particles
         self.indptr_ff = np.searchsorted(pos[pair_i[keep]], np.arange(len(free) + 1)).astype(np.int32)
         self.indices_ff = pos[pair_j[keep]].astype(np.int32)
+        self.rows_ff = pos[pair_i[keep]].astype(np.int32)
         self.free_dofs = (free[:, None] * d + np.arange(d)).ravel()
         bnd_dofs = (np.asarray(bnd, np.int64)[:, None] * d + np.arange(d)).ravel()
         self.elimination = Elimination(C, self.free_dofs, bnd_dofs)
         self.B = rigid_modes(X[free])
-        for a in (self.indptr, self.indices, self.keep_ff, self.indptr_ff, self.indices_ff, self.free_dofs, self.B):
+        for a in (self.indptr, self.indices, self.keep_ff, self.indptr_ff, self.indices_ff, self.rows_ff,
+                  self.free_dofs, self.B):
             a.setflags(write=False)
 
     def _options(self, rtol, maxiter, growth):
@@ -144,12 +149,23 @@ class KrylovSystem:
         return K
 
     def hierarchy(self, blocks):
-        """A smoothed-aggregation AMG hierarchy of K_nn (free particles) for ``blocks``."""
+        """A smoothed-aggregation AMG hierarchy of K_nn (free particles) for ``blocks``, with
+        the pair blocks weaker than DROP x sqrt(|K_ii| |K_jj|) (Frobenius norms) left out: an
+        RKPM particle couples to ~300 others, most of them weakly; measured at a 14^3 cube,
+        dropping below 0.02 keeps 28% of the blocks, CG needs the same 30 iterations (to
+        1e-10) and a V-cycle costs a third (0.05 dropped too much: CG did not converge)."""
         import pyamg
         t0 = time.perf_counter()
         data = np.asarray(blocks, np.float64)[self.keep_ff]
-        Knn = sp.bsr_matrix((data, self.indices_ff, self.indptr_ff), shape=(self.n_free,) * 2)
-        ml = pyamg.smoothed_aggregation_solver(Knn, B=self.B, symmetry="symmetric", max_coarse=500)
+        size = np.sqrt(np.einsum("pab,pab->p", data, data))
+        diag = np.zeros(len(self.indptr_ff) - 1)
+        on = self.rows_ff == self.indices_ff
+        diag[self.rows_ff[on]] = size[on]
+        strong = size >= DROP * np.sqrt(diag[self.rows_ff] * diag[self.indices_ff])
+        indptr = np.searchsorted(self.rows_ff[strong], np.arange(len(diag) + 1))
+        Knn = sp.bsr_matrix((data[strong], self.indices_ff[strong], indptr), shape=(self.n_free,) * 2)
+        ml = pyamg.smoothed_aggregation_solver(Knn, B=self.B, symmetry="symmetric", max_coarse=500,
+                                               strength=("symmetric", {"theta": 0.1}))
         STATS["amg_setups"] += 1
         TIMES["amg_setup_s"] += time.perf_counter() - t0
         return ml
