@@ -120,7 +120,7 @@ def compare(results):
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--n", type=int, nargs="*", default=[14, 20], help="particles per edge")
-    p.add_argument("--solver", nargs="*", default=["sparse", "krylov"], choices=["sparse", "krylov"])
+    p.add_argument("--solver", nargs="*", default=["sparse", "krylov"], choices=["sparse", "krylov", "dense"])
     p.add_argument("--repeats", type=int, default=1, help="warm solves (median)")
     p.add_argument("--max-rss-gb", type=float, default=9.0, help="kill a case above this resident memory")
     p.add_argument("--case", nargs=3, help=argparse.SUPPRESS)

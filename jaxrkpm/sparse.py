@@ -236,6 +236,60 @@ def block_pattern(pair_i: np.ndarray, pair_j: np.ndarray, N: int):
     return np.searchsorted(pair_i, np.arange(N + 1)).astype(np.int32), pair_j.astype(np.int32)
 
 
+def lower_pattern(pair_i: np.ndarray, pair_j: np.ndarray, d: int, C):
+    """The lower triangle, in CSC and the natural order, of the saddle-point matrix
+    [K C^T; C 0] whose K has the (sorted, symmetric) particle-pair pattern (pair_i, pair_j)
+    with (d, d) blocks: (indices, indptr, pos_K, take_K, template) as
+    ``SaddlePointSystem._pattern`` gives them (take_K indexes the (P, d, d) blocks raveled).
+
+    Built by arithmetic on the pairs, without sorting the entries: column c = j d + b holds,
+    for each pair (j, i) with i >= j (in order of i), the rows i d + a (a >= b where i = j),
+    then the rows of C's column c; each multiplier column holds its zero diagonal. Its
+    entries are K[i d + a, j d + b], taken from the block of the pair (i, j). The general
+    builder sorts int64 keys of every entry (about 10 arrays of P d^2 entries; GBs for a
+    3D body); this one holds about 4 arrays of half that."""
+    N = int(max(pair_i.max(), pair_j.max())) + 1 if len(pair_i) else 0
+    pair_i, pair_j = np.asarray(pair_i, np.int64), np.asarray(pair_j, np.int64)
+    key = pair_i * N + pair_j
+    up = np.flatnonzero(pair_j >= pair_i)                      # pairs (j, i) with i >= j
+    tp = np.searchsorted(key, pair_j[up] * N + pair_i[up])      # their transposes (i, j)
+    j, i = pair_i[up], pair_j[up]
+    first = np.searchsorted(j, np.arange(N))                   # each row's first upper pair
+    if not np.array_equal(i[first], np.arange(N)):
+        raise ValueError("every particle must pair with itself (the diagonal blocks)")
+    rank = np.arange(len(up)) - first[j]                        # 0: the diagonal block
+    u = np.bincount(j, minlength=N)
+    n_dof = N * d
+    Cc = sp.csc_matrix(C)
+    nc = Cc.shape[0]
+    b = np.arange(d)
+    length = (u[:, None] * d - b[None]).ravel()                 # K entries of column j d + b
+    count = np.concatenate([length + np.diff(Cc.indptr), np.ones(nc, np.int64)])
+    indptr = np.concatenate([[0], np.cumsum(count)])
+    nnz = int(indptr[-1])
+    indices = np.empty(nnz, np.int32)
+    template = np.zeros(nnz)
+    take = np.full(nnz, -1, np.int64)      # K entry -> its index in the raveled blocks
+    # K entries, one (b, a) plane at a time (arrays of the upper pairs' length only)
+    for bb in range(d):
+        start = indptr[j * d + bb]
+        for a in range(d):
+            sel = (rank > 0) | (a >= bb)
+            pos = (start + np.where(rank == 0, a - bb, (d - bb) + (rank - 1) * d + a))[sel]
+            indices[pos] = (i[sel] * d + a).astype(np.int32)
+            take[pos] = tp[sel] * d * d + a * d + bb
+    # C's entries after the K rows of each of its columns
+    cpos = indptr[:-1][:n_dof] + length
+    ccol = np.repeat(np.arange(n_dof), np.diff(Cc.indptr))
+    crank = np.arange(Cc.nnz) - Cc.indptr[ccol]
+    indices[cpos[ccol] + crank] = (Cc.indices + n_dof).astype(np.int32)
+    template[cpos[ccol] + crank] = Cc.data
+    # the multipliers' zero diagonal
+    indices[indptr[n_dof:-1]] = np.arange(n_dof, n_dof + nc, dtype=np.int32)
+    pos_K = np.flatnonzero(take >= 0)
+    return indices, indptr.astype(np.int32), pos_K, take[pos_K], template
+
+
 def block_matrix(blocks, indptr, indices) -> sp.bsr_matrix:
     """The tangent K (N d, N d) with the (P, d, d) pair ``blocks`` as its data (no copy)."""
     d = blocks.shape[-1]
@@ -303,8 +357,13 @@ class SaddlePointSystem:
                            np.concatenate([Ccoo.col, Ccoo.row + n_dof]),
                            np.concatenate([Ccoo.data, Ccoo.data]))
         self.lower = self.Backend.lower
-        (self.indices, self.indptr, self.pos_K, self.take_K,
-         self.template) = self._pattern(rows, cols, self.inv, self.lower)
+        if self.Backend.reorders and self.lower:
+            # PARDISO orders itself: the lower triangle in the natural order, from the pairs
+            (self.indices, self.indptr, self.pos_K, self.take_K,
+             self.template) = lower_pattern(rows[::d * d] // d, cols[::d * d] // d, d, C)
+        else:
+            (self.indices, self.indptr, self.pos_K, self.take_K,
+             self.template) = self._pattern(rows, cols, self.inv, self.lower)
         self.elimination = Elimination(C, self.free_dofs, self.bnd_dofs)
         # the block pattern of K (rows, cols come pair-major, d*d entries a pair): CG's products
         # with the current tangent use its blocks as they are (no saddle-point matrix made)

@@ -68,3 +68,31 @@ def _with_linear(model, linear):
     other = copy.copy(model)
     other.linear = linear
     return other
+
+
+def test_pardiso_pattern_holds_the_lower_saddle_point_matrix():
+    """The saddle-point matrix PARDISO factorises (lower triangle, built from the pairs by
+    ``sparse.lower_pattern``) equals the lower triangle of [K C^T; C 0] made densely, for
+    tangent blocks that are not even symmetric (so a block taken transposed would show)."""
+    from jaxrkpm import sparse
+    try:
+        sparse.factoriser("pardiso")
+    except ValueError:
+        pytest.skip("Intel MKL (PARDISO) is not installed")
+    body = jr.Body.grid((4, 3, 3), 0.5)
+    sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1.5 - 1e-9)}
+    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets, solver="sparse", factorisation="pardiso")
+    S = model.linear.system
+    pi, pj = np.asarray(model.ops.pair_i), np.asarray(model.ops.pair_j)
+    blocks = np.random.default_rng(1).standard_normal((len(pi), 3, 3))
+    K = np.zeros((body.n * 3, body.n * 3))
+    for p in range(len(pi)):
+        K[pi[p] * 3:pi[p] * 3 + 3, pj[p] * 3:pj[p] * 3 + 3] = blocks[p]
+    C = np.zeros((S.nc, S.n_dof))
+    Cf = S.elimination.Cf.toarray()
+    C[:, S.elimination.free_dofs] = Cf
+    Cb = S.elimination.Cb_lu.solve(np.eye(S.nc))          # C_b^-1: C_b is its inverse's inverse
+    C[:, S.elimination.bnd_dofs] = np.linalg.inv(Cb)
+    full = np.block([[K, C.T], [C, np.zeros((S.nc, S.nc))]])
+    A = S.matrix(blocks).toarray()
+    assert np.abs(A - np.tril(full)).max() < 1e-12 * np.abs(full).max()
