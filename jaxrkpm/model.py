@@ -14,7 +14,8 @@ from .boundary import EssentialSets, Springs, Transformation, nodal_forces
 from .geometry import Body
 from .materials import Material, green_lagrange, pk2
 from .rk import psi_jax
-from .linear import DenseSolver, SparseSolver
+from .krylov import KrylovSystem
+from .linear import DenseSolver, KrylovSolver, SparseSolver
 from .problem import Problem
 from .sparse import SaddlePointSystem, factoriser
 from .solve import (Config, Critical, Limits, Ops, Params, Solution, Status, coefficients,
@@ -24,6 +25,7 @@ from .solve import (Config, Critical, Limits, Ops, Params, Solution, Status, coe
 _point_values_jit = jax.jit(point_values)   # FD evaluates it per re-solve: one dispatch, not ~10 eager ops
 MAX_SUPPORT_DIAMETERS = 2.0   # kernel support (support x spacing) allowed, in body diameters
 DENSE_LIMIT = 2500  # free DOFs up to which the dense factorisation is used ("auto")
+SOLVERS = ("auto", "dense", "sparse", "krylov")   # Model(solver=...)
 
 
 class SolveError(RuntimeError):
@@ -105,7 +107,8 @@ class Model:
                 points where predicate(X) holds
     springs     Springs(points, stiffness, region): zero-length springs holding material
                 points (elastic supports, penalty paddles; movable, see ``springs_at``)
-    solver      "auto" | "dense" | "sparse"
+    solver      "auto" | "dense" | "sparse" | "krylov" (CG preconditioned by algebraic
+                multigrid, no factorisation: large 3D models; see jaxrkpm.krylov)
     factorisation  of the sparse path: "auto" (PARDISO where Intel MKL is installed, else
                 SuperLU) | "pardiso" | "superlu"; see jaxrkpm.sparse
     """
@@ -136,8 +139,8 @@ class Model:
         if integration not in ("gauss", *scni.SCHEMES):
             raise ValueError(f"unknown integration {integration!r}: choose 'gauss', "
                              + ", ".join(repr(k) for k in scni.SCHEMES))
-        if solver not in ("auto", "dense", "sparse"):
-            raise ValueError(f"unknown solver {solver!r}: choose 'auto', 'dense' or 'sparse'")
+        if solver not in SOLVERS:
+            raise ValueError(f"unknown solver {solver!r}: choose " + ", ".join(repr(k) for k in SOLVERS))
         factoriser(factorisation)   # a clear error now, even where the dense path is chosen
         self.body, self.material, self.integration = body, material, integration
         self.support = float(support)
@@ -209,6 +212,9 @@ class Model:
         use_dense = solver == "dense" or (solver == "auto" and n_free <= DENSE_LIMIT)
         if use_dense:
             self.linear = DenseSolver()
+        elif solver == "krylov":
+            self.linear = KrylovSolver(KrylovSystem(body.X, pair_i, pair_j, self._constraints(trans),
+                                                    self.sets.free, self.sets.bnd))
         else:
             self.linear = self._sparse_solver(trans, pair_i, pair_j, factorisation)
         self.params = Params(
@@ -261,22 +267,26 @@ class Model:
         return {"psi": psi, "k": k}
 
     def _sparse_solver(self, trans, pair_i, pair_j, factorisation) -> SparseSolver:
-        d, N = self.body.dim, self.body.n
+        d = self.body.dim
         a, b = np.meshgrid(np.arange(d), np.arange(d), indexing="ij")
         rows = (pair_i[:, None, None] * d + a[None]).ravel()
         cols = (pair_j[:, None, None] * d + b[None]).ravel()
+        free_dofs = (self.sets.free[:, None] * d + np.arange(d)[None]).ravel()
+        return SparseSolver(SaddlePointSystem(self.body.X, rows, cols, self._constraints(trans), free_dofs,
+                                              self.sets.bnd, d, factorisation))
+
+    def _constraints(self, trans) -> sp.csr_matrix:
+        """C = [D^nb D^b] (x) I (Nb d, N d): C d = 0 where the essential particles hold (the
+        sparse form of the transformation)."""
+        d, N = self.body.dim, self.body.n
         Nb = len(self.sets.bnd)
         if trans is not None:
             Kb = trans.nb_idx.shape[1]
             r = (np.arange(Nb)[:, None, None] * d + np.arange(d)[None, None, :]).repeat(Kb, 1)
             c = trans.nb_idx[:, :, None] * d + np.arange(d)[None, None, :]
             v = np.repeat(trans.rows_psi[:, :, None], d, axis=2)
-            C = sp.csr_matrix((v.ravel(), (r.ravel(), c.ravel())), shape=(Nb * d, N * d))
-        else:
-            C = sp.csr_matrix((0, N * d))
-        free_dofs = (self.sets.free[:, None] * d + np.arange(d)[None]).ravel()
-        return SparseSolver(SaddlePointSystem(self.body.X, rows, cols, C, free_dofs, self.sets.bnd, d,
-                                              factorisation))
+            return sp.csr_matrix((v.ravel(), (r.ravel(), c.ravel())), shape=(Nb * d, N * d))
+        return sp.csr_matrix((0, N * d))
 
     def config(self, **settings) -> Config:
         """The static solver settings of this model (``Config`` fields may be overridden)."""

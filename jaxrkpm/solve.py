@@ -42,6 +42,9 @@ class Status(Outcome):
     STABILITY_UNKNOWN = 6, ("converged, but the factorisation could not tell whether K_ff is "
                             "positive definite (perturbed or permuted pivots): the state may lie "
                             "past a critical point")
+    LINEAR_SOLVE = 7, ("the iterative linear solver (solver='krylov') did not converge on the "
+                       "smallest load step allowed (or once the failed attempts had spent their "
+                       "work budget)")
 
     @property
     def equilibrium(self) -> bool:
@@ -519,6 +522,9 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
             done = Status.CONVERGED
         status = jnp.where(~ok, why, jnp.where(converged, done,
                                                jnp.where(it + 1 >= cap, Status.MAX_ITERATIONS, -1)))
+        # a linear solve that did not converge (krylov) gives an untrusted step: unless the
+        # residual met the tolerance anyway, the attempt ends
+        status = jnp.where((stab == Stability.FAILED) & ~converged, Status.LINEAR_SOLVE, status)
         return (it + 1, jnp.where(ok, v, u), jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), status, state, keep)
 
     def assemble_and_solve(u, first, rhs, state):

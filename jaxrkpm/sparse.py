@@ -20,6 +20,14 @@ Two factorisations of the symmetric indefinite saddle-point matrix:
   multiplier pivot is preceded by the coefficient pivot it constrains). Portable, but it
   fills several times more in 3D.
 
+JAX-native alternatives (issue 20) measured on a 14^3 cube's tangent, in one process (load
+about 7): ``sparsax`` 0.9 (SuiteSparse through XLA FFI, no Python callback) cannot factorise
+the indefinite saddle-point matrix with CHOLMOD (SPD only); its KLU LU of it did not finish
+in 10 minutes (PARDISO: 5.6 s, solve 47 ms). CHOLMOD of the SPD free-free block K_nn took
+7.4 s and 80 ms a solve, PARDISO 4.7 s and 38 ms on the same matrix, and K_nn alone is not
+K_ff (it would need CG for the transformation, as ``jaxrkpm.krylov`` does). ``klujax`` is the
+same KLU. So PARDISO stays, through the callback.
+
 Factorisations are reused: the last positive definite one preconditions a conjugate-gradient
 solve of K_ff x = r (matrix-vector products with the current K and T); only when CG stalls or
 meets negative curvature is the current matrix factorised again. The factorisation's inertia
@@ -38,6 +46,7 @@ import glob
 import os
 import sys
 import threading
+import time
 import weakref
 
 import numpy as np
@@ -225,6 +234,110 @@ def factoriser(name: str):
     return FACTORISATIONS[name]
 
 
+def block_pattern(pair_i: np.ndarray, pair_j: np.ndarray, N: int):
+    """(indptr, indices) of the block-sparse (BSR) matrix whose blocks are the particle pairs
+    (pair_i, pair_j), which must be sorted by (i, j) and unique (as the model builds them):
+    then the (P, d, d) pair blocks are its data as they are."""
+    pair_i, pair_j = np.asarray(pair_i, np.int64), np.asarray(pair_j, np.int64)
+    if np.any(np.diff(pair_i * N + pair_j) <= 0):
+        raise ValueError("the particle pairs must be sorted by (i, j) and unique")
+    return np.searchsorted(pair_i, np.arange(N + 1)).astype(np.int32), pair_j.astype(np.int32)
+
+
+def lower_pattern(pair_i: np.ndarray, pair_j: np.ndarray, d: int, C):
+    """The lower triangle, in CSC and the natural order, of the saddle-point matrix
+    [K C^T; C 0] whose K has the (sorted, symmetric) particle-pair pattern (pair_i, pair_j)
+    with (d, d) blocks: (indices, indptr, pos_K, take_K, template) as
+    ``SaddlePointSystem._pattern`` gives them (take_K indexes the (P, d, d) blocks raveled).
+
+    Built by arithmetic on the pairs, without sorting the entries: column c = j d + b holds,
+    for each pair (j, i) with i >= j (in order of i), the rows i d + a (a >= b where i = j),
+    then the rows of C's column c; each multiplier column holds its zero diagonal. Its
+    entries are K[i d + a, j d + b], taken from the block of the pair (i, j). The general
+    builder sorts int64 keys of every entry (about 10 arrays of P d^2 entries; GBs for a
+    3D body); this one holds about 4 arrays of half that."""
+    N = int(max(pair_i.max(), pair_j.max())) + 1 if len(pair_i) else 0
+    pair_i, pair_j = np.asarray(pair_i, np.int64), np.asarray(pair_j, np.int64)
+    key = pair_i * N + pair_j
+    up = np.flatnonzero(pair_j >= pair_i)                      # pairs (j, i) with i >= j
+    tp = np.searchsorted(key, pair_j[up] * N + pair_i[up])      # their transposes (i, j)
+    j, i = pair_i[up], pair_j[up]
+    first = np.searchsorted(j, np.arange(N))                   # each row's first upper pair
+    if not np.array_equal(i[first], np.arange(N)):
+        raise ValueError("every particle must pair with itself (the diagonal blocks)")
+    rank = np.arange(len(up)) - first[j]                        # 0: the diagonal block
+    u = np.bincount(j, minlength=N)
+    n_dof = N * d
+    Cc = sp.csc_matrix(C)
+    nc = Cc.shape[0]
+    b = np.arange(d)
+    length = (u[:, None] * d - b[None]).ravel()                 # K entries of column j d + b
+    count = np.concatenate([length + np.diff(Cc.indptr), np.ones(nc, np.int64)])
+    indptr = np.concatenate([[0], np.cumsum(count)])
+    nnz = int(indptr[-1])
+    indices = np.empty(nnz, np.int32)
+    template = np.zeros(nnz)
+    take = np.full(nnz, -1, np.int64)      # K entry -> its index in the raveled blocks
+    # K entries, one (b, a) plane at a time (arrays of the upper pairs' length only)
+    for bb in range(d):
+        start = indptr[j * d + bb]
+        for a in range(d):
+            sel = (rank > 0) | (a >= bb)
+            pos = (start + np.where(rank == 0, a - bb, (d - bb) + (rank - 1) * d + a))[sel]
+            indices[pos] = (i[sel] * d + a).astype(np.int32)
+            take[pos] = tp[sel] * d * d + a * d + bb
+    # C's entries after the K rows of each of its columns
+    cpos = indptr[:-1][:n_dof] + length
+    ccol = np.repeat(np.arange(n_dof), np.diff(Cc.indptr))
+    crank = np.arange(Cc.nnz) - Cc.indptr[ccol]
+    indices[cpos[ccol] + crank] = (Cc.indices + n_dof).astype(np.int32)
+    template[cpos[ccol] + crank] = Cc.data
+    # the multipliers' zero diagonal
+    indices[indptr[n_dof:-1]] = np.arange(n_dof, n_dof + nc, dtype=np.int32)
+    pos_K = np.flatnonzero(take >= 0)
+    return indices, indptr.astype(np.int32), pos_K, take[pos_K], template
+
+
+def block_matrix(blocks, indptr, indices) -> sp.bsr_matrix:
+    """The tangent K (N d, N d) with the (P, d, d) pair ``blocks`` as its data (no copy)."""
+    d = blocks.shape[-1]
+    n = (len(indptr) - 1) * d
+    return sp.bsr_matrix((np.asarray(blocks, np.float64), indices, indptr), shape=(n, n))
+
+
+class Elimination:
+    """The thesis transformation T = [I; -A] on the host, with A = (C_b)^-1 C_f applied through
+    a sparse LU of C_b (A itself is dense per essential set): all coefficients dd = T v from
+    the free ones v, and T^T y. So K_ff v = T^T K T v needs only K (``kff``)."""
+
+    def __init__(self, C, free_dofs: np.ndarray, bnd_dofs: np.ndarray):
+        C = sp.csr_matrix(C)
+        self.n_dof = C.shape[1]
+        self.free_dofs, self.bnd_dofs = free_dofs, bnd_dofs
+        self.Cf = C[:, free_dofs].tocsr()
+        self.Cf_T = self.Cf.T.tocsr()
+        self.Cb_lu = spla.splu(C[:, bnd_dofs].tocsc()) if C.shape[0] else None
+
+    def expand(self, v):
+        """T v: (n_dof,) all coefficients from the free ones v (n_free,)."""
+        full = np.zeros(self.n_dof)
+        full[self.free_dofs] = v
+        if self.Cb_lu is not None:
+            full[self.bnd_dofs] = -self.Cb_lu.solve(self.Cf @ v)
+        return full
+
+    def reduce(self, y):
+        """T^T y (n_free,) for y (n_dof,)."""
+        out = y[self.free_dofs]
+        if self.Cb_lu is not None:
+            out = out - self.Cf_T @ self.Cb_lu.solve(y[self.bnd_dofs], trans="T")
+        return out
+
+    def kff(self, K):
+        """v -> K_ff v = T^T K T v for the full tangent K (any x -> K @ x)."""
+        return lambda v: self.reduce(K @ self.expand(v))
+
+
 class SaddlePointSystem:
     """The saddle-point pattern and its data map: immutable once built (it is part of the
     static solver configuration of jitted functions). Factorisations are not kept here but
@@ -252,13 +365,19 @@ class SaddlePointSystem:
                            np.concatenate([Ccoo.col, Ccoo.row + n_dof]),
                            np.concatenate([Ccoo.data, Ccoo.data]))
         self.lower = self.Backend.lower
-        (self.indices, self.indptr, self.pos_K, self.take_K,
-         self.template) = self._pattern(rows, cols, self.inv, self.lower)
-        self.Cf = C[:, self.free_dofs].tocsr()
-        self.Cf_T = self.Cf.T.tocsr()
-        self.Cb_lu = spla.splu(C[:, self.bnd_dofs].tocsc()) if nc else None
+        if self.Backend.reorders and self.lower:
+            # PARDISO orders itself: the lower triangle in the natural order, from the pairs
+            (self.indices, self.indptr, self.pos_K, self.take_K,
+             self.template) = lower_pattern(rows[::d * d] // d, cols[::d * d] // d, d, C)
+        else:
+            (self.indices, self.indptr, self.pos_K, self.take_K,
+             self.template) = self._pattern(rows, cols, self.inv, self.lower)
+        self.elimination = Elimination(C, self.free_dofs, self.bnd_dofs)
+        # the block pattern of K (rows, cols come pair-major, d*d entries a pair): CG's products
+        # with the current tangent use its blocks as they are (no saddle-point matrix made)
+        self.block_indptr, self.block_indices = block_pattern(rows[::d * d] // d, cols[::d * d] // d, N)
         for a in (self.free_dofs, self.bnd_dofs, self.inv, self.indices, self.indptr, self.pos_K,
-                  self.take_K, self.template):
+                  self.take_K, self.template, self.block_indptr, self.block_indices):
             a.setflags(write=False)
 
     @property
@@ -313,50 +432,38 @@ class SaddlePointSystem:
 
     def matrix(self, blocks) -> sp.csc_matrix:
         """The stored saddle-point matrix (the lower triangle for PARDISO)."""
+        t0 = time.perf_counter()
         data = self.template.copy()
         data[self.pos_K] = np.asarray(blocks, np.float64).ravel()[self.take_K]
-        return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+        A = sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+        TIMES["matrix_s"] += time.perf_counter() - t0
+        return A
 
     def factorise(self, A, fac=None):
         """A new factorisation of the stored matrix A: (factor, number of negative eigenvalues
         of K_ff: -1 unknown (perturbed or pivoted), -2 failed: a singular matrix). ``fac``:
         a released factor object of this system to reuse (PARDISO keeps its analysis)."""
         fac = self.Backend(self.n, self.indptr, self.indices) if fac is None else fac
+        t0 = time.perf_counter()
         try:
             neg = fac.factor(A.data)
         except FactorisationError:
             return None, FAILED
+        finally:
+            TIMES["factorise_s"] += time.perf_counter() - t0
         STATS["factorisations"] += 1
         return fac, (UNKNOWN if neg is None else neg - self.nc)
 
     def direct(self, fac, b):
         """K_ff x = b (n_free, m) with a factorisation of the saddle-point matrix."""
+        t0 = time.perf_counter()
         B = np.zeros((self.n, b.shape[1]))
         B[self.inv[self.free_dofs]] = b
-        return fac.solve(B)[self.inv[self.free_dofs]]
+        x = fac.solve(B)[self.inv[self.free_dofs]]
+        TIMES["triangular_s"] += time.perf_counter() - t0
+        return x
 
-    def _product(self, A):
-        """x -> A x for the stored matrix (symmetric: its CSC is the CSR of itself)."""
-        if not self.lower:
-            return lambda x: A.T @ x            # A.T of a CSC is a CSR view: a fast product
-        diag = A.diagonal()
-        return lambda x: A.T @ x + A @ x - diag * x
-
-    def _matvec(self, product, v):
-        """K_ff v = T^T K T v with the current K (``product``: x -> A x)."""
-        dd = np.zeros(self.n)
-        full = np.zeros(self.n_dof)
-        full[self.free_dofs] = v
-        if self.nc:
-            full[self.bnd_dofs] = -self.Cb_lu.solve(self.Cf @ v)
-        dd[self.inv[:self.n_dof]] = full
-        y = product(dd)[self.inv[:self.n_dof]]
-        out = y[self.free_dofs]
-        if self.nc:
-            out = out - self.Cf_T @ self.Cb_lu.solve(y[self.bnd_dofs], trans="T")
-        return out
-
-    def _pcg(self, fac, product, b, rtol):
+    def _pcg(self, fac, kff, b, rtol):
         """CG on K_ff x = b preconditioned by the factorisation ``fac`` of another matrix,
         to the relative residual rtol; x, or None when it stalls or meets negative curvature."""
         bn = np.linalg.norm(b)
@@ -368,7 +475,7 @@ class SaddlePointSystem:
         p = z.copy()
         rz = r @ z
         for it in range(1, self.cg_maxiter + 1):
-            Ap = self._matvec(product, p)
+            Ap = kff(p)
             pAp = p @ Ap
             if not pAp > 0:
                 return None
@@ -383,16 +490,20 @@ class SaddlePointSystem:
             p = z + (rz / rz_old) * p
         return None
 
-    def preconditioned(self, fac, A, b, rtol):
-        """K_ff x = b for the matrix A by CG preconditioned with ``fac`` (every column), or
-        None when any column fails."""
-        product = self._product(A)
+    def preconditioned(self, fac, blocks, b, rtol):
+        """K_ff x = b for the tangent ``blocks`` by CG preconditioned with ``fac`` (every
+        column), or None when any column fails."""
+        t0, tri0 = time.perf_counter(), TIMES["triangular_s"]
+        kff = self.elimination.kff(block_matrix(blocks, self.block_indptr, self.block_indices))
         cols = []
-        for j in range(b.shape[1]):
-            xj = self._pcg(fac, product, b[:, j], rtol)
-            if xj is None:
-                return None
-            cols.append(xj)
+        try:
+            for j in range(b.shape[1]):
+                xj = self._pcg(fac, kff, b[:, j], rtol)
+                if xj is None:
+                    return None
+                cols.append(xj)
+        finally:   # cg_s: CG's own work (products, updates); its triangular solves are apart
+            TIMES["cg_s"] += time.perf_counter() - t0 - (TIMES["triangular_s"] - tri0)
         STATS["cg_solves"] += 1
         return np.stack(cols, 1)
 
@@ -402,13 +513,18 @@ UNKNOWN = -1    # pivots were perturbed (PARDISO) or permuted (SuperLU): the cou
 FAILED = -2     # the factorisation failed (a singular matrix)
 NONE = -3       # no factorisation held yet
 
-# instrumentation only (never read by the solver): counts since the last reset_stats()
+# instrumentation only (never read by the solver): counts since the last reset_stats(), and
+# the host seconds of a solve's parts (disjoint: factorisations, triangular solves, CG's own
+# work apart from its triangular solves, the sparse matrix made from the blocks)
 STATS = {"factorisations": 0, "cg_solves": 0, "cg_iterations": 0, "refactorisations": 0}
+TIMES = {"factorise_s": 0.0, "triangular_s": 0.0, "cg_s": 0.0, "matrix_s": 0.0}
 
 
 def reset_stats():
     for k in STATS:
         STATS[k] = 0
+    for k in TIMES:
+        TIMES[k] = 0.0
 
 
 class FactorPool:
@@ -480,7 +596,7 @@ class FactorPool:
             if int(neg) == 0 and int(handle) > 0:
                 fac = self.factor(int(handle), kept_blocks)
                 if fac is not None:
-                    x = self.system.preconditioned(fac, self.system.matrix(blocks), b, float(rtol))
+                    x = self.system.preconditioned(fac, blocks, b, float(rtol))
                     if x is not None:
                         return x.reshape(rhs.shape), np.int64(handle), np.int64(neg), np.bool_(True)
             fac, neg = self._factorise(blocks)
