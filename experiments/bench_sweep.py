@@ -152,13 +152,15 @@ def main(argv=None):
     ap.add_argument("--counts", type=int, nargs="+", default=[1, 5, 20, 80])
     ap.add_argument("--increments", type=int, default=15)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--batching", choices=nd.BATCHING, default="map",
-                    help="needle.insert's batching: lax.map of configurations, or vmap (lock step)")
+    ap.add_argument("--batching", choices=nd.BATCHING, default=None,
+                    help="needle.insert's batching: lax.map of configurations, or vmap (lock step); "
+                         "default: needle.default_batching() (map on CPU, vmap on GPU)")
     ap.add_argument("--loop-max", type=int, default=80,
                     help="time the Python loop only up to this many configurations")
     ap.add_argument("--devices", type=int, default=1,
                     help="XLA host devices (cores) the batched call splits the configurations over")
     args = ap.parse_args(argv)
+    args.batching = args.batching or nd.default_batching()
     if len(jax.devices()) < args.devices:
         raise SystemExit(f"--devices {args.devices}: JAX sees {len(jax.devices())} device(s); set "
                          "XLA_FLAGS=--xla_force_host_platform_device_count before JAX starts "

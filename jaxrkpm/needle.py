@@ -355,8 +355,14 @@ class Insertion(NamedTuple):
 BATCHING = ("map", "vmap")
 
 
+def default_batching() -> str:
+    """``insert``'s batching where none is given: "map" on CPU, "vmap" on an accelerator
+    (measured: see ``_insert_batch``)."""
+    return "map" if jax.default_backend() == "cpu" else "vmap"
+
+
 @partial(jax.jit, static_argnames=("batched", "with_jacobian", "batching"))
-def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, batched, with_jacobian, batching="map"):
+def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, batched, with_jacobian, batching):
     """prob: the batched problems (``batched``: which leaves carry the batch axis, see
     ``stack_models``); G (B, n+1, Nb, d) prescribed values per increment (G[:, 0] the
     start); dG (B, m, Nb, d) the paddle directions for the Jacobian; idx, psi (P, K) the
@@ -364,13 +370,24 @@ def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, batched, with_jacobian
 
     ``batching``: "map" runs the configurations one after another (``lax.map``); "vmap"
     advances all of them through each increment at once, their Newton while-loops in lock
-    step (each increment costs the slowest member's iterations and step cuts). Measured on
-    the 2D phantom (5 paddles x 5 increments, inclusion "right" x 100, paddle 1 failing;
-    loaded 2-core machine): vmap 2.65 s warm against 0.92 s for the Python loop of the same
-    solves (experiments/bench_sweep.py --batching vmap), while map runs 1.4-1.9x faster
-    than that loop: "map" is the default. (Vmapped solves deadlocked
-    XLA:CPU in jax 0.10 until the factorisations ran one member at a time:
-    ``jaxrkpm.linear.one_at_a_time``.)"""
+    step (each increment costs the slowest member's iterations, step cuts and line-search
+    trials; a ``lax.cond`` runs both branches). Which wins depends on the device
+    (experiments/bench_sweep.py, 80 configurations = 5 paddles x 16 stiffness ratios x 15
+    increments, inclusion "right"; 58 of the 1,200 solves fail, INVERTED, and they take 43%
+    of the Newton iterations):
+
+    - CPU: "map". XLA:CPU runs the batched forms of the assembly's contractions and
+      scatters slower per member than the unbatched ones (per member, 20 configurations:
+      the assembly 3-7x the unbatched kernel, even with the shared table unbatched), and
+      lock step costs the slowest member (the increment with a failing member: 90-103
+      iterations against 3-5), so vmap loses to map on a 2-core CPU (5 x 3 easy
+      increments: 0.34 s against 0.21 s, loaded machine).
+    - GPU: "vmap" (one batched kernel per operation, native batched factorisations; see
+      ``linear.one_at_a_time``). H100: 5.78 s against 31.2 s for the Python loop of the
+      same solves (5.4x), equal to 1e-16.
+
+    (Vmapped solves deadlocked XLA:CPU in jax 0.10 until the factorisations and triangular
+    solves ran one member at a time: ``jaxrkpm.linear.one_at_a_time``.)"""
 
     def one(prob, G, dG):
         def step(carry, g1):
@@ -394,20 +411,22 @@ def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, batched, with_jacobian
 
 def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None = "paddle",
            n_devices: int | None = 1, max_iter: int = 25, steps: int = 1, direction=None,
-           batching: str = "map") -> Insertion:
+           batching: str | None = None) -> Insertion:
     """Insert the needle of every model through ``depths`` (n,) in one compiled, batched call
     and record the displacement of ``point`` (d,) at every increment; with ``jacobian_set``,
     also the implicit Jacobian of the point w.r.t. a rigid translation of that set.
     ``direction`` (d,): the needle's unit direction (default: the last coordinate axis, +y
     in 2D as in Figure 6.1; pass ``phantom.needle_direction``).
-    ``batching``: "map" (default) runs the configurations one after another on each device,
-    "vmap" all at once in lock step (see ``_insert_batch`` for which wins when);
+    ``batching``: "map" runs the configurations one after another on each device, "vmap"
+    all at once in lock step; None (default): "map" on CPU, "vmap" elsewhere (GPU), as
+    measured (see ``_insert_batch``);
     ``n_devices``: shard them over that many devices.
 
     Each model keeps its other sets fixed (zero). Failed solves do not raise: their status
     is recorded and the next increment starts from the last converged state."""
     if len(models) == 0:
         raise ValueError("insert needs at least one model")
+    batching = default_batching() if batching is None else batching
     if batching not in BATCHING:
         raise ValueError(f"unknown batching {batching!r}: choose one of {list(BATCHING)}")
     depths = np.asarray(depths, float)
