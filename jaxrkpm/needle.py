@@ -381,10 +381,11 @@ def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, batched, with_jacobian
       the assembly ~4x the unbatched kernel with the shared table unbatched, ~7x with it
       stacked), and lock step costs the slowest member (the increment with a failing
       member: 90-103 iterations against 3-5), so vmap loses to map on a 2-core CPU (5 x 15
-      increments: 12.7 s against 4.8 s, loaded machine). Map: 27.6 s against 39.2 s for
-      the loop (1.42x, load ~7); the arithmetic of the same Newton iterations and
-      Jacobians alone (bench_sweep's ``floor``) is 13.9 s, so no batching of these solves
-      can beat the loop by more than ~2.8x on this CPU.
+      increments: 12.7 s against 4.8 s, loaded machine). Map: 16.6 s against 19.4 s for
+      the loop (1.17x, load 4.4 falling to 1.6); the arithmetic of the same 7,363 Newton
+      iterations and 1,142 Jacobians alone (bench_sweep's ``floor``; assembly + Cholesky
+      1.2 of an iteration's 1.4 ms) is 12.0 s, so no batching of these solves can beat
+      the loop by more than ~1.6x on this CPU.
     - GPU: "vmap" (one batched kernel per operation, native batched factorisations; see
       ``linear.one_at_a_time``). H100: 5.78 s against 31.2 s for the Python loop of the
       same solves (5.4x), equal to 1e-16.
