@@ -17,21 +17,50 @@ in ``increments`` warm-started increments and takes the paddle Jacobian at each 
 
 Both are timed warm (after one untimed call that compiles) ``repeats`` times, interleaved,
 and the first (cold) call is reported separately. The two paths' deviations are compared
-(they agree to round-off). Prints JSON."""
+(they agree to round-off). Prints JSON, with the load average before and after (quote the
+ratios of one run; the machine may be shared).
+
+``floor`` (for the largest count the loop ran): what the same solves cost in arithmetic
+alone, from the pieces of one full-Newton iteration timed per member inside one jitted
+``lax.map`` over that many states (no dispatch, no Python): assembly + Cholesky
+(``factorise``), the triangular solves, one energy + gradient (a line-search trial), the
+internal force scale (the convergence test); the Jacobian is one factorisation and the
+solves of its two directions. ``floor_s`` = the Newton iterations the batched run reported
+x an iteration + the Jacobians x a Jacobian; ``ceiling_speedup`` = loop / floor_s is the
+most any batching of these solves could gain over the loop on this machine, if it made every
+overhead vanish and cost no more per member than the unbatched kernels.
+
+``--devices N`` splits the configurations over N XLA host devices (one per core; shard_map,
+``needle.insert(n_devices=N)``), the loop stays on one: say so when quoting it."""
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import time
 
-import jax
-import numpy as np
 
-from jaxrkpm import needle as nd
-from jaxrkpm.model import Model
-from jaxrkpm.solve import Status
+def _host_devices(argv) -> None:
+    """XLA reads its flags once, when JAX starts: --devices must reach it before the import."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if "--devices" in args:
+        n = int(args[args.index("--devices") + 1])
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                                   + f" --xla_force_host_platform_device_count={n}").strip()
+
+
+if __name__ == "__main__":
+    _host_devices(None)
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from jaxrkpm import needle as nd  # noqa: E402
+from jaxrkpm.model import Model  # noqa: E402
+from jaxrkpm.solve import Status  # noqa: E402
 
 
 def configurations(phantom: nd.Phantom, count: int) -> list[Model]:
@@ -53,10 +82,10 @@ def configurations(phantom: nd.Phantom, count: int) -> list[Model]:
     return models
 
 
-def batched(models, depths, target, batching="map"):
-    out = nd.insert(models, depths, target, batching=batching)
+def batched(models, depths, target, batching="map", n_devices=1):
+    out = nd.insert(models, depths, target, batching=batching, n_devices=n_devices)
     jax.block_until_ready(out)
-    return np.asarray(out.target_u[..., 0]), np.asarray(out.status)
+    return np.asarray(out.target_u[..., 0]), np.asarray(out.status), np.asarray(out.iterations)
 
 
 def loop(models, depths, target):
@@ -80,36 +109,85 @@ def timed(fn, *args):
     return time.perf_counter() - t0, out
 
 
+def per_member(fn, states, repeats=3):
+    """Seconds per state of ``fn`` over the states (leading axis) in one jitted lax.map:
+    the unbatched kernel's own cost, without dispatch (median of ``repeats``)."""
+    f = jax.jit(lambda xs: jax.lax.map(fn, xs))
+    jax.block_until_ready(f(states))
+    times = [timed(lambda: jax.block_until_ready(f(states)))[0] for _ in range(repeats)]
+    return statistics.median(times) / jax.tree.leaves(states)[0].shape[0]
+
+
+def floor(model, phantom, depths, iterations: int, jacobians: int, samples: int = 40) -> dict:
+    """The arithmetic of ``iterations`` full-Newton iterations and ``jacobians`` Jacobians of
+    the phantom sweep, from its kernels timed per member (see the module docstring), at
+    ``samples`` states near the model's equilibrium at the last of ``depths`` (perturbed)."""
+    prob = model.problem()
+    sol = model.initial()
+    for depth in depths:
+        sol = model.solve({"needle": phantom.needle_at(depth)}, initial=sol)
+    noise = 1e-6 * np.random.default_rng(0).standard_normal((samples,) + sol.u.shape)
+    us = jnp.asarray(np.asarray(sol.u) + noise)
+    g = sol.g
+    dG = model.directions("paddle")
+    state = prob.factorise(sol.u, g)
+    rhs = prob.residual(sol.u, g)
+    piece = {
+        "factorise_s": per_member(lambda u: prob.factorise(u, g), us),
+        "triangular_solves_s": per_member(lambda r: prob.solve_linear(state, r), us * 0 + rhs),
+        "energy_and_gradient_s": per_member(lambda u: jax.value_and_grad(lambda v: prob.energy(v, g))(u), us),
+        "force_scale_s": per_member(lambda u: prob.force_scale(u, g), us),
+        "jacobian_rhs_s": per_member(lambda u: prob.response(sol._replace(u=u), dG, state=state), us),
+    }
+    iteration = piece["factorise_s"] + piece["triangular_solves_s"] + piece["energy_and_gradient_s"] \
+        + piece["force_scale_s"]
+    jacobian = piece["factorise_s"] + piece["jacobian_rhs_s"]
+    total = iterations * iteration + jacobians * jacobian
+    return {"per_member": piece, "newton_iteration_s": iteration, "jacobian_s": jacobian,
+            "newton_iterations": int(iterations), "jacobians": int(jacobians), "floor_s": total}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--counts", type=int, nargs="+", default=[1, 5, 20, 80])
     ap.add_argument("--increments", type=int, default=15)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--batching", choices=nd.BATCHING, default="map",
-                    help="needle.insert's batching: lax.map of configurations, or vmap (lock step)")
+    ap.add_argument("--batching", choices=nd.BATCHING, default=None,
+                    help="needle.insert's batching: lax.map of configurations, or vmap (lock step); "
+                         "default: needle.default_batching() (map on CPU, vmap on GPU)")
     ap.add_argument("--loop-max", type=int, default=80,
                     help="time the Python loop only up to this many configurations")
+    ap.add_argument("--devices", type=int, default=1,
+                    help="XLA host devices (cores) the batched call splits the configurations over")
     args = ap.parse_args(argv)
+    args.batching = args.batching or nd.default_batching()
+    if len(jax.devices()) < args.devices:
+        raise SystemExit(f"--devices {args.devices}: JAX sees {len(jax.devices())} device(s); set "
+                         "XLA_FLAGS=--xla_force_host_platform_device_count before JAX starts "
+                         "(run this script directly)")
+    load_before = os.getloadavg()
 
     phantom = nd.Phantom()
     depths = phantom.depths(args.increments)
-    rows = []
+    rows, last_loop = [], None
     for count in args.counts:
         models = configurations(phantom, count)
-        cold_b, (dev_b, st_b) = timed(batched, models, depths, phantom.target, args.batching)
+        run = (models, depths, phantom.target, args.batching, args.devices)
+        cold_b, (dev_b, st_b, its_b) = timed(batched, *run)
         row = {"configurations": count, "increments": args.increments,
                "solves": count * args.increments,
                "converged_fraction": float(np.mean(st_b == Status.CONVERGED)),
-               "batched_cold_s": cold_b}
+               "newton_iterations": int(its_b.sum()), "batched_cold_s": cold_b}
         do_loop = count <= args.loop_max
         if do_loop:
             cold_l, (dev_l, st_l) = timed(loop, models, depths, phantom.target)
+            solved = (its_b.sum(), int(np.sum(st_l == Status.CONVERGED)))
             row["loop_cold_s"] = cold_l
             row["max_abs_difference"] = float(np.max(np.abs(dev_b - dev_l)))
             row["status_agree"] = bool(np.all(st_b == st_l))
         tb, tl = [], []
         for _ in range(args.repeats):
-            tb.append(timed(batched, models, depths, phantom.target, args.batching)[0])
+            tb.append(timed(batched, *run)[0])
             if do_loop:
                 tl.append(timed(loop, models, depths, phantom.target)[0])
         row["batched_warm_median_s"] = statistics.median(tb)
@@ -118,16 +196,29 @@ def main(argv=None):
             row["loop_warm_median_s"] = statistics.median(tl)
             row["speedup_warm"] = statistics.median(tl) / statistics.median(tb)
             row["speedup_cold"] = cold_l / cold_b
+            # the floor's states: a configuration whose every increment converged
+            last_loop = (row, models[int(np.argmax(np.all(st_l == Status.CONVERGED, axis=1)))], solved)
         rows.append(row)
         # progress on stderr: stdout holds only the final JSON (one document to parse)
         print(json.dumps(row), file=sys.stderr, flush=True)
     base = rows[0]["batched_warm_per_configuration_s"]
     result = {"benchmark": f"needle sweep: batched ({args.batching} of scan, one jitted call) vs Python "
                            "loop of model.solve + model.jacobian per increment",
-              "batching": args.batching,
+              "batching": args.batching, "devices": args.devices,
               "device": str(jax.devices()[0]), "repeats": args.repeats, "rows": rows,
               "per_configuration_vs_single": {r["configurations"]: r["batched_warm_per_configuration_s"] / base
                                               for r in rows}}
+    if last_loop is not None:
+        row, model, (iterations, jacobians) = last_loop
+        fl = floor(model, phantom, depths, iterations, jacobians)
+        fl["configurations"] = row["configurations"]
+        fl["loop_warm_s"] = row["loop_warm_median_s"]
+        fl["batched_warm_s"] = row["batched_warm_median_s"]
+        fl["ceiling_speedup"] = row["loop_warm_median_s"] / fl["floor_s"]
+        fl["batched_over_floor"] = row["batched_warm_median_s"] / fl["floor_s"]
+        result["floor"] = fl
+    result["load_average_before"] = load_before
+    result["load_average_after"] = os.getloadavg()
     print(json.dumps(result, indent=1))
 
 

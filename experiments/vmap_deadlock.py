@@ -1,19 +1,23 @@
 """The vmapped-solve deadlock of XLA:CPU (jax 0.10), reduced: each arm runs a vmapped
-while_loop with a Cholesky and an LU factorisation of a batch of 5 200x200 matrices per
-iteration in a subprocess limited to 2 CPUs (so XLA's intra-op pool has 2 threads), with a
+while_loop with a Cholesky and an LU factorisation of a batch of 5 200x200 matrices and the
+triangular solves of both (as DenseSolver.solve's two branches under vmap) per iteration in a subprocess limited to 2 CPUs (so XLA's intra-op pool has 2 threads), with a
 timeout. Prints JSON: per arm, finished runs and their times.
 
 Arms:
 - ``threaded-blas``: OpenBLAS with its default threads, jax's batched factorisations;
 - ``single-blas``: OPENBLAS_NUM_THREADS=1, jax's batched factorisations;
-- ``fixed``: single-threaded BLAS (``import jaxrkpm``) and factorisations that run one batch
-  member at a time (``jaxrkpm.linear.one_at_a_time``): what DenseSolver does.
+- ``fixed``: single-threaded BLAS (``import jaxrkpm``) and factorisations and triangular
+  solves that run one batch member at a time (``jaxrkpm.linear.one_at_a_time``): what
+  DenseSolver does.
 
 Measured (loaded 2-core machine, 30 s timeout): threaded-blas and single-blas 0 of 3 finished,
 fixed 3 of 3 in 6-8 s. A hung run's native stacks (gdb: ``thread apply all bt``) show both
 XLA pool threads in ``jax::ParallelBatchMap`` (BlockingCounter::Wait) of lapack_dpotrf_ffi
 and lapack_dgetrf_ffi (single-blas), or threads spinning in OpenBLAS's dpotrf_L_parallel
-(threaded-blas)."""
+(threaded-blas). With the factorisations fixed, a vmapped needle sweep (5 configurations x 15
+increments) still hung, in ParallelBatchMap of lapack_dtrsm_ffi (the triangular solves of
+cho_solve and lu_solve): hence the solves in the pattern; the arms' figures above were
+measured before they were added."""
 from __future__ import annotations
 
 import argparse
@@ -32,14 +36,18 @@ import jax, jax.numpy as jnp
 jax.config.update("jax_enable_x64", True)
 cholesky = lambda A: jnp.linalg.cholesky(A)
 lu = lambda A: jax.scipy.linalg.lu_factor(A)[0]
+cho_solve = lambda L, b: jax.scipy.linalg.cho_solve((L, True), b)
+lu_solve = lambda A, b: jax.scipy.linalg.lu_solve(jax.scipy.linalg.lu_factor(A), b)
 if sys.argv[1] == "fixed":
     from jaxrkpm.linear import one_at_a_time
-    cholesky, lu = one_at_a_time(cholesky), one_at_a_time(lu)
+    cholesky, lu, cho_solve, lu_solve = map(one_at_a_time, (cholesky, lu, cho_solve, lu_solve))
 
 def member(A):
     def body(c):
         i, A = c
-        return i + 1, A + 1e-6 * (jnp.sum(cholesky(A)) + jnp.sum(lu(A)))
+        L, b = cholesky(A), jnp.ones(A.shape[0])
+        x = cho_solve(L, b) + lu_solve(A, b)
+        return i + 1, A + 1e-6 * (jnp.sum(L) + jnp.sum(lu(A)) + jnp.sum(x))
     return jax.lax.while_loop(lambda c: c[0] < 100, body, (0, A))[1]
 
 f = jax.jit(jax.vmap(member))

@@ -78,21 +78,31 @@ def lowest_modes(K, k: int = 1):
 
 
 def one_at_a_time(factorise):
-    """``factorise`` (a LAPACK factorisation of one matrix) with a batching rule that runs the
-    members of a vmapped batch one after another (``lax.map``), each an unbatched LAPACK call.
+    """``factorise`` (a LAPACK call on one matrix: a factorisation or a triangular solve)
+    with a batching rule that runs the members of a vmapped batch one after another
+    (``lax.map``), each an unbatched LAPACK call.
 
     Why: jaxlib 0.10's batched CPU LAPACK kernels split the batch over XLA's intra-op thread
     pool and block the calling pool thread until the pieces are done (``ParallelBatchMap``).
-    XLA runs independent operations side by side on that pool, so two batched factorisations
-    at once (the Cholesky and the LU of a vmapped DenseSolver) can occupy every pool thread
-    (two on a 2-core machine) with waiting, and nothing is left to run the pieces: a deadlock
-    (tests/test_threads.py keeps the reduced pattern). Unbatched calls never wait on the pool."""
+    XLA runs independent operations side by side on that pool, so two batched LAPACK calls
+    at once (the Cholesky and the LU of a vmapped DenseSolver, or the triangular solves of
+    its two branches: ``lapack_dtrsm_ffi``, seen in gdb in a hung vmapped needle sweep) can
+    occupy every pool thread (two on a 2-core machine) with waiting, and nothing is left to
+    run the pieces: a deadlock
+    (tests/test_threads.py keeps the reduced pattern; experiments/vmap_deadlock.py measures
+    it). Unbatched calls never wait on the pool.
+
+    Only on CPU: elsewhere (GPU) the batch goes to the native batched factorisation in one
+    call (``lax.platform_dependent``), where a member-by-member loop would serialise the
+    batch (measured on an H100, 80 phantom configurations: the vmapped sweep's time grew
+    linearly with the batch)."""
     batched = jax.custom_batching.custom_vmap(factorise)
 
     @batched.def_vmap
     def _rule(axis_size, in_batched, *args):
-        args = [a if b else jnp.broadcast_to(a, (axis_size,) + a.shape) for a, b in zip(args, in_batched)]
-        out = jax.lax.map(lambda xs: batched(*xs), tuple(args))
+        args = tuple(a if b else jnp.broadcast_to(a, (axis_size,) + a.shape) for a, b in zip(args, in_batched))
+        out = jax.lax.platform_dependent(*args, cpu=lambda *xs: jax.lax.map(lambda x: batched(*x), xs),
+                                         default=jax.vmap(factorise))
         return out, jax.tree.map(lambda _: True, out)
 
     return batched
@@ -100,6 +110,9 @@ def one_at_a_time(factorise):
 
 _cholesky = one_at_a_time(lambda K: jnp.linalg.cholesky(K))
 _lu_factor = one_at_a_time(lambda K: jax.scipy.linalg.lu_factor(K))
+_cho_solve = one_at_a_time(lambda L, b: jax.scipy.linalg.cho_solve((L, True), b))
+_lu_solve = one_at_a_time(lambda K, b: jax.scipy.linalg.lu_solve(jax.scipy.linalg.lu_factor(K), b))
+_lower_solve = one_at_a_time(lambda L, b: jax.lax.linalg.triangular_solve(L, b, left_side=True, lower=True))
 
 
 @dataclass(frozen=True)
@@ -127,8 +140,7 @@ class DenseSolver:
             return DenseState(K, L, spd, jnp.zeros((0, 0), K.dtype))
         eye = jnp.eye(K.shape[0], dtype=K.dtype)
         # not positive definite (past a critical point): K^-1 itself, by LU, in its place
-        Linv = jax.lax.cond(spd, lambda: jax.lax.linalg.triangular_solve(L, eye, left_side=True, lower=True),
-                            lambda: jax.scipy.linalg.lu_solve(_lu_factor(K), eye))
+        Linv = jax.lax.cond(spd, lambda: _lower_solve(L, eye), lambda: _lu_solve(K, eye))
         return DenseState(K, L, spd, Linv)
 
     def empty(self, ops, dtype) -> DenseState:
@@ -146,8 +158,8 @@ class DenseSolver:
             y = state.Linv @ b
             x = jax.lax.dot_general(state.Linv, y, (((0,), (0,)), ((), ())))
             return jnp.where(state.spd, x, y).reshape(rhs.shape)
-        chol = lambda: jax.scipy.linalg.cho_solve((state.L, True), b)
-        lu = lambda: jax.scipy.linalg.lu_solve(_lu_factor(state.K), b)
+        chol = lambda: _cho_solve(state.L, b)
+        lu = lambda: _lu_solve(state.K, b)
         x = jax.lax.cond(state.spd, chol, lu)   # under vmap: both, then a select
         return x.reshape(rhs.shape)
 

@@ -248,10 +248,17 @@ def inclusion_field(box, ratio: float):
 
 
 # ----------------------------------------------------------------------- batching
-def stack_models(models: Sequence[Model]) -> Problem:
-    """The problems of models that share a body and integration table stacked into one batch
-    (leading axis of every array), zero-padding ragged tables: padded neighbours carry zero
-    shape function values and padded coupling columns are zero, so they contribute nothing."""
+def stack_models(models: Sequence[Model]) -> tuple[Problem, tuple]:
+    """The problems of models that share a body and integration table as one batch:
+    (problem, batched). ``batched`` (a tuple of bools, one per leaf of the problem's pytree,
+    static) says which leaves carry a leading batch axis: those that differ between the
+    models (the essential partition, the material fields), stacked and zero-padded where
+    ragged (padded neighbours carry zero shape function values and padded coupling columns
+    are zero, so they contribute nothing). The leaves every model shares (integration
+    table, pair structure, tensors) are kept once: vmapped, they stay unbatched operands
+    (``batch_axes``), so gathers and scatters over the table are not repeated per member
+    on a stacked copy (measured: a vmapped assembly over a stacked table cost 7x the
+    unbatched one per member, 20 phantom configurations)."""
     ref = models[0]
     for m in models[1:]:
         if m.body is not ref.body or m.ops.idx.shape != ref.ops.idx.shape:
@@ -262,16 +269,46 @@ def stack_models(models: Sequence[Model]) -> Problem:
         if m.config() != ref.config():
             raise ValueError("batched models must share one material law and linear solver")
 
-    def stack(*xs):
+    def same(xs):
+        a = np.asarray(xs[0])
+        return all(np.shape(x) == a.shape and np.array_equal(np.asarray(x), a) for x in xs[1:])
+
+    def stack(xs):
         if not np.ndim(xs[0]):
             return jnp.stack(xs)
         shape = np.max([np.shape(x) for x in xs], axis=0)
         return jnp.asarray(np.stack([np.pad(np.asarray(x), [(0, s - n) for s, n in zip(shape, np.shape(x))])
                                      for x in xs]))
 
-    ops = jax.tree.map(stack, *[m.ops for m in models])
-    params = jax.tree.map(lambda *xs: jnp.stack(xs), *[m.params for m in models])
-    return Problem(ops, params, ref.config())
+    flat = [jax.tree.flatten(Problem(m.ops, m.params, ref.config())) for m in models]
+    treedef = flat[0][1]
+    columns = list(zip(*[leaves for leaves, _ in flat]))
+    batched = tuple(not same(xs) for xs in columns)
+    leaves = [stack(xs) if b else jnp.asarray(xs[0]) for xs, b in zip(columns, batched)]
+    return treedef.unflatten(leaves), batched
+
+
+def batch_axes(tree, batched: tuple):
+    """vmap's ``in_axes`` for a (problem, batched) pair of ``stack_models``: 0 for the
+    batched leaves, None for the shared ones."""
+    leaves, treedef = jax.tree.flatten(tree)
+    if len(leaves) != len(batched):
+        raise ValueError(f"batched has {len(batched)} flags for a tree of {len(leaves)} leaves")
+    return treedef.unflatten([0 if b else None for b in batched])
+
+
+def map_batch(fn, tree, batched: tuple, *xs):
+    """``lax.map`` of fn(member, *x) over the members of a (tree, batched) pair (see
+    ``stack_models``) and the leading axis of ``xs``: the shared leaves pass into every
+    member as they are (loop invariants), only the batched ones are sliced."""
+    leaves, treedef = jax.tree.flatten(tree)
+
+    def member(args):
+        own, x = args
+        it = iter(own)
+        return fn(treedef.unflatten([next(it) if b else leaf for leaf, b in zip(leaves, batched)]), *x)
+
+    return jax.lax.map(member, ([leaf for leaf, b in zip(leaves, batched) if b], xs))
 
 
 def _device_mesh(n_devices: int | None):
@@ -279,23 +316,29 @@ def _device_mesh(n_devices: int | None):
     return Mesh(np.array(devices), ("batch",))
 
 
-def run_batched(fn, batched_args, n_devices: int | None = 1):
-    """fn maps arguments with a leading batch axis to outputs with one. With several
-    devices the batch is padded to a multiple of their number (repeating the last member)
-    and each device runs its shard independently (shard_map: no cross-device step)."""
+def run_batched(fn, batched_args, n_devices: int | None = 1, axes=0):
+    """fn maps arguments with a leading batch axis to outputs with one. ``axes``: a pytree
+    prefix of ``batched_args`` (as vmap's ``in_axes``: 0 batched, None shared by every
+    member). With several devices the batch is padded to a multiple of their number
+    (repeating the last member), each device runs its shard independently (shard_map: no
+    cross-device step) and the shared arguments are replicated."""
     mesh = _device_mesh(n_devices)
     n_dev = mesh.devices.size
     if n_dev == 1:
         return fn(*batched_args)
-    B = jax.tree.leaves(batched_args)[0].shape[0]
+    flags = jax.tree.leaves(jax.tree.map(lambda a, x: jax.tree.map(lambda _: a == 0, x), axes, batched_args,
+                                         is_leaf=lambda a: a is None),)
+    leaves, treedef = jax.tree.flatten(batched_args)
+    B = next(x for x, b in zip(leaves, flags) if b).shape[0]
     pad = -B % n_dev
 
     def padded(x):
         return jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
 
-    args = jax.tree.map(padded, batched_args)
-    spec = PartitionSpec("batch")
-    out = jax.shard_map(fn, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)(*args)
+    args = treedef.unflatten([padded(x) if b else x for x, b in zip(leaves, flags)])
+    specs = treedef.unflatten([PartitionSpec("batch") if b else PartitionSpec() for b in flags])
+    out = jax.shard_map(fn, mesh=mesh, in_specs=tuple(specs), out_specs=PartitionSpec("batch"),
+                        check_vma=False)(*args)
     return jax.tree.map(lambda x: x[:B], out)
 
 
@@ -312,21 +355,43 @@ class Insertion(NamedTuple):
 BATCHING = ("map", "vmap")
 
 
-@partial(jax.jit, static_argnames=("with_jacobian", "batching"))
-def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, with_jacobian, batching="map"):
-    """prob: the batched problems; G (B, n+1, Nb, d) prescribed values per increment (G[:, 0]
-    the start); dG (B, m, Nb, d) the paddle directions for the Jacobian; idx, psi (P, K) the
+def default_batching() -> str:
+    """``insert``'s batching where none is given: "map" on CPU, "vmap" on an accelerator
+    (measured: see ``_insert_batch``)."""
+    return "map" if jax.default_backend() == "cpu" else "vmap"
+
+
+@partial(jax.jit, static_argnames=("batched", "with_jacobian", "batching"))
+def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, batched, with_jacobian, batching):
+    """prob: the batched problems (``batched``: which leaves carry the batch axis, see
+    ``stack_models``); G (B, n+1, Nb, d) prescribed values per increment (G[:, 0] the
+    start); dG (B, m, Nb, d) the paddle directions for the Jacobian; idx, psi (P, K) the
     target's shape functions.
 
     ``batching``: "map" runs the configurations one after another (``lax.map``); "vmap"
     advances all of them through each increment at once, their Newton while-loops in lock
-    step (each increment costs the slowest member's iterations and step cuts). Measured on
-    the 2D phantom (5 paddles x 5 increments, inclusion "right" x 100, paddle 1 failing;
-    loaded 2-core machine): vmap 2.65 s warm against 0.92 s for the Python loop of the same
-    solves (experiments/bench_sweep.py --batching vmap), while map runs 1.4-1.9x faster
-    than that loop: "map" is the default. (Vmapped solves deadlocked
-    XLA:CPU in jax 0.10 until the factorisations ran one member at a time:
-    ``jaxrkpm.linear.one_at_a_time``.)"""
+    step (each increment costs the slowest member's iterations, step cuts and line-search
+    trials; a ``lax.cond`` runs both branches). Which wins depends on the device
+    (experiments/bench_sweep.py, 80 configurations = 5 paddles x 16 stiffness ratios x 15
+    increments, inclusion "right"; 58 of the 1,200 solves fail, INVERTED, and they take 43%
+    of the Newton iterations):
+
+    - CPU: "map". XLA:CPU runs the batched forms of the assembly's contractions and
+      scatters slower per member than the unbatched ones (per member, 20 configurations:
+      the assembly ~4x the unbatched kernel with the shared table unbatched, ~7x with it
+      stacked), and lock step costs the slowest member (the increment with a failing
+      member: 90-103 iterations against 3-5), so vmap loses to map on a 2-core CPU (5 x 15
+      increments: 12.7 s against 4.8 s, loaded machine). Map: 16.6 s against 19.4 s for
+      the loop (1.17x, load 4.4 falling to 1.6); the arithmetic of the same 7,363 Newton
+      iterations and 1,142 Jacobians alone (bench_sweep's ``floor``; assembly + Cholesky
+      1.2 of an iteration's 1.4 ms) is 12.0 s, so no batching of these solves can beat
+      the loop by more than ~1.6x on this CPU.
+    - GPU: "vmap" (one batched kernel per operation, native batched factorisations; see
+      ``linear.one_at_a_time``). H100: 5.78 s against 31.2 s for the Python loop of the
+      same solves (5.4x), equal to 1e-16.
+
+    (Vmapped solves deadlocked XLA:CPU in jax 0.10 until the factorisations and triangular
+    solves ran one member at a time: ``jaxrkpm.linear.one_at_a_time``.)"""
 
     def one(prob, G, dG):
         def step(carry, g1):
@@ -339,38 +404,40 @@ def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, with_jacobian, batchin
                 J = jnp.zeros((tu.shape[0], dG.shape[0]))
             return (sol.u, sol.g), (tu, sol.status, sol.iterations, J)
 
-        u0 = jnp.zeros((prob.ops.free.shape[0], G.shape[-1]))
+        u0 = jnp.zeros((prob.ops.free.shape[-1], G.shape[-1]))
         _, out = jax.lax.scan(step, (u0, G[0]), G[1:])
         return out
 
     if batching == "vmap":
-        return Insertion(*jax.vmap(one)(prob, G, dG))
-    return Insertion(*jax.lax.map(lambda a: one(*a), (prob, G, dG)))
+        return Insertion(*jax.vmap(one, in_axes=(batch_axes(prob, batched), 0, 0))(prob, G, dG))
+    return Insertion(*map_batch(one, prob, batched, G, dG))
 
 
 def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None = "paddle",
            n_devices: int | None = 1, max_iter: int = 25, steps: int = 1, direction=None,
-           batching: str = "map") -> Insertion:
+           batching: str | None = None) -> Insertion:
     """Insert the needle of every model through ``depths`` (n,) in one compiled, batched call
     and record the displacement of ``point`` (d,) at every increment; with ``jacobian_set``,
     also the implicit Jacobian of the point w.r.t. a rigid translation of that set.
     ``direction`` (d,): the needle's unit direction (default: the last coordinate axis, +y
     in 2D as in Figure 6.1; pass ``phantom.needle_direction``).
-    ``batching``: "map" (default) runs the configurations one after another on each device,
-    "vmap" all at once in lock step (see ``_insert_batch`` for which wins when);
+    ``batching``: "map" runs the configurations one after another on each device, "vmap"
+    all at once in lock step; None (default): "map" on CPU, "vmap" elsewhere (GPU), as
+    measured (see ``_insert_batch``);
     ``n_devices``: shard them over that many devices.
 
     Each model keeps its other sets fixed (zero). Failed solves do not raise: their status
     is recorded and the next increment starts from the last converged state."""
     if len(models) == 0:
         raise ValueError("insert needs at least one model")
+    batching = default_batching() if batching is None else batching
     if batching not in BATCHING:
         raise ValueError(f"unknown batching {batching!r}: choose one of {list(BATCHING)}")
     depths = np.asarray(depths, float)
     if depths.ndim != 1 or len(depths) == 0 or not np.all(np.isfinite(depths)):
         raise ValueError(f"depths must be a non-empty 1D array of finite needle depths, got {depths!r}")
     ref = models[0]
-    prob = stack_models(models)
+    prob, batched = stack_models(models)
     d = ref.dim
     direction = np.eye(d)[-1] if direction is None else np.asarray(direction, float)
     if direction.shape != (d,) or not np.isclose(np.linalg.norm(direction), 1.0):
@@ -382,11 +449,11 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
         G.append(jnp.stack(rows))
         dG.append(m.directions(jacobian_set) if jacobian_set else jnp.zeros((1,) + rows[0].shape))
     sf = ref.shape_functions(np.atleast_2d(point), gradients=False)
-    fn = partial(_insert_batch, with_jacobian=jacobian_set is not None, batching=batching)
+    fn = partial(_insert_batch, batched=batched, with_jacobian=jacobian_set is not None, batching=batching)
     lim = Limits.of(steps, max_iter)
     idx, psi = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
     return run_batched(lambda pr, g, dg: fn(pr, g, dg, lim, idx, psi),
-                       (prob, jnp.stack(G), jnp.stack(dG)), n_devices)
+                       (prob, jnp.stack(G), jnp.stack(dG)), n_devices, (batch_axes(prob, batched), 0, 0))
 
 
 def controllability(J, lateral=((1.0, 0.0),)) -> np.ndarray:

@@ -44,3 +44,15 @@ def test_unknown_batching(setup):
     ph, models, depths, _ = setup
     with pytest.raises(ValueError, match="batching"):
         nd.insert(models, depths, ph.target, batching="pmap")
+
+
+def test_shared_arrays_stay_unbatched(setup):
+    """What every configuration shares (integration table, pair structure) is kept once and
+    vmapped as an unbatched operand; what differs (essential partition, material) is stacked."""
+    ph, models, depths, _ = setup
+    prob, batched = nd.stack_models(models)
+    assert prob.ops.idx.shape == models[0].ops.idx.shape
+    assert prob.ops.pair_id.shape == models[0].ops.pair_id.shape
+    assert prob.ops.free.shape == (len(models),) + models[0].ops.free.shape
+    axes = nd.batch_axes(prob, batched)
+    assert axes.ops.idx is None and axes.ops.free == 0

@@ -14,7 +14,9 @@ jaxlib's ``ParallelBatchMap`` of the batched dpotrf and dgetrf kernels for piece
 the same pool, gdb); with OpenBLAS's default threads it livelocks even with the Cholesky
 alone (threads spinning in OpenBLAS's dpotrf_L_parallel, called from two XLA threads at
 once). Each arm: 3 of 3 runs killed at 30 s; the fixed pattern below: 3 of 3 done in 6-8 s on
-the loaded machine. The fix is two parts, both needed: single-threaded BLAS
+the loaded machine. The triangular solves of the same batch do the same (a vmapped needle
+sweep hung with both pool threads in ParallelBatchMap of ``lapack_dtrsm_ffi``, gdb): the
+pattern below has them too. The fix is two parts, both needed: single-threaded BLAS
 (``jaxrkpm.threads``, applied by ``import jaxrkpm``) and factorisations that run one batch
 member at a time under vmap (``jaxrkpm.linear.one_at_a_time``). DenseSolver has both.
 """
@@ -30,11 +32,16 @@ FIXED = textwrap.dedent("""
     from jaxrkpm.linear import one_at_a_time
     cholesky = one_at_a_time(lambda A: jnp.linalg.cholesky(A))
     lu = one_at_a_time(lambda A: jax.scipy.linalg.lu_factor(A)[0])
+    cho_solve = one_at_a_time(lambda L, b: jax.scipy.linalg.cho_solve((L, True), b))
+    lu_solve = one_at_a_time(lambda A, b: jax.scipy.linalg.lu_solve(jax.scipy.linalg.lu_factor(A), b))
 
     def member(A):
         def body(c):
             i, A = c
-            return i + 1, A + 1e-6 * (jnp.sum(cholesky(A)) + jnp.sum(lu(A)))
+            L, b = cholesky(A), jnp.ones(A.shape[0])
+            # two triangular-solve pairs side by side, as in DenseSolver.solve under vmap
+            x = cho_solve(L, b) + lu_solve(A, b)
+            return i + 1, A + 1e-6 * (jnp.sum(L) + jnp.sum(lu(A)) + jnp.sum(x))
         return jax.lax.while_loop(lambda c: c[0] < 30, body, (0, A))[1]
 
     A = 3.0 * jnp.eye(200) + jnp.zeros((5, 200, 200))
