@@ -122,6 +122,53 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
             "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
 
 
+def crossover_case(n, repeats, solver, integration="gauss"):
+    """One Newton iteration's linear work on the n^3 cube (assemble the tangent, factorise it,
+    solve once) with ``solver`` ("dense" or "sparse"), at the converged 10% compressed state
+    (the residual evaluations of an iteration are the same on both paths: left out)."""
+    import jax
+    import jax.numpy as jnp
+
+    import jaxrkpm as jr
+
+    body = jr.Body.grid((n, n, n), 1.0 / (n - 1))
+    sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
+    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), integration=integration, essential=sets, solver=solver)
+    sol = model.solve({"right": jnp.array([-0.1, 0.0, 0.0])}, steps=2)
+    prob = model.problem()
+    rhs = prob.residual(sol.u, sol.g) + 1e-3
+
+    @jax.jit
+    def iteration(p, u, g):
+        state = p.factorise(u, g)
+        return p.solve_linear(state, rhs)
+
+    t, x = timed(lambda: iteration(prob, sol.u, sol.g), repeats)
+    return {"n": n, "solver": solver, "path": model.linear.name, "dof": int(len(model.sets.free) * 3),
+            "iteration_s": t, "finite": bool(jnp.all(jnp.isfinite(x))),
+            "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
+
+
+def crossover(sizes, repeats):
+    """Dense against sparse per Newton iteration at each size, interleaved (each case in a
+    fresh subprocess); the crossover is the first size where sparse is faster."""
+    rows = []
+    for n in sizes:
+        row = {"n": n, "load_average": os.getloadavg()}
+        for solver in ("dense", "sparse"):
+            r = subprocess.run([sys.executable, "-m", "experiments.bench_cube3d", "--crossover-case", str(n),
+                                "--repeats", str(repeats), "--solver", solver], capture_output=True, text=True)
+            row[solver] = json.loads(r.stdout.strip().splitlines()[-1]) if r.returncode == 0 else \
+                {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}
+        if "iteration_s" in row["dense"] and "iteration_s" in row["sparse"]:
+            row["dof"] = row["dense"]["dof"]
+            row["dense_over_sparse"] = row["dense"]["iteration_s"] / row["sparse"]["iteration_s"]
+        print(json.dumps(row), file=sys.stderr)
+        rows.append(row)
+    faster = [r["dof"] for r in rows if r.get("dense_over_sparse", 0) > 1]
+    return {"sizes": rows, "first_dof_where_sparse_is_faster": min(faster) if faster else None}
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--n", type=int, nargs="*", default=[6, 10], help="particles per edge")
@@ -131,8 +178,19 @@ def main(argv=None):
     p.add_argument("--keep", type=float, default=0.5, help="track(reuse=...) of the kept-factorisation control loop")
     p.add_argument("--integration", nargs="*", default=["gauss"], choices=["gauss", "scni", "mscni"])
     p.add_argument("--loop-steps", type=int, default=10, help="control loop iterations timed")
+    p.add_argument("--crossover", type=int, nargs="*",
+                   help="only the dense/sparse crossover per Newton iteration at these sizes (e.g. 6 8 10 12 14)")
     p.add_argument("--case", type=int, help=argparse.SUPPRESS)
+    p.add_argument("--crossover-case", type=int, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
+    if a.crossover_case:
+        print(json.dumps(crossover_case(a.crossover_case, a.repeats, a.solver)))
+        return
+    if a.crossover:
+        out = {"load_average_before": os.getloadavg(), "crossover": crossover(a.crossover, a.repeats),
+               "load_average_after": os.getloadavg()}
+        print(json.dumps(out, indent=2))
+        return
     if a.case:
         print(json.dumps(run_case(a.case, a.repeats, a.solver, a.reuse, a.integration[0], a.loop_steps, a.keep)))
         return
