@@ -280,13 +280,51 @@ def spring_energy(ops: Ops, params: Params, d):
     return 0.5 * jnp.sum(sp["k"][:, None] * u * u)
 
 
+def by_group(ops: Ops, x):
+    """Per-point values x (Q, ...) laid out by integration-point group (G, S, ...); the
+    padding slots (index Q) hold zeros."""
+    return jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)])[ops.groups]
+
+
+def _group_params(ops: Ops, params: Params):
+    """The material parameters by group (padding slots: the first point's values, so W
+    stays finite there; their weight is zero) and their vmap axes."""
+    p, axes = _merged(params)
+    slot = jnp.minimum(ops.groups, ops.w.shape[0] - 1)
+    return {k: v[slot] if axes[k] == 0 else v for k, v in p.items()}, axes
+
+
+def group_gradients(ops: Ops, d):
+    """F at the integration points by group: (G, S, d, d), F = I in the padding slots.
+
+    The points of a group share one neighbour list, so the coefficients are gathered once
+    per group, and the residual's transpose (the scatter back onto the particles) sums a
+    group's points before it scatters: at the 10^3 Gauss cube (8 points a cell) the energy
+    with its gradient took ~3x less time than point by point (same run, interleaved)."""
+    rep = ops.idx[ops.groups[:, 0]]                    # (G, K): the group's neighbour list
+    return jnp.eye(d.shape[1]) + jnp.einsum("gskj,gki->gsij", by_group(ops, ops.dpsi), d[rep])
+
+
+def _per_group(f, axes):
+    """f(F, p) of one point, mapped over (G, S) points."""
+    return jax.vmap(jax.vmap(f, in_axes=(0, axes)), in_axes=(0, axes))
+
+
+def _group_sum_scatter(ops: Ops, contrib, like):
+    """sum over a group's points of contrib (G, S, K, d), scattered onto the particles of
+    the group's neighbour list: (N, d)."""
+    rep = ops.idx[ops.groups[:, 0]]
+    return jnp.zeros_like(like).at[rep].add(contrib.sum(1))
+
+
 def energy_full(ops: Ops, params: Params, W, d, load):
     """Total potential energy in the full coefficients; aux: min det F."""
-    F = deformation_gradients(ops.idx, ops.dpsi, d)
-    p, axes = _merged(params)
-    Wq = jax.vmap(_point_energy(W), in_axes=(0, axes))(F, p)
-    return (jnp.sum(ops.w * Wq) + spring_energy(ops, params, d) - load * jnp.sum(ops.f_ext * d),
-            jnp.min(jnp.linalg.det(F)))
+    F = group_gradients(ops, d)
+    p, axes = _group_params(ops, params)
+    Wq = _per_group(_point_energy(W), axes)(F, p)
+    det = jnp.where(ops.groups < ops.w.shape[0], jnp.linalg.det(F), jnp.inf)   # padding: not a point
+    return (jnp.sum(by_group(ops, ops.w) * Wq) + spring_energy(ops, params, d) - load * jnp.sum(ops.f_ext * d),
+            jnp.min(det))
 
 
 def energy(ops, params, W, u, g, load):
@@ -300,11 +338,12 @@ def residual(ops, params, W, u, g, load):
 
 def internal_force_scale(ops, params, W, d):
     """|| sum_q w |grad Psi| |P| ||: the size of the terms summed into the residual."""
-    F = deformation_gradients(ops.idx, ops.dpsi, d)
-    p, axes = _merged(params)
-    P = jax.vmap(jax.grad(_point_energy(W)), in_axes=(0, axes))(F, p)
-    contrib = jnp.einsum("qkj,qij->qki", jnp.abs(ops.dpsi), jnp.abs(P)) * ops.w[:, None, None]
-    return jnp.linalg.norm(jnp.zeros_like(d).at[ops.idx].add(contrib)) + jnp.linalg.norm(ops.f_ext)
+    F = group_gradients(ops, d)
+    p, axes = _group_params(ops, params)
+    P = _per_group(jax.grad(_point_energy(W)), axes)(F, p)
+    contrib = jnp.einsum("gskj,gsij->gski", jnp.abs(by_group(ops, ops.dpsi)), jnp.abs(P)) * \
+        by_group(ops, ops.w)[:, :, None, None]
+    return jnp.linalg.norm(_group_sum_scatter(ops, contrib, d)) + jnp.linalg.norm(ops.f_ext)
 
 
 ROUNDOFF_FACTOR = 100.0   # the convergence floor in units of eps x stiffness scale (see roundoff_floor);
@@ -317,16 +356,17 @@ def roundoff_floor(ops, params, W, d):
     E = (F^T F - I)/2 to machine precision produces (dP/dF : F is the stress change of a unit
     relative stretch: a stiffness). Without it, a tiny load step (steps=10**6, or a 1e-9
     prescribed displacement) asks for |r| <= rtol x (a tiny force) and never converges."""
-    F = deformation_gradients(ops.idx, ops.dpsi, d)
-    p, axes = _merged(params)
+    F = group_gradients(ops, d)
+    p, axes = _group_params(ops, params)
 
     def stiffness(F, p):
         return jax.jvp(lambda G: jax.grad(_point_energy(W))(G, p), (F,), (F,))[1]
 
-    dP = jax.vmap(stiffness, in_axes=(0, axes))(F, p)
-    contrib = jnp.einsum("qkj,qij->qki", jnp.abs(ops.dpsi), jnp.abs(dP)) * ops.w[:, None, None]
+    dP = _per_group(stiffness, axes)(F, p)
+    contrib = jnp.einsum("gskj,gsij->gski", jnp.abs(by_group(ops, ops.dpsi)), jnp.abs(dP)) * \
+        by_group(ops, ops.w)[:, :, None, None]
     eps = jnp.finfo(d.dtype).eps
-    return ROUNDOFF_FACTOR * eps * jnp.linalg.norm(jnp.zeros_like(d).at[ops.idx].add(contrib))
+    return ROUNDOFF_FACTOR * eps * jnp.linalg.norm(_group_sum_scatter(ops, contrib, d))
 
 
 # doubles of (chunk, K, K, d, d) local tangent blocks held at once by pair_blocks (public: a
