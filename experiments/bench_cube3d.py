@@ -16,7 +16,10 @@ The full solve is timed with full Newton and with modified Newton (``Config.reus
 factorisation while the residual contracts; same tolerance). --integration runs each case
 with Gauss and/or nodal (SCNI) integration and reports the displacement of a probe point (the
 top edge's midpoint, which bulges), so that integrations and sizes can be compared against the
-finest case run.
+finest case run. "newton_iteration_parts_s" profiles one Newton iteration (pair blocks,
+dense matrix, factorisation, solve, energy and residual, force scale). --crossover times one
+Newton iteration's linear work dense against sparse (PARDISO where installed) at several
+sizes, the measurement behind ``jaxrkpm.model.DENSE_LIMIT``.
 Medians of warm repeats; each size runs in a fresh subprocess (its peak RSS is its own).
 Prints JSON; quote ratios within one run (the machine may be shared: the load average is
 printed)."""
@@ -43,6 +46,29 @@ def timed(f, repeats):
         out = jax.block_until_ready(f())
         times.append(time.perf_counter() - t0)
     return statistics.median(times), out
+
+
+def newton_iteration_parts(prob, sol, repeats):
+    """The parts of one Newton iteration at ``sol``, each timed alone (medians): the tangent's
+    pair blocks, the linear solver's matrix from them (dense: K_ff), the factorisation (blocks,
+    matrix and Cholesky together), one solve with it, the energy with its gradient (a line
+    search step or a chord correction) and the force scale of the convergence test."""
+    import jax
+
+    blocks = jax.jit(lambda p, s: p.tangent_blocks(s.u, s.g))
+    matrix = jax.jit(lambda p, b: p.config.linear.matrix(p.ops, b))
+    factorise = jax.jit(lambda p, s: p.factorise(s.u, s.g))
+    solve = jax.jit(lambda p, st, r: p.solve_linear(st, r))
+    energy = jax.jit(lambda p, s: jax.value_and_grad(lambda u: p.energy(u, s.g))(s.u))
+    scale = jax.jit(lambda p, s: p.force_scale(s.u, s.g))
+    out = {}
+    out["pair_blocks"], B = timed(lambda: blocks(prob, sol), repeats)
+    out["matrix_from_blocks"], _ = timed(lambda: matrix(prob, B), repeats)
+    out["factorise"], state = timed(lambda: factorise(prob, sol), repeats)
+    out["solve"], _ = timed(lambda: solve(prob, state, sol.u), repeats)
+    out["energy_and_residual"], _ = timed(lambda: energy(prob, sol), repeats)
+    out["force_scale"], _ = timed(lambda: scale(prob, sol), repeats)
+    return out
 
 
 def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep=0.5):
@@ -91,6 +117,7 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
     fact_s, state = timed(lambda: factorise(ctrl, sol), repeats)
     jfrom_s, _ = timed(lambda: jacobian_from(ctrl, sol, state), repeats)
     settle_s, _ = timed(lambda: settle(ctrl, sol, state), repeats)
+    parts = newton_iteration_parts(ctrl.problem, sol, repeats)
     loop = {}
     for kept in (0.0, keep):
         side = ControlledModel.of(model, "right", centre, reuse=kept)
@@ -117,9 +144,60 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
             "reuse_status": re.outcome.name, "reuse_newton_iterations": int(re.iterations),
             "reuse_max_du_difference": float(abs(re.u - sol.u).max()), "jacobian_s": jac_s, "control_step_s": step_s,
             "control_step_parts_s": {"factorise": fact_s, "jacobian_from_state": jfrom_s, "settle": settle_s},
+            "newton_iteration_parts_s": parts,
             "control_step_newton": int(moved.iterations), "control_step_status": int(moved.status),
             "control_step_residual": float(moved.residual_norm),
             "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
+
+
+def crossover_case(n, repeats, solver, dim=3):
+    """One Newton iteration's linear work (assemble the tangent, factorise it, solve once) on
+    the n^3 cube (``dim`` 2: the n^2 square) with ``solver`` ("dense" or "sparse"), at the
+    right face pushed in by 0.1 spacing, the other particles where they were (a deformed state whose
+    tangent is positive definite; no solve first: a dense 14^3 solve alone takes minutes). The
+    residual evaluations of an iteration are the same on both paths: left out."""
+    import jax
+    import jax.numpy as jnp
+
+    import jaxrkpm as jr
+
+    body = jr.Body.grid((n,) * dim, 1.0 / (n - 1))
+    sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
+    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets, solver=solver)
+    g = model.prescribed({"right": jnp.zeros(dim).at[0].set(-0.1 * body.spacing)})
+    u = jnp.zeros((len(model.sets.free), dim))
+    prob = model.problem()
+
+    @jax.jit
+    def iteration(p, u, g):
+        state = p.factorise(u, g)
+        return p.solve_linear(state, p.residual(u, g)), p.stability(state)
+
+    t, (x, stability) = timed(lambda: iteration(prob, u, g), repeats)
+    return {"n": n, "dim": dim, "solver": solver, "path": model.linear.name, "dof": int(len(model.sets.free) * dim),
+            "iteration_s": t, "finite": bool(jnp.all(jnp.isfinite(x))), "stability": int(stability),
+            "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
+
+
+def crossover(sizes, repeats, dim=3):
+    """Dense against sparse per Newton iteration at each size, interleaved (each case in a
+    fresh subprocess); the crossover is the first size where sparse is faster."""
+    rows = []
+    for n in sizes:
+        row = {"n": n, "dim": dim, "load_average": os.getloadavg()}
+        for solver in ("dense", "sparse"):
+            r = subprocess.run([sys.executable, "-m", "experiments.bench_cube3d", "--crossover-case", str(n),
+                                "--repeats", str(repeats), "--solver", solver, "--dim", str(dim)],
+                               capture_output=True, text=True)
+            row[solver] = json.loads(r.stdout.strip().splitlines()[-1]) if r.returncode == 0 else \
+                {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}
+        if "iteration_s" in row["dense"] and "iteration_s" in row["sparse"]:
+            row["dof"] = row["dense"]["dof"]
+            row["dense_over_sparse"] = row["dense"]["iteration_s"] / row["sparse"]["iteration_s"]
+        print(json.dumps(row), file=sys.stderr)
+        rows.append(row)
+    faster = [r["dof"] for r in rows if r.get("dense_over_sparse", 0) > 1]
+    return {"sizes": rows, "first_dof_where_sparse_is_faster": min(faster) if faster else None}
 
 
 def main(argv=None):
@@ -131,8 +209,21 @@ def main(argv=None):
     p.add_argument("--keep", type=float, default=0.5, help="track(reuse=...) of the kept-factorisation control loop")
     p.add_argument("--integration", nargs="*", default=["gauss"], choices=["gauss", "scni", "mscni"])
     p.add_argument("--loop-steps", type=int, default=10, help="control loop iterations timed")
+    p.add_argument("--crossover", type=int, nargs="*", default=[6, 8, 10, 12, 14],
+                   help="sizes of the dense/sparse crossover per Newton iteration (none: skip it)")
+    p.add_argument("--only-crossover", action="store_true", help="the crossover alone")
+    p.add_argument("--dim", type=int, default=3, choices=[2, 3], help="of --crossover: the n^3 cube or the n^2 square")
     p.add_argument("--case", type=int, help=argparse.SUPPRESS)
+    p.add_argument("--crossover-case", type=int, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
+    if a.crossover_case:
+        print(json.dumps(crossover_case(a.crossover_case, a.repeats, a.solver, a.dim)))
+        return
+    if a.only_crossover:
+        out = {"load_average_before": os.getloadavg(), "crossover": crossover(a.crossover, a.repeats, a.dim),
+               "load_average_after": os.getloadavg()}
+        print(json.dumps(out, indent=2))
+        return
     if a.case:
         print(json.dumps(run_case(a.case, a.repeats, a.solver, a.reuse, a.integration[0], a.loop_steps, a.keep)))
         return
@@ -149,6 +240,8 @@ def main(argv=None):
                 {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}
             out[key]["load_average"] = os.getloadavg()
             print(key, json.dumps(out[key]), file=sys.stderr)
+    if a.crossover:
+        out["crossover"] = crossover(a.crossover, a.repeats, a.dim)
     out["load_average_after"] = os.getloadavg()
     print(json.dumps(out, indent=2))
 

@@ -24,7 +24,14 @@ from .solve import (Config, Critical, Limits, Ops, Params, Solution, Status, coe
 
 _point_values_jit = jax.jit(point_values)   # FD evaluates it per re-solve: one dispatch, not ~10 eager ops
 MAX_SUPPORT_DIAMETERS = 2.0   # kernel support (support x spacing) allowed, in body diameters
-DENSE_LIMIT = 2500  # free DOFs up to which the dense factorisation is used ("auto")
+# free DOFs up to which solver="auto" takes the dense factorisation, by dimension. 3D: where one
+# Newton iteration's linear work (assemble, factorise, solve) costs the same dense and sparse
+# (PARDISO), measured on the neo-Hookean cubes (experiments/bench_cube3d.py --only-crossover,
+# same run, load ~5; dense / sparse: 6^3 0.34, 8^3 0.65, 10^3 0.60, 12^3 (4,320 DOF) 0.97,
+# 14^3 (7,056 DOF) 1.73). 2D stays at 2500: there sparse wins from ~1,000 DOF (24^2 .. 40^2
+# squares: 1.7-7.7x), but the stable-branch and modified-Newton options are dense-only, so
+# moving 2D models to the sparse path changes what they can do (left for its own change)
+DENSE_LIMIT = {2: 2500, 3: 4400}
 SOLVERS = ("auto", "dense", "sparse", "krylov")   # Model(solver=...)
 
 
@@ -107,8 +114,9 @@ class Model:
                 points where predicate(X) holds
     springs     Springs(points, stiffness, region): zero-length springs holding material
                 points (elastic supports, penalty paddles; movable, see ``springs_at``)
-    solver      "auto" | "dense" | "sparse" | "krylov" (CG preconditioned by algebraic
-                multigrid, no factorisation: large 3D models; see jaxrkpm.krylov)
+    solver      "auto" (dense up to DENSE_LIMIT[dim] free DOFs, else sparse) | "dense" | "sparse"
+                | "krylov" (CG preconditioned by algebraic multigrid, no factorisation: large 3D
+                models; see jaxrkpm.krylov)
     factorisation  of the sparse path: "auto" (PARDISO where Intel MKL is installed, else
                 SuperLU) | "pardiso" | "superlu"; see jaxrkpm.sparse
     """
@@ -209,7 +217,7 @@ class Model:
             sp_idx=jnp.asarray(sp_idx, jnp.int32), sp_pair=jnp.asarray(sp_pair, jnp.int32))
 
         n_free = Nf * d
-        use_dense = solver == "dense" or (solver == "auto" and n_free <= DENSE_LIMIT)
+        use_dense = solver == "dense" or (solver == "auto" and n_free <= DENSE_LIMIT[d])
         if use_dense:
             self.linear = DenseSolver()
         elif solver == "krylov":
