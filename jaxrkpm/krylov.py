@@ -35,17 +35,12 @@ from __future__ import annotations
 import copy
 import threading
 import time
-import weakref
-from dataclasses import dataclass
-from typing import Any, NamedTuple
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
 from .outcome import Outcome
-from .sparse import Elimination, block_matrix, block_pattern
+from .sparse import Elimination, block_matrix, block_pattern, pooled
 
 
 class KrylovStatus(Outcome):
@@ -307,13 +302,4 @@ class KrylovPool:
             self.slots.clear()
 
 
-_POOLS: "weakref.WeakKeyDictionary[KrylovSystem, KrylovPool]" = weakref.WeakKeyDictionary()
-_POOLS_LOCK = threading.Lock()
-
-
-def pool(system: KrylovSystem) -> KrylovPool:
-    """The hierarchy pool of ``system`` (made on first use, freed with the system)."""
-    with _POOLS_LOCK:
-        if system not in _POOLS:
-            _POOLS[system] = KrylovPool(system)
-        return _POOLS[system]
+pool = pooled(KrylovPool)   # the hierarchy pool of a KrylovSystem

@@ -613,13 +613,19 @@ class FactorPool:
             self.spare = None
 
 
-_POOLS: "weakref.WeakKeyDictionary[SaddlePointSystem, FactorPool]" = weakref.WeakKeyDictionary()
-_POOLS_LOCK = threading.Lock()
+def pooled(make):
+    """``system -> make(system)``, made on first use and freed with the system: the host-side
+    pool of a linear solver (factorisations, multigrid hierarchies) kept per system."""
+    pools = weakref.WeakKeyDictionary()
+    lock = threading.Lock()
+
+    def pool(system):
+        with lock:
+            if system not in pools:
+                pools[system] = make(system)
+            return pools[system]
+
+    return pool
 
 
-def pool(system: SaddlePointSystem) -> FactorPool:
-    """The factorisation pool of ``system`` (made on first use, freed with the system)."""
-    with _POOLS_LOCK:
-        if system not in _POOLS:
-            _POOLS[system] = FactorPool(system)
-        return _POOLS[system]
+pool = pooled(FactorPool)   # the factorisation pool of a SaddlePointSystem
