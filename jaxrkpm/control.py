@@ -294,9 +294,9 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
         h = s.hist
         h = dict(mp=h["mp"].at[at].set(mp, mode="drop"), cp=h["cp"].at[at].set(cp, mode="drop"),
                  error=h["error"].at[at].set(e_new, mode="drop"),
-                 waypoint=h["waypoint"].at[at].set(s.wp, mode="drop"),
-                 newton=h["newton"].at[at].set(st.newton, mode="drop"),
-                 solve_status=h["solve_status"].at[at].set(st.solve_status, mode="drop"))
+                 waypoint=h["waypoint"].at[at].set(s.wp.astype(h["waypoint"].dtype), mode="drop"),
+                 newton=h["newton"].at[at].set(st.newton.astype(h["newton"].dtype), mode="drop"),
+                 solve_status=h["solve_status"].at[at].set(st.solve_status.astype(h["solve_status"].dtype), mode="drop"))
         status = jnp.where(~ok, TrackStatus.SOLVE_FAILED,
                            jnp.where(s.it_wp + 1 >= max_iter, TrackStatus.ITERATION_CAP,
                                      jnp.where(since >= window, TrackStatus.NO_PROGRESS,
@@ -306,7 +306,7 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
         return s._replace(
             k=k, wp=s.wp + hit, it_wp=jnp.where(hit, 0, s.it_wp + 1), best=jnp.where(hit, jnp.inf, best),
             since_best=jnp.where(hit, 0, since), mp=mp, c=c, p=p, cp=cp, hist=h,
-            reached=s.reached.at[at_wp].set(s.k, mode="drop"),
+            reached=s.reached.at[at_wp].set(s.k.astype(s.reached.dtype), mode="drop"),
             achieved=s.achieved.at[at_wp].set(s.cp, mode="drop"), status=jnp.where(hit, s.status, status),
             c_state=c_state, p_state=p_state)
 

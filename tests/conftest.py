@@ -12,3 +12,23 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+
+import pytest  # noqa: E402
+
+from jaxrkpm.programs import release_compiled_programs, release_if_crowded  # noqa: E402
+
+
+# A test worker that kept every program compiled by half the suite crossed Linux's cap on
+# memory mappings (jaxrkpm/programs.py): its next compile died (SIGABRT, or SIGSEGV in
+# libgcc's unwinder), the crashed workers seen in CI. So the compiled programs go with the
+# test module that compiled them, and sooner where one module alone crowds the cap.
+@pytest.fixture(scope="module", autouse=True)
+def _programs_per_module():
+    yield
+    release_compiled_programs()
+
+
+@pytest.fixture(autouse=True)
+def _mapping_headroom():
+    yield
+    release_if_crowded()

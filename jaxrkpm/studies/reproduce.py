@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Callable
 
 from jaxrkpm import cli
+from jaxrkpm.programs import release_compiled_programs
 from jaxrkpm.studies import interface
 from jaxrkpm.thesis import COMPRESSION_BREAKDOWN, CUBE_MAX_ERROR, RIG_SETTLE_MM, TRACKING_MINUTES
 from jaxrkpm.thesis import NEEDLE as NEEDLE_REF
@@ -420,6 +421,9 @@ def main(argv=None):
     for e in bar:
         bar.set_postfix_str(e.id)
         row = run_entry(e, root, a.quick, a.reuse)
+        # the experiments share no compiled program worth keeping, and all of them together could
+        # hold more memory mappings than Linux allows a process (jaxrkpm/programs.py)
+        release_compiled_programs()
         if row.get("reused") and e.id in earlier:
             row["wall_s"] = earlier[e.id]["wall_s"]
         rows.append(row)
