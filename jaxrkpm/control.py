@@ -15,8 +15,8 @@ With ``track(reuse=...)`` the factorisation is kept across iterations instead (q
 chord corrections, ``linear.QuasiNewton``) and made again only where a correction cuts the
 residual by less than ``reuse``: same residual tolerance, and the Jacobian then comes from the
 kept factorisation (of a nearby earlier state) by iterative refinement with exact
-Hessian-vector products (``jaxrkpm.solve.sensitivity(refine=True)``): the implicit Jacobian of
-the current state to 1e-10, not an approximation of it.
+Hessian-vector products (``jaxrkpm.solve.sensitivity(refine=...)``): the implicit Jacobian of
+the current state, to a relative residual of JACOBIAN_RTOL.
 """
 from __future__ import annotations
 
@@ -64,6 +64,10 @@ def control_increment(J, e, gain, clamp, damping=0.0):
 
 
 QN_MEMORY = 8   # secant pairs a kept factorisation carries (``ControlledModel.of`` with reuse)
+# the Jacobian from a kept factorisation is refined until |K x - rhs| <= this x |rhs|: it only
+# sets the direction of a gained, clamped increment (the equilibria keep the solver's own
+# tolerance), and each decade of refinement costs m Hessian-vector products per correction
+JACOBIAN_RTOL = 1e-6
 KEPT_CORRECTIONS = 30   # chord corrections allowed with a kept factorisation (each must still
 #                         cut |r| by Config.reuse: 0.5**30 ~ 1e-9 of the predictor's residual)
 
@@ -105,8 +109,10 @@ class ControlledModel(NamedTuple):
 
     def jacobian(self, sol: Solution, state):
         """J = d CP / d MP (C*d, d_mp) at ``sol`` from its factorisation ``state`` (with
-        ``keeps``, of an earlier state: refined with exact products to the Jacobian at ``sol``)."""
-        J = self.problem.jacobian(sol, self.G, self.idx, self.psi, state, refine=self.keeps)
+        ``keeps``, of an earlier state: refined with exact products to the Jacobian at ``sol``,
+        to JACOBIAN_RTOL)."""
+        J = self.problem.jacobian(sol, self.G, self.idx, self.psi, state,
+                                  refine=JACOBIAN_RTOL if self.keeps else 0.0)
         return J.reshape(-1, self.G.shape[0])
 
     def settle(self, sol: Solution, state, g1, lim: Limits, max_corr: int):

@@ -902,18 +902,19 @@ def _zero_tangent(x):
     return jnp.zeros_like(x)
 
 
-REFINE_RTOL = 1e-10   # iterative refinement on a kept factorisation: |rhs - K x| <= this x |rhs|
-REFINE_MAX = 20       # ... within this many corrections (each m Hessian-vector products)
+REFINE_MAX = 20   # iterative refinement on a kept factorisation: at most this many corrections
+#                   (each m Hessian-vector products)
 
 
-def sensitivity(ops, params, cfg: Config, u, g, load, rhs, state=None, refine: bool = False):
+def sensitivity(ops, params, cfg: Config, u, g, load, rhs, state=None, refine: float = 0.0):
     """x = K_ff^-1 rhs at the equilibrium (u, g, load), rhs (Nf, d) or (Nf, d, m): the one
     linearised solve behind every implicit derivative (solve's JVP, ``response``, Jacobians).
     ``state``: a factorisation of K_ff there to reuse (default: factorise now).
-    ``refine``: ``state`` factorises a nearby, earlier tangent (a factorisation kept across
+    ``refine`` > 0: ``state`` factorises a nearby, earlier tangent (a factorisation kept across
     control steps): iterative refinement with the exact product, x += solve(rhs - K x), until
-    |rhs - K x| <= REFINE_RTOL |rhs| (at most REFINE_MAX corrections; each contracts the error
-    by the kept factorisation's chord factor), so the result is K_ff^-1 rhs of this state.
+    |rhs - K x| <= refine |rhs| (at most REFINE_MAX corrections; each contracts the error by
+    the kept factorisation's chord factor), so the result is K_ff^-1 rhs of this state to that
+    relative residual. 0: ``state`` factorises this very tangent (no refinement).
 
     A custom linear solve: the matrix-vector product is the exact Hessian-vector product of
     the energy, the solve uses the factorisation, and symmetry makes it transposable (so
@@ -931,7 +932,7 @@ def sensitivity(ops, params, cfg: Config, u, g, load, rhs, state=None, refine: b
         x = cfg.linear.solve(state, b)
         if not refine:
             return x
-        goal = REFINE_RTOL * jnp.linalg.norm(b)
+        goal = refine * jnp.linalg.norm(b)
 
         def body(c):
             k, x, r = c
@@ -971,7 +972,7 @@ def _solve_path_jvp(cfg, primals, tangents):
 solve_path_jit = jax.jit(solve_path_diff, static_argnames=("cfg",))
 
 
-def response(ops, params, cfg: Config, u, g, load, dG, state=None, refine: bool = False):
+def response(ops, params, cfg: Config, u, g, load, dG, state=None, refine: float = 0.0):
     """Implicit sensitivity of the free coefficients to m prescribed directions dG (m, Nb, d):
     K_ff du = -K_fg dG with one factorisation (``state``, or a new one; ``refine``: see
     ``sensitivity``). Returns (m, Nf, d)."""

@@ -226,7 +226,7 @@ def test_kept_factorisation_settles_to_full_newton(planar):
     corrections, ControlledModel.of(reuse=...)) land on full Newton's equilibrium to the
     solver tolerance, without refactorising; the Jacobian from a kept factorisation of the
     same state equals the fresh one, and from one two steps old, refined, too."""
-    from jaxrkpm.control import ControlledModel
+    from jaxrkpm.control import JACOBIAN_RTOL, ControlledModel
 
     model, sol = planar
     side = ControlledModel.of(model, "paddle", CP, reuse=0.5)
@@ -252,10 +252,11 @@ def test_kept_factorisation_settles_to_full_newton(planar):
     assert float(jnp.linalg.norm(prob.residual(s.u, s.g))) <= 1e-10 * float(prob.force_scale(s.u, s.g))
     # from the factorisation two (large: 0.01 of a unit square) steps old, with the secant
     # pairs of the last step's corrections: refined with exact products to the Jacobian of
-    # this state (unrefined it is 11% off here, measured)
+    # this state, to JACOBIAN_RTOL (unrefined it is 11% off here, measured)
     J = np.asarray(jac(side, s, state))
     Jref = np.asarray(model.jacobian(s, "paddle", CP))
-    assert np.abs(J - Jref).max() < 1e-8 * np.abs(Jref).max()
+    print("refined Jacobian, relative error", np.abs(J - Jref).max() / np.abs(Jref).max())
+    assert np.abs(J - Jref).max() < 10 * JACOBIAN_RTOL * np.abs(Jref).max()
     stale = np.asarray(jax.jit(lambda p, st: p.jacobian(s, side.G, side.idx, side.psi, st).reshape(-1, 2))(
         side.problem, state))
     assert np.abs(stale - Jref).max() > 1e-3 * np.abs(Jref).max()     # refinement did the work
