@@ -107,3 +107,24 @@ def _unknown(self, data):
     A = sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
     self.lu = spla.splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
     return None
+
+
+class FakeDevice:
+    def __init__(self, platform, bytes_limit=None):
+        self.platform, self.bytes_limit = platform, bytes_limit
+
+    def memory_stats(self):
+        return None if self.bytes_limit is None else {"bytes_limit": self.bytes_limit}
+
+
+def test_auto_goes_dense_on_an_accelerator_while_the_matrices_fit():
+    """solver="auto": the measured CPU crossover on a CPU; on a GPU, dense (no host callback)
+    up to DENSE_COPIES n^2 doubles of device memory."""
+    from jaxrkpm.model import DENSE_COPIES, DENSE_LIMIT, dense_limit
+    assert dense_limit(3, FakeDevice("cpu")) == DENSE_LIMIT[3] and dense_limit(2, FakeDevice("cpu")) == DENSE_LIMIT[2]
+    n = dense_limit(3, FakeDevice("gpu", 80 * 2**30))
+    assert 8 * DENSE_COPIES * n**2 <= 80 * 2**30 < 8 * DENSE_COPIES * (n + 1) ** 2
+    assert n > 21_600                                   # the 20^3 cube is dense on an 80 GB GPU
+    assert dense_limit(3, FakeDevice("gpu")) >= 20_000    # memory not reported
+    assert dense_limit(3, FakeDevice("gpu", 2**20)) == DENSE_LIMIT[3]   # never below the CPU's
+    assert dense_limit(3) == DENSE_LIMIT[3]                # this test machine: a CPU
