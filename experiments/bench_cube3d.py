@@ -26,6 +26,7 @@ printed)."""
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import resource
@@ -71,7 +72,7 @@ def newton_iteration_parts(prob, sol, repeats):
     return out
 
 
-def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep=0.5):
+def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep=0.5, precision="auto"):
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -83,7 +84,8 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
     body = jr.Body.grid((n, n, n), 1.0 / (n - 1))
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
     t0 = time.perf_counter()
-    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), integration=integration, essential=sets, solver=solver)
+    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), integration=integration, essential=sets, solver=solver,
+                     precision=precision)
     build_s = time.perf_counter() - t0
     g = jnp.array([-0.3, 0.0, 0.0])
     solve_s, sol = timed(lambda: model.solve({"right": g}, steps=10), repeats)
@@ -139,6 +141,7 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
             "loop_ratio_kept_over_every_step": loop[keep]["s_per_iteration"] / loop[0.0]["s_per_iteration"],
             "full_newton_over_reuse_solve": solve_s / reuse_s,
             "dof": int(len(model.sets.free) * 3), "path": model.linear.name,
+            "mixed_precision": bool(getattr(model.linear, "mixed", False)),
             "status": sol.outcome.name, "newton_iterations": int(sol.iterations),
             "warm_solve_s": solve_s, "reuse": reuse, "reuse_warm_solve_s": reuse_s,
             "reuse_status": re.outcome.name, "reuse_newton_iterations": int(re.iterations),
@@ -150,7 +153,7 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
             "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
 
 
-def crossover_case(n, repeats, solver, dim=3):
+def crossover_case(n, repeats, solver, dim=3, precision="auto"):
     """One Newton iteration's linear work (assemble the tangent, factorise it, solve once) on
     the n^3 cube (``dim`` 2: the n^2 square) with ``solver`` ("dense" or "sparse"), at the
     right face pushed in by 0.1 spacing, the other particles where they were (a deformed state whose
@@ -163,7 +166,7 @@ def crossover_case(n, repeats, solver, dim=3):
 
     body = jr.Body.grid((n,) * dim, 1.0 / (n - 1))
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
-    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets, solver=solver)
+    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets, solver=solver, precision=precision)
     g = model.prescribed({"right": jnp.zeros(dim).at[0].set(-0.1 * body.spacing)})
     u = jnp.zeros((len(model.sets.free), dim))
     prob = model.problem()
@@ -175,25 +178,32 @@ def crossover_case(n, repeats, solver, dim=3):
 
     t, (x, stability) = timed(lambda: iteration(prob, u, g), repeats)
     return {"n": n, "dim": dim, "solver": solver, "path": model.linear.name, "dof": int(len(model.sets.free) * dim),
+            "mixed_precision": bool(getattr(model.linear, "mixed", False)),
             "iteration_s": t, "finite": bool(jnp.all(jnp.isfinite(x))), "stability": int(stability),
             "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
 
 
 def crossover(sizes, repeats, dim=3):
-    """Dense against sparse per Newton iteration at each size, interleaved (each case in a
-    fresh subprocess); the crossover is the first size where sparse is faster."""
+    """Dense (double and mixed precision) against sparse per Newton iteration at each size,
+    interleaved (each case in a fresh subprocess); the crossover is the first size where
+    sparse is faster than the dense path's precision="auto"."""
+    from jaxrkpm.model import MIXED_MIN
+
     rows = []
     for n in sizes:
         row = {"n": n, "dim": dim, "load_average": os.getloadavg()}
-        for solver in ("dense", "sparse"):
+        for key, solver, precision in (("dense", "dense", "double"), ("dense_mixed", "dense", "mixed"),
+                                       ("sparse", "sparse", "auto")):
             r = subprocess.run([sys.executable, "-m", "experiments.bench_cube3d", "--crossover-case", str(n),
-                                "--repeats", str(repeats), "--solver", solver, "--dim", str(dim)],
-                               capture_output=True, text=True)
-            row[solver] = json.loads(r.stdout.strip().splitlines()[-1]) if r.returncode == 0 else \
+                                "--repeats", str(repeats), "--solver", solver, "--dim", str(dim),
+                                "--precision", precision], capture_output=True, text=True)
+            row[key] = json.loads(r.stdout.strip().splitlines()[-1]) if r.returncode == 0 else \
                 {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}
-        if "iteration_s" in row["dense"] and "iteration_s" in row["sparse"]:
+        if all("iteration_s" in row[k] for k in ("dense", "dense_mixed", "sparse")):
             row["dof"] = row["dense"]["dof"]
-            row["dense_over_sparse"] = row["dense"]["iteration_s"] / row["sparse"]["iteration_s"]
+            row["mixed_over_double"] = row["dense_mixed"]["iteration_s"] / row["dense"]["iteration_s"]
+            auto = row["dense_mixed" if row["dof"] >= MIXED_MIN else "dense"]["iteration_s"]
+            row["dense_over_sparse"] = auto / row["sparse"]["iteration_s"]
         print(json.dumps(row), file=sys.stderr)
         rows.append(row)
     faster = [r["dof"] for r in rows if r.get("dense_over_sparse", 0) > 1]
@@ -213,11 +223,13 @@ def main(argv=None):
                    help="sizes of the dense/sparse crossover per Newton iteration (none: skip it)")
     p.add_argument("--only-crossover", action="store_true", help="the crossover alone")
     p.add_argument("--dim", type=int, default=3, choices=[2, 3], help="of --crossover: the n^3 cube or the n^2 square")
+    p.add_argument("--precision", nargs="*", default=["auto"], choices=["auto", "double", "mixed"],
+                   help="Model(precision=...) of the dense factorisation; several: each case with each")
     p.add_argument("--case", type=int, help=argparse.SUPPRESS)
     p.add_argument("--crossover-case", type=int, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.crossover_case:
-        print(json.dumps(crossover_case(a.crossover_case, a.repeats, a.solver, a.dim)))
+        print(json.dumps(crossover_case(a.crossover_case, a.repeats, a.solver, a.dim, a.precision[0])))
         return
     if a.only_crossover:
         out = {"load_average_before": os.getloadavg(), "crossover": crossover(a.crossover, a.repeats, a.dim),
@@ -225,17 +237,19 @@ def main(argv=None):
         print(json.dumps(out, indent=2))
         return
     if a.case:
-        print(json.dumps(run_case(a.case, a.repeats, a.solver, a.reuse, a.integration[0], a.loop_steps, a.keep)))
+        print(json.dumps(run_case(a.case, a.repeats, a.solver, a.reuse, a.integration[0], a.loop_steps, a.keep,
+                                  a.precision[0])))
         return
     out = {"load_average_before": os.getloadavg()}
     for n in a.n:
-        for integration in a.integration:
+        for integration, precision in itertools.product(a.integration, a.precision):
             r = subprocess.run([sys.executable, "-m", "experiments.bench_cube3d", "--case", str(n),
                                 "--repeats", str(a.repeats), "--solver", a.solver, "--reuse", str(a.reuse),
                                 "--integration", integration, "--loop-steps", str(a.loop_steps),
-                                "--keep", str(a.keep)],
+                                "--keep", str(a.keep), "--precision", precision],
                                capture_output=True, text=True)
-            key = f"cube_{n}" + ("" if integration == "gauss" else f"_{integration}")
+            key = f"cube_{n}" + ("" if integration == "gauss" else f"_{integration}") + \
+                ("" if precision == "auto" else f"_{precision}")
             out[key] = json.loads(r.stdout.strip().splitlines()[-1]) if r.returncode == 0 else \
                 {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}
             out[key]["load_average"] = os.getloadavg()

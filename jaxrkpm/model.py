@@ -33,6 +33,12 @@ MAX_SUPPORT_DIAMETERS = 2.0   # kernel support (support x spacing) allowed, in b
 # moving 2D models to the sparse path changes what they can do (left for its own change)
 DENSE_LIMIT = {2: 2500, 3: 4400}
 SOLVERS = ("auto", "dense", "sparse", "krylov")   # Model(solver=...)
+PRECISIONS = ("auto", "double", "mixed")          # Model(precision=...): the dense factorisation
+# free DOFs from which precision="auto" factorises dense K_ff in single precision and refines
+# its solves in double (DenseSolver(mixed=True)): where the Cholesky factorisation's n^3 is
+# most of a Newton iteration (see MIXED_MIN's measurement in experiments/bench_cube3d.py
+# --precision); below it the 2D models and their stability studies stay in double throughout
+MIXED_MIN = 1000
 # On an accelerator the sparse paths are host callbacks (the factorisation or AMG runs on the
 # CPU) and the dense one runs on the device: one H100 solved the 20^3 cube (21,600 DOF) dense
 # in 4.0 s against 268 s for PARDISO on this 2-core CPU. So "auto" goes dense there while the
@@ -142,13 +148,16 @@ class Model:
                 models; see jaxrkpm.krylov)
     factorisation  of the sparse path: "auto" (PARDISO where Intel MKL is installed, else
                 SuperLU) | "pardiso" | "superlu"; see jaxrkpm.sparse
+    precision   of the dense factorisation: "auto" (mixed from MIXED_MIN free DOFs, else
+                double) | "double" | "mixed" (single-precision Cholesky, solves refined to
+                double accuracy: half the factorisation time; see jaxrkpm.linear.DenseSolver)
     """
 
     def __init__(self, body: Body, material: Material, integration: str = "gauss",
                  essential: Mapping | None = None, support: float = 2.01, order: int = 2,
                  cell_size: float | None = None, body_force=None, tractions=(),
                  springs: Springs | None = None, solver: str = "auto",
-                 factorisation: str = "auto"):
+                 factorisation: str = "auto", precision: str = "auto"):
         if not isinstance(body, Body):
             raise ValueError(f"body must be a jaxrkpm Body, got {type(body).__name__}")
         if not isinstance(material, Material):
@@ -173,6 +182,9 @@ class Model:
         if solver not in SOLVERS:
             raise ValueError(f"unknown solver {solver!r}: choose " + ", ".join(repr(k) for k in SOLVERS))
         factoriser(factorisation)   # a clear error now, even where the dense path is chosen
+        if precision not in PRECISIONS:
+            raise ValueError(f"unknown precision {precision!r}: choose "
+                             + ", ".join(repr(k) for k in PRECISIONS))
         self.body, self.material, self.integration = body, material, integration
         self.support = float(support)
         self.a = self.support * body.spacing
@@ -242,7 +254,7 @@ class Model:
         n_free = Nf * d
         use_dense = solver == "dense" or (solver == "auto" and n_free <= dense_limit(d))
         if use_dense:
-            self.linear = DenseSolver()
+            self.linear = DenseSolver(mixed=precision == "mixed" or (precision == "auto" and n_free >= MIXED_MIN))
         elif solver == "krylov":
             self.linear = KrylovSolver(KrylovSystem(body.X, pair_i, pair_j, self._constraints(trans),
                                                     self.sets.free, self.sets.bnd))

@@ -128,3 +128,32 @@ def test_auto_goes_dense_on_an_accelerator_while_the_matrices_fit():
     assert dense_limit(3, FakeDevice("gpu")) >= 20_000    # memory not reported
     assert dense_limit(3, FakeDevice("gpu", 2**20)) == DENSE_LIMIT[3]   # never below the CPU's
     assert dense_limit(3) == DENSE_LIMIT[3]                # this test machine: a CPU
+
+
+def test_precision_is_chosen_by_size_and_mixed_solves_equal_double(monkeypatch):
+    """Model(precision=...): "auto" factorises in mixed precision from MIXED_MIN free DOFs;
+    a mixed-precision solve and Jacobian equal the double ones to the solver's tolerance;
+    an unknown precision is refused with the choices."""
+    import jax.numpy as jnp
+
+    from jaxrkpm import model as model_module
+
+    body = jr.Body.grid((5, 5), 0.25)
+    sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "push": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
+
+    def make(precision):
+        return jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets, precision=precision)
+
+    assert not make("auto").linear.mixed and make("mixed").linear.mixed and not make("double").linear.mixed
+    monkeypatch.setattr(model_module, "MIXED_MIN", 10)
+    assert make("auto").linear.mixed
+    with pytest.raises(ValueError, match="unknown precision 'half'.*'mixed'"):
+        make("half")
+    g = jnp.array([-0.2, 0.05])
+    solved = {p: (m, m.solve({"push": g}, steps=2)) for p, m in (("double", make("double")), ("mixed", make("mixed")))}
+    (md, sd), (mm, sm) = solved["double"], solved["mixed"]
+    assert sm.outcome.name == "CONVERGED" and sm.iterations == sd.iterations
+    assert np.abs(np.asarray(sm.u - sd.u)).max() < 1e-10 * np.abs(np.asarray(sd.u)).max()
+    centre = np.array([[0.5, 0.5]])
+    Jd, Jm = np.asarray(md.jacobian(sd, "push", centre)), np.asarray(mm.jacobian(sm, "push", centre))
+    assert np.abs(Jm - Jd).max() < 1e-9 * np.abs(Jd).max()
