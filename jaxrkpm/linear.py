@@ -184,6 +184,22 @@ def one_at_a_time(factorise):
 
 
 _cholesky = one_at_a_time(lambda K: jnp.linalg.cholesky(K))
+
+
+def _usable(L):
+    """Whether a Cholesky factor exists (LAPACK's failure leaves NaN or a non-positive pivot)."""
+    return jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
+
+
+def _single_else_double(K):
+    L = jnp.linalg.cholesky(K.astype(jnp.float32))
+    # single precision could not factorise it: let double decide (near a critical point)
+    return jax.lax.cond(_usable(L), lambda: L, lambda: jnp.linalg.cholesky(K).astype(jnp.float32))
+
+
+# per member under vmap on CPU, so the cond stays a branch there (a vmapped cond is a select:
+# every member would pay for the double factorisation too)
+_mixed_cholesky = one_at_a_time(_single_else_double)
 _lu_solve = one_at_a_time(lambda K, b: jax.scipy.linalg.lu_solve(jax.scipy.linalg.lu_factor(K), b))
 _lower_solve = one_at_a_time(lambda L, b: jax.lax.linalg.triangular_solve(L, b, left_side=True, lower=True))
 
@@ -226,17 +242,8 @@ class DenseSolver:
 
     def factor(self, K):
         """Cholesky factor of K_ff in the factorisation's precision, and whether it exists."""
-        def spd_of(L):
-            return jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
-
-        if not self.mixed:
-            L = _cholesky(K)
-            return L, spd_of(L)
-        L = _cholesky(K.astype(jnp.float32))
-        # single precision could not factorise it: let double decide (only near a critical
-        # point; a cond, so the common case never pays for it outside vmap)
-        L = jax.lax.cond(spd_of(L), lambda: L, lambda: _cholesky(K).astype(jnp.float32))
-        return L, spd_of(L)
+        L = _mixed_cholesky(K) if self.mixed else _cholesky(K)
+        return L, _usable(L)
 
     def init(self, ops, blocks) -> DenseState:
         return self.factorise(dense_tangent(ops, blocks))
