@@ -148,9 +148,11 @@ class Model:
                 models; see jaxrkpm.krylov)
     factorisation  of the sparse path: "auto" (PARDISO where Intel MKL is installed, else
                 SuperLU) | "pardiso" | "superlu"; see jaxrkpm.sparse
-    precision   of the dense factorisation: "auto" (mixed from MIXED_MIN free DOFs, else
-                double) | "double" | "mixed" (single-precision Cholesky, solves refined to
-                double accuracy: half the factorisation time; see jaxrkpm.linear.DenseSolver)
+    precision   of the factorisation: "auto" (dense: mixed from MIXED_MIN free DOFs, else
+                double; PARDISO: mixed) | "double" | "mixed" (single-precision factorisation,
+                solves refined to double accuracy: about half the factorisation time; see
+                jaxrkpm.linear.DenseSolver and jaxrkpm.sparse.SaddlePointSystem; SuperLU is
+                double only)
     """
 
     def __init__(self, body: Body, material: Material, integration: str = "gauss",
@@ -259,7 +261,7 @@ class Model:
             self.linear = KrylovSolver(KrylovSystem(body.X, pair_i, pair_j, self._constraints(trans),
                                                     self.sets.free, self.sets.bnd))
         else:
-            self.linear = self._sparse_solver(trans, pair_i, pair_j, factorisation)
+            self.linear = self._sparse_solver(trans, pair_i, pair_j, factorisation, precision)
         self.params = Params(
             {k: jnp.asarray(v) for k, v in material.point_params(self.volume.points).items()},
             {k: jnp.asarray(v) for k, v in material.global_params(d).items()}, sp_params)
@@ -309,14 +311,14 @@ class Model:
             jnp.asarray(stiffness, jnp.float64), (S,))
         return {"psi": psi, "k": k}
 
-    def _sparse_solver(self, trans, pair_i, pair_j, factorisation) -> SparseSolver:
+    def _sparse_solver(self, trans, pair_i, pair_j, factorisation, precision) -> SparseSolver:
         d = self.body.dim
         a, b = np.meshgrid(np.arange(d), np.arange(d), indexing="ij")
         rows = (pair_i[:, None, None] * d + a[None]).ravel()
         cols = (pair_j[:, None, None] * d + b[None]).ravel()
         free_dofs = (self.sets.free[:, None] * d + np.arange(d)[None]).ravel()
         return SparseSolver(SaddlePointSystem(self.body.X, rows, cols, self._constraints(trans), free_dofs,
-                                              self.sets.bnd, d, factorisation))
+                                              self.sets.bnd, d, factorisation, precision))
 
     def _constraints(self, trans) -> sp.csr_matrix:
         """C = [D^nb D^b] (x) I (Nb d, N d): C d = 0 where the essential particles hold (the

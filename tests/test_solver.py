@@ -262,10 +262,15 @@ def block3d():
 
 
 @pytest.mark.parametrize("factorisation", ["pardiso", "superlu"])
-def test_sparse_path_matches_dense_3d(block3d, factorisation):
+def test_sparse_path_matches_dense_3d(block3d, factorisation, monkeypatch):
+    """The sparse path solves as the dense one; PARDISO factorises in single precision by
+    default (precision="auto") and its direct solves are refined to double accuracy."""
     body, sets, push, a = block3d
     sparse = jr.Model(body, MATERIALS["NeoHookean"], essential=sets, solver="sparse",
                       factorisation=factorisation)
+    assert sparse.linear.system.single == (factorisation == "pardiso")
+    assert not jr.Model(body, MATERIALS["NeoHookean"], essential=sets, solver="sparse",
+                        factorisation=factorisation, precision="double").linear.system.single
     b = sparse.solve(push, steps=2)
     assert np.abs(np.asarray(a.u) - np.asarray(b.u)).max() < 1e-10
     assert int(a.iterations) == int(b.iterations)
@@ -281,6 +286,10 @@ def test_sparse_path_matches_dense_3d(block3d, factorisation):
     # an evicted factorisation is made again from the blocks the state carries: same result
     jsparse.pool(sparse.linear.system).clear()
     assert np.abs(np.asarray(prob.solve_linear(state, r)).ravel() - x).max() < 1e-12 * np.abs(x).max()
+    if factorisation == "pardiso":     # unrefined, the single-precision solve is far less exact
+        monkeypatch.setattr(sparse.linear.system, "refinements", 0)
+        x0 = np.asarray(prob.solve_linear(state, r)).ravel()
+        assert np.abs(K @ x0 - np.asarray(r).ravel()).max() > 1e-9 * np.abs(np.asarray(r)).max()
 
 
 def test_unknown_factorisation_is_named(block9):
