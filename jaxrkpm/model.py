@@ -33,7 +33,7 @@ MAX_SUPPORT_DIAMETERS = 2.0   # kernel support (support x spacing) allowed, in b
 # moving 2D models to the sparse path changes what they can do (left for its own change)
 DENSE_LIMIT = {2: 2500, 3: 4400}
 SOLVERS = ("auto", "dense", "sparse", "krylov")   # Model(solver=...)
-PRECISIONS = ("auto", "double", "mixed")          # Model(precision=...): the dense factorisation
+PRECISIONS = ("auto", "double", "mixed")          # Model(precision=...): dense and PARDISO factorisations
 # free DOFs from which precision="auto" factorises dense K_ff in single precision and refines
 # its solves in double (DenseSolver(mixed=True)): where the Cholesky factorisation's n^3 is
 # most of a Newton iteration (see MIXED_MIN's measurement in experiments/bench_cube3d.py
