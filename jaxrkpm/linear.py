@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from . import krylov, sparse
+from .refinement import REFINEMENTS, refine
 from .outcome import Outcome
 
 
@@ -84,9 +85,6 @@ def dense_tangent(ops, blocks):
 
 
 TRIANGULAR_BLOCK = 256   # rows of L per block of the blocked triangular solves
-# refinement steps of a mixed-precision solve (DenseSolver(mixed=True)): each cuts the
-# residual by ~cond(K_ff) eps_single (1e-6 measured on the 10^3 cube), so two reach ~1e-12
-REFINEMENTS = 2
 
 
 def _block_edges(n):
@@ -233,10 +231,6 @@ class DenseSolver:
     inverse: bool = False
     mixed: bool = False
 
-    @property
-    def factor_dtype(self):
-        return jnp.float32 if self.mixed else None
-
     def matrix(self, ops, blocks):
         return dense_tangent(ops, blocks)
 
@@ -264,7 +258,7 @@ class DenseSolver:
     def empty(self, ops, dtype) -> DenseState:
         n = ops.free.shape[0] * ops.f_ext.shape[1]
         z = jnp.zeros((n, n), dtype)
-        fdtype = self.factor_dtype or dtype
+        fdtype = jnp.float32 if self.mixed else dtype
         zf = jnp.zeros((n, n), fdtype)
         if self.inverse:
             return DenseState(z, zf, jnp.array(False), zf, (), jnp.zeros((0, 0, 0), fdtype))
@@ -296,11 +290,7 @@ class DenseSolver:
         ``mixed``, then refined in b's precision against K (``REFINEMENTS`` steps)."""
         if not self.mixed:
             return apply(b)
-        single = lambda r: apply(r.astype(jnp.float32)).astype(b.dtype)
-        x = single(b)
-        for _ in range(REFINEMENTS):
-            x = x + single(b - K @ x)
-        return x
+        return refine(lambda r: apply(r.astype(jnp.float32)).astype(b.dtype), lambda x: K @ x, b, REFINEMENTS)
 
     def stability(self, state: DenseState):
         return jnp.where(state.spd, Stability.STABLE, Stability.UNSTABLE)

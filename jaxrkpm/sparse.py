@@ -53,6 +53,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from .refinement import REFINEMENTS, refine
+
 
 def nested_dissection(X: np.ndarray, indptr: np.ndarray, indices: np.ndarray, leaf: int = 64) -> np.ndarray:
     """Fill-reducing order of n nodes with coordinates X (n, dim) and the symmetric
@@ -353,7 +355,7 @@ class SaddlePointSystem:
 
     cg_rtol = 1e-11     # relative residual of the preconditioned CG solves
     cg_maxiter = 40     # beyond this the current matrix is factorised instead
-    refinements = 2     # of a direct solve with a single-precision factorisation (``exact``)
+    refinements = REFINEMENTS   # of a direct solve with a single-precision factorisation
 
     def __init__(self, X: np.ndarray, rows: np.ndarray, cols: np.ndarray, C, free_dofs: np.ndarray,
                  bnd: np.ndarray, dim: int, factorisation: str = "auto", precision: str = "auto"):
@@ -485,12 +487,11 @@ class SaddlePointSystem:
         """K_ff x = b (n_free, m) by the factorisation ``fac`` of ``blocks``, to double
         accuracy: a single-precision factorisation's solve is refined (``refinements`` steps
         x <- x + direct(b - K_ff x), as the dense path's mixed precision)."""
-        x = self.direct(fac, b)
-        if self.single:
-            kff = self.kff(blocks)
-            for _ in range(self.refinements):
-                x = x + self.direct(fac, b - np.stack([kff(c) for c in x.T], 1))
-        return x
+        if not self.single:
+            return self.direct(fac, b)
+        kff = self.kff(blocks)
+        return refine(lambda r: self.direct(fac, r), lambda x: np.stack([kff(c) for c in x.T], 1), b,
+                      self.refinements)
 
     def _pcg(self, fac, kff, b, rtol):
         """CG on K_ff x = b preconditioned by the factorisation ``fac`` of another matrix,
