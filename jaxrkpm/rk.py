@@ -29,8 +29,11 @@ def kernel_derivative(x: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Neighbours:
-    """Padded neighbour lists: idx (P, K) particle indices (padding repeats index 0),
-    mask (P, K) true where the entry is a real neighbour."""
+    """Padded neighbour lists: idx (P, K) particle indices (padding repeats the point's
+    last neighbour, so a padded entry pairs no particles that are not neighbours already:
+    padding with particle 0 made every particle a tangent pair of particle 0, a dense row
+    and column in the sparse pattern, and linked distant essential sets), mask (P, K) true
+    where the entry is a real neighbour."""
 
     idx: np.ndarray
     mask: np.ndarray
@@ -56,6 +59,7 @@ def neighbours(tree: cKDTree, points: np.ndarray, radius: float,
     for p, l in enumerate(lists):
         l = sorted(l)
         idx[p, :len(l)] = l
+        idx[p, len(l):] = l[-1] if len(l) else 0
         mask[p, :len(l)] = True
     return Neighbours(idx, mask)
 
