@@ -15,7 +15,7 @@ from .geometry import Body
 from .materials import Material, green_lagrange, pk2
 from .rk import psi_jax
 from .krylov import KrylovSystem
-from .linear import DenseSolver, KrylovSolver, SparseSolver
+from .linear import DenseSolver, KrylovSolver, SparseSolver, elimination_layout
 from .problem import Problem
 from .sparse import SaddlePointSystem, factoriser
 from .solve import (Config, Critical, Limits, Ops, Params, Solution, Status, coefficients,
@@ -236,11 +236,9 @@ class Model:
         Nf = len(self.sets.free)
         if trans is not None:
             A = trans.coupling(self.sets, N)
-            near = np.flatnonzero(np.any(A != 0, axis=0))
-            A_near = A[:, near]
             Dbinv, nb_idx, nb_psi = trans.Dbinv, trans.nb_idx, trans.nb_psi
         else:
-            near, A_near = np.zeros(0, np.int64), np.zeros((0, 0))
+            A = np.zeros((0, Nf))
             Dbinv, nb_idx, nb_psi = np.zeros((0, 0)), np.zeros((0, 1), np.int64), np.zeros((0, 1))
         self.ops = Ops(
             idx=jnp.asarray(idx, jnp.int32), dpsi=jnp.asarray(self.volume.dpsi),
@@ -249,7 +247,7 @@ class Model:
             nb_idx=jnp.asarray(nb_idx, jnp.int32), nb_psi=jnp.asarray(nb_psi),
             f_ext=jnp.asarray(f_ext), pair_id=jnp.asarray(pair_id, jnp.int32),
             pair_i=jnp.asarray(pair_i, jnp.int32), pair_j=jnp.asarray(pair_j, jnp.int32),
-            near=jnp.asarray(near, jnp.int32), A_near=jnp.asarray(A_near),
+            elim=elimination_layout(A, pair_i, pair_j, self.sets.free, self.sets.bnd),
             spacing=jnp.asarray(body.spacing), groups=jnp.asarray(groups, jnp.int32),
             sp_idx=jnp.asarray(sp_idx, jnp.int32), sp_pair=jnp.asarray(sp_pair, jnp.int32))
 

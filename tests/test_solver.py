@@ -131,23 +131,43 @@ def test_body_force_balanced_by_reaction():
     assert np.abs(np.asarray(model.displacement(sol, body.X[top]))).max() < 1e-10
 
 
-def test_tangent_matches_central_differences():
-    body, bnd, _ = boundary_model(4, MATERIALS["Fung"])
-    model = jr.Model(body, MATERIALS["Fung"], essential={"wall": body.select(lambda X: X[:, 0] < 1e-9)})
+def assert_tangent_matches_central_differences(model, g):
     rng = np.random.default_rng(0)
-    u = 0.05 * rng.standard_normal((len(model.sets.free), 2))
-    g = jnp.zeros((len(model.sets.bnd), 2))
+    u = 0.05 * rng.standard_normal((len(model.sets.free), model.body.dim))
     prob = model.problem()
     K = np.asarray(prob.tangent(u, g))
+    residual = jax.jit(prob.residual)
     n, eps = K.shape[0], 1e-6
     Kfd = np.empty_like(K)
     for i in range(n):
         e = np.zeros(n)
         e[i] = eps
         e = e.reshape(u.shape)
-        Kfd[:, i] = (np.asarray(prob.residual(u + e, g)) - np.asarray(prob.residual(u - e, g))).ravel() / (2 * eps)
+        Kfd[:, i] = (np.asarray(residual(u + e, g)) - np.asarray(residual(u - e, g))).ravel() / (2 * eps)
     assert np.abs(K - Kfd).max() < 1e-7 * np.abs(K).max()
     assert np.abs(K - K.T).max() < 1e-10 * np.abs(K).max()
+
+
+def test_tangent_matches_central_differences():
+    body, bnd, _ = boundary_model(4, MATERIALS["Fung"])
+    model = jr.Model(body, MATERIALS["Fung"], essential={"wall": body.select(lambda X: X[:, 0] < 1e-9)})
+    assert_tangent_matches_central_differences(model, jnp.zeros((len(model.sets.bnd), 2)))
+
+
+@pytest.mark.parametrize("layout, components", [("opposite", 2), ("touching", 1)])
+def test_tangent_eliminates_essential_components(layout, components):
+    """K_ff eliminates the essential particles one component at a time (essential sets
+    coupled to disjoint free particles apart, sets that touch together): the tangent still
+    equals central differences of the residual."""
+    body = jr.Body.grid((7, 7), 1.0 / 6)
+    left, right, bottom = (body.select(f) for f in (lambda X: X[:, 0] < 1e-9, lambda X: X[:, 0] > 1 - 1e-9,
+                                                     lambda X: X[:, 1] < 1e-9))
+    sets = {"left": left, "right": right} if layout == "opposite" else \
+        {"left": left, "bottom": np.setdiff1d(bottom, left)}
+    model = jr.Model(body, MATERIALS["NeoHookean"], essential=sets)
+    assert model.ops.elim.A.shape[0] == components
+    g = 0.03 * np.random.default_rng(1).standard_normal((len(model.sets.bnd), 2))
+    assert_tangent_matches_central_differences(model, jnp.asarray(g))
 
 
 @pytest.mark.parametrize("name", MATERIALS)
