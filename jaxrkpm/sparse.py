@@ -53,7 +53,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .refinement import REFINEMENTS, refine
+from .refinement import REFINEMENTS, preconditioned_cg, refine
 
 
 def nested_dissection(X: np.ndarray, indptr: np.ndarray, indices: np.ndarray, leaf: int = 64) -> np.ndarray:
@@ -496,29 +496,11 @@ class SaddlePointSystem:
     def _pcg(self, fac, kff, b, rtol):
         """CG on K_ff x = b preconditioned by the factorisation ``fac`` of another matrix,
         to the relative residual rtol; x, or None when it stalls or meets negative curvature."""
-        bn = np.linalg.norm(b)
-        x = np.zeros_like(b)
-        if bn == 0:
-            return x
-        r = b.copy()
-        z = self.direct(fac, r[:, None])[:, 0]
-        p = z.copy()
-        rz = r @ z
-        for it in range(1, self.cg_maxiter + 1):
-            Ap = kff(p)
-            pAp = p @ Ap
-            if not pAp > 0:
-                return None
-            a = rz / pAp
-            x += a * p
-            r -= a * Ap
-            if np.linalg.norm(r) <= rtol * bn:
-                STATS["cg_iterations"] += it
-                return x
-            z = self.direct(fac, r[:, None])[:, 0]
-            rz, rz_old = r @ z, rz
-            p = z + (rz / rz_old) * p
-        return None
+        x, its, ok = preconditioned_cg(kff, lambda r: self.direct(fac, r[:, None])[:, 0], b, rtol, self.cg_maxiter)
+        if not ok:
+            return None
+        STATS["cg_iterations"] += its
+        return x
 
     def preconditioned(self, fac, blocks, b, rtol):
         """K_ff x = b for the tangent ``blocks`` by CG preconditioned with ``fac`` (every
