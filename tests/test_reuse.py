@@ -47,3 +47,29 @@ def test_reuse_still_stops_at_the_instability(strip):
 def test_reuse_must_lie_in_unit_interval(strip):
     with pytest.raises(ValueError, match="reuse"):
         strip.config(reuse=1.5)
+
+
+def test_preconditioned_cg_on_host_and_in_jit():
+    """The one preconditioned CG (a kept factorisation as preconditioner): NumPy on the host
+    and lax.while_loop inside jit give K^-1 b to the tolerance, column by column, and report
+    a matrix that is not positive definite."""
+    import jax
+    from jaxrkpm.refinement import preconditioned_cg
+
+    rng = np.random.default_rng(0)
+    Q = np.linalg.qr(rng.standard_normal((40, 40)))[0]
+    K = Q @ np.diag(np.linspace(1.0, 50.0, 40)) @ Q.T
+    near = np.linalg.inv(K + 0.3 * np.diag(rng.uniform(0.0, 5.0, 40)))   # an earlier state's
+    b = rng.standard_normal((40, 3)) * np.array([1.0, 1e-3, 1e3])         # columns of any size
+    exact = np.linalg.solve(K, b)
+    for j in range(3):
+        x, its, ok = preconditioned_cg(lambda v: K @ v, lambda r: near @ r, b[:, j], 1e-10, 40)
+        assert ok and 0 < its < 40
+        assert np.abs(x - exact[:, j]).max() < 1e-8 * np.abs(exact[:, j]).max()
+    run = jax.jit(lambda b: preconditioned_cg(lambda v: jnp.asarray(K) @ v, lambda r: jnp.asarray(near) @ r, b,
+                                              1e-10, 40, columns=True, loop=jax.lax.while_loop))
+    x, its, ok = run(jnp.asarray(b))
+    assert bool(np.all(ok)) and np.allclose(np.asarray(x), exact, rtol=0, atol=1e-8 * np.abs(exact).max(0))
+    indefinite = K - 10.0 * np.eye(40)
+    x, its, ok = preconditioned_cg(lambda v: indefinite @ v, lambda r: near @ r, b[:, 0], 1e-10, 40)
+    assert not ok
