@@ -17,6 +17,7 @@ dense and the sparse solver alike.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -42,16 +43,32 @@ class Stability(Outcome):
 
 # ------------------------------------------------------------------------------- dense
 class DenseState(NamedTuple):
-    K: jax.Array      # (n, n) K_ff
-    L: jax.Array      # (n, n) its Cholesky factor (NaN where K_ff is not positive definite)
-    #                   with inverse=True, else (0, 0) (``rows`` holds it)
-    spd: jax.Array    # () K_ff positive definite: L is usable (else solves use LU of K)
-    Linv: jax.Array   # (n, n) L^-1 (``DenseSolver(inverse=True)``; K^-1 where K_ff is not
-    #                   positive definite), else (0, 0)
-    rows: tuple       # L as blocks of TRIANGULAR_BLOCK whole rows (``row_blocks``), for
-    #                   ``triangular_pair``; () with inverse=True
-    Dinv: jax.Array   # (m, B, B) inverses of L's diagonal blocks (``blocked_inverses``; the
-    #                   last one padded); (0, 0, 0) with inverse=True
+    """A dense factorisation of K_ff. Its matrices are held flat (row-major by construction):
+    held as (n, n) arrays inside a Newton or control loop, XLA gave the loop's carry LAPACK's
+    column-major layout (they come out of, or feed, the factorisations), and every solve then
+    copied them to the row-major layout of its products (10^3 cube, n = 2,400: a kept
+    factorisation's solve 15 ms, 6.6 ms without the copies)."""
+    K_flat: jax.Array     # (n * n,) K_ff
+    spd: jax.Array        # () K_ff positive definite: L is usable (else solves use LU of K)
+    Linv_flat: jax.Array  # (n * n,) L^-1 (``DenseSolver(inverse=True)``; K^-1 where K_ff is not
+    #                       positive definite), else (0,)
+    rows: tuple           # flat row blocks of L^T (``factor_blocks``), for ``triangular_pair``;
+    #                       () with inverse=True
+    Dinv: jax.Array       # (m, B, B) inverses of L's diagonal blocks (``blocked_inverses``; the
+    #                       last one padded); (0, 0, 0) with inverse=True
+
+    @property
+    def K(self):
+        return _square(self.K_flat)
+
+    @property
+    def Linv(self):
+        return _square(self.Linv_flat)
+
+
+def _square(flat):
+    n = math.isqrt(flat.shape[0])
+    return flat.reshape(n, n)
 
 
 class Elimination(NamedTuple):
@@ -160,49 +177,62 @@ def _block_edges(n):
     return list(range(0, n, TRIANGULAR_BLOCK)) + [n]
 
 
-def row_blocks(L):
-    """L (n, n) as a tuple of blocks of TRIANGULAR_BLOCK whole rows, each its own array.
+def factor_blocks(L):
+    """The Cholesky factor L (n, n) as the row blocks of U = L^T (TRIANGULAR_BLOCK rows
+    each, every one its own array): U_i = L[:, a:c]^T, a column panel of L.
+
     Why separate arrays: a product with a slice of L taken inside jit ran ~8x slower than
     the same product with the slice held as an array (XLA:CPU, n = 2,400), so the blocks are
-    cut once per factorisation (a copy of L) instead of at every solve."""
+    cut once per factorisation instead of at every solve. Why column panels of L: LAPACK
+    leaves L column-major, where a panel is contiguous and its transpose is row-major with
+    no copy. Held as row blocks of L instead, inside a Newton loop whose carry kept them
+    (and K) in LAPACK's column-major layout, every solve copied all of them to the
+    row-major layout of XLA's products (10^3 cube, n = 2,400: a kept-factorisation solve
+    15 ms, against 6.6 ms with the blocks outside the loop)."""
     edges = _block_edges(L.shape[0])
-    return jax.lax.optimization_barrier(tuple(L[a:c] for a, c in zip(edges[:-1], edges[1:])))
+    return jax.lax.optimization_barrier(tuple(L[:, a:c].T.ravel() for a, c in zip(edges[:-1], edges[1:])))
 
 
-def blocked_inverses(rows):
-    """Inverses of the diagonal blocks of the lower triangular L given as ``row_blocks``:
-    (m, B, B) with B = TRIANGULAR_BLOCK; the last block's in the top left corner of its slot
-    (zeros elsewhere). Formed once per factorisation (m small triangular solves, ~n B^2 flops)."""
+def blocked_inverses(blocks):
+    """Inverses of the diagonal blocks of L given as ``factor_blocks``: (m, B, B) with
+    B = TRIANGULAR_BLOCK, L_ii^-1; the last block's in the top left corner of its slot (zeros
+    elsewhere). Formed once per factorisation (m small triangular solves, ~n B^2 flops)."""
     B = TRIANGULAR_BLOCK
     out = []
-    for i, Li in enumerate(rows):
-        a, c = i * B, i * B + Li.shape[0]
-        inv = _lower_solve(Li[:, a:c], jnp.eye(c - a, dtype=Li.dtype))   # one_at_a_time: see there
+    n = math.isqrt(sum(Ui.size for Ui in blocks))
+    for i, Ui in enumerate(blocks):
+        Ui = Ui.reshape(-1, n)
+        a, c = i * B, i * B + Ui.shape[0]
+        inv = _lower_solve(Ui[:, a:c].T, jnp.eye(c - a, dtype=Ui.dtype))   # one_at_a_time: see there
         out.append(jnp.pad(inv, ((0, B - (c - a)), (0, B - (c - a)))))
     return jnp.stack(out)
 
 
-def triangular_pair(rows, Dinv, b):
-    """x = L^-T L^-1 b (K^-1 b for K = L L^T) for b (n, k), L given as ``row_blocks``, by
-    block substitution in which every operation is a product with a row block of L or a
-    diagonal block's inverse (``blocked_inverses``; L's upper triangle is zero). Why: XLA's
-    CPU triangular solve (with L an argument, as in a solver state) is several times slower
-    than a product with the same matrix: at n = 2,400, one right-hand side, same run (load
-    average 6), cho_solve 89 ms, this 12 ms; cutting the row blocks and inverting the
-    diagonal ones, once per factorisation, 21 ms (the Cholesky factorisation ~1.5 s there)."""
+def triangular_pair(blocks, Dinv, b):
+    """x = L^-T L^-1 b (K^-1 b for K = L L^T) for b (n, k), L given as ``factor_blocks``
+    (U_i, the row blocks of L^T), by block substitution in which every operation is a
+    product with a block U_i or a diagonal block's inverse (``blocked_inverses``; U's lower
+    triangle is zero). Why: XLA's CPU triangular solve (with L an argument, as in a solver
+    state) is several times slower than a product with the same matrix: at n = 2,400, one
+    right-hand side, same run (load average 6), cho_solve 89 ms, this 12 ms; cutting the
+    blocks and inverting the diagonal ones, once per factorisation, 21 ms (the Cholesky
+    factorisation ~1.5 s there)."""
     B = TRIANGULAR_BLOCK
-    y = jnp.zeros_like(b)
-    for i, Li in enumerate(rows):                # L y = b: y's later blocks are still zero
-        a, c = i * B, i * B + Li.shape[0]
-        y = y.at[a:c].set(Dinv[i, :c - a, :c - a] @ (b[a:c] - Li @ y))
-    x = y
-    for i in reversed(range(len(rows))):         # L^T x = y, one block column of L^T (a row
-        Li = rows[i]                             # block of L) at a time
-        a, c = i * B, i * B + Li.shape[0]
-        xi = jax.lax.dot_general(Dinv[i, :c - a, :c - a], x[a:c], (((0,), (0,)), ((), ())))
-        # the row block is zero past its diagonal block, and that block's own entries of x
-        # are overwritten next: only x's earlier blocks change
-        x = x - jax.lax.dot_general(Li, xi, (((0,), (0,)), ((), ())))
+    n = b.shape[0]
+    blocks = [Ui.reshape(-1, n) for Ui in blocks]
+    contract_rows = (((0,), (0,)), ((), ()))
+    r = b
+    y = []
+    for i, Ui in enumerate(blocks):             # L y = b by columns of L (U_i^T): once y_i is
+        a, c = i * B, i * B + Ui.shape[0]       # known, it leaves the later right-hand sides
+        yi = Dinv[i, :c - a, :c - a] @ r[a:c]
+        r = r - jax.lax.dot_general(Ui, yi, contract_rows)   # (U_i is zero left of block i;
+        y.append(yi)                                          # block i of r is not read again)
+    x = jnp.zeros_like(b)
+    for i in reversed(range(len(blocks))):      # U x = y by rows of U: x's later blocks are
+        Ui = blocks[i]                          # known, its block i and earlier ones still zero
+        a, c = i * B, i * B + Ui.shape[0]
+        xi = jax.lax.dot_general(Dinv[i, :c - a, :c - a], y[i] - Ui @ x, contract_rows)
         x = x.at[a:c].set(xi)
     return x
 
@@ -315,26 +345,23 @@ class DenseSolver:
         """The state of a dense K_ff (n, n) given as a matrix."""
         L, spd = self.factor(K)
         if not self.inverse:
-            rows = row_blocks(L)
-            return DenseState(K, jnp.zeros((0, 0), L.dtype), spd, jnp.zeros((0, 0), L.dtype), rows,
-                              blocked_inverses(rows))
+            rows = factor_blocks(L)
+            return DenseState(K.ravel(), spd, jnp.zeros((0,), L.dtype), rows, blocked_inverses(rows))
         eye = jnp.eye(K.shape[0], dtype=L.dtype)
         # not positive definite (past a critical point): K^-1 itself, by LU, in its place
         Linv = jax.lax.cond(spd, lambda: _lower_solve(L, eye),
                             lambda: _lu_solve(K, eye.astype(K.dtype)).astype(L.dtype))
-        return DenseState(K, L, spd, Linv, (), jnp.zeros((0, 0, 0), L.dtype))
+        return DenseState(K.ravel(), spd, Linv.ravel(), (), jnp.zeros((0, 0, 0), L.dtype))
 
     def empty(self, ops, dtype) -> DenseState:
         n = ops.free.shape[0] * ops.f_ext.shape[1]
-        z = jnp.zeros((n, n), dtype)
+        z = jnp.zeros(n * n, dtype)
         fdtype = jnp.float32 if self.mixed else dtype
-        zf = jnp.zeros((n, n), fdtype)
         if self.inverse:
-            return DenseState(z, zf, jnp.array(False), zf, (), jnp.zeros((0, 0, 0), fdtype))
+            return DenseState(z, jnp.array(False), jnp.zeros(n * n, fdtype), (), jnp.zeros((0, 0, 0), fdtype))
         edges = _block_edges(n)
-        rows = tuple(jnp.zeros((c - a, n), fdtype) for a, c in zip(edges[:-1], edges[1:]))
-        none = jnp.zeros((0, 0), fdtype)
-        return DenseState(z, none, jnp.array(False), none, rows,
+        rows = tuple(jnp.zeros(((c - a) * n,), fdtype) for a, c in zip(edges[:-1], edges[1:]))
+        return DenseState(z, jnp.array(False), jnp.zeros((0,), fdtype), rows,
                           jnp.zeros((len(rows), TRIANGULAR_BLOCK, TRIANGULAR_BLOCK), fdtype))
 
     def solve(self, state: DenseState, rhs):

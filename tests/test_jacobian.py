@@ -245,7 +245,7 @@ def test_kept_factorisation_settles_to_full_newton(planar):
         s, state = settle(side, s, state, g1)
         assert Status.of(s.status) == Status.CONVERGED
     # no refactorisation: the base is still the factorisation at the start; pairs were learnt
-    assert np.array_equal(np.asarray(state.base.L), np.asarray(state0.base.L)) and int(state.count) > 0
+    assert np.array_equal(np.asarray(state.base.Linv), np.asarray(state0.base.Linv)) and int(state.count) > 0
     ref = model.solve_g(s.g, initial=sol, loads=sol.load)          # full Newton, fresh tangents
     assert np.abs(np.asarray(s.u - ref.u)).max() < 1e-9 * np.abs(np.asarray(ref.u)).max()
     prob = model.problem()
@@ -273,7 +273,7 @@ def test_tracking_with_kept_factorisations_reaches_the_waypoints(planar):
 
 @pytest.mark.parametrize("n", [5, 300])
 def test_blocked_triangular_solves_equal_a_dense_solve(n, monkeypatch):
-    """DenseSolver's block substitution (``triangular_pair``: row blocks of L and inverted
+    """DenseSolver's block substitution (``triangular_pair``: row blocks of L^T and inverted
     diagonal blocks, products only) solves K x = b as numpy does, for sizes below, at and past
     one block (a partial last block), several right-hand sides, and per member under vmap;
     where K is not positive definite the LU fallback still solves it."""
@@ -285,7 +285,7 @@ def test_blocked_triangular_solves_equal_a_dense_solve(n, monkeypatch):
     K = A @ A.T / n + np.eye(n)
     b = rng.standard_normal((n, 2))
     L = jnp.linalg.cholesky(jnp.asarray(K))
-    rows = linear.row_blocks(L)
+    rows = linear.factor_blocks(L)
     assert len(rows) == -(-n // 128)
     x = np.asarray(linear.triangular_pair(rows, linear.blocked_inverses(rows), jnp.asarray(b)))
     assert np.abs(x - np.linalg.solve(K, b)).max() < 1e-10 * np.abs(x).max()
