@@ -474,8 +474,10 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
     ``cfg.reuse`` > 0 (with ``chord=False``): an iteration solves with the kept, stable
     ``state`` (no assembly) where the previous step cut |r| by at least ``cfg.reuse`` (the
     predictor: where ``state``, the previous load step's last, is stable), else assembles and
-    factorises; the line search stays. Convergence is declared, as in full Newton, on a step
-    whose tangent was factorised at its start (its stability is the one reported)."""
+    factorises; the line search stays. Once |r| is small enough that one Newton step meets
+    the tolerance, the tangent there is factorised (once per load step, where the chord has
+    not already made one) and serves the rest of the step. Convergence is declared only
+    after a tangent of this load step was factorised (its stability is the one reported)."""
     W = cfg.W
     res = partial(residual, ops, params, W)
     r_pred, kfg_dg = jax.jvp(lambda g: res(u, g, l1), (g0,), (g1 - g0,))
@@ -524,7 +526,7 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
     reusing = (not chord) and cfg.reuse > 0 and cfg.linear.name == "dense"
 
     def body(c):
-        it, u, Pi, r, _, state, keep, scale = c
+        it, u, Pi, r, _, state, keep, scale, step_factorised = c
         first = it == 0
         rhs = jnp.where(first, rhs0, r)
         made = True
@@ -548,21 +550,30 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
         # before them, so the scale by a relative O(|du|); it cost ~30% of a chord correction)
         fresh = lambda: internal_force_scale(ops, params, W, coefficients(ops, v, g1))
         scale = fresh() if made is True else when(first | made, fresh, scale)
-        converged = ok & (rn <= jnp.maximum(cfg.rtol * jnp.maximum(r_ref, scale), floor))
+        tol = jnp.maximum(cfg.rtol * jnp.maximum(r_ref, scale), floor)
+        converged = ok & (rn <= tol)
         cap = max_iter
         if chord and cfg.reuse > 0:
             # a kept factorisation that no longer contracts fast is not worth more corrections
             slow = ~first & ~converged & (rn > cfg.reuse * jnp.linalg.norm(r))
             cap = jnp.where(slow, it + 1, max_iter)
         if reusing:
-            # the equilibrium is declared only on a step with a tangent factorised at its
-            # start (so the stability reported is, as in full Newton, that of the iterate
-            # before the converged one, measured: one factorised earlier lets a solve pass a
-            # critical point); a chord step that meets the tolerance is followed by one
+            # the equilibrium is declared only once a tangent of this step (at g1: not the
+            # predictor's) has been factorised, so the stability reported is, as in full
+            # Newton, that of an iterate of this step's Newton sequence (measured: with one
+            # of the previous step only, a solve passed a critical point); a chord step that
+            # meets the tolerance before that is followed by one. That factorisation is made
+            # where it does most: once |r| is low enough that a Newton step from there meets
+            # the tolerance (quadratic convergence, |r|^2 <= tol r_ref), so the chord steps
+            # after it contract at once (10^3 cube, 30% in 10 steps: 76 -> 40 iterations, the
+            # same 10 factorisations, 5.37 -> 4.08 s, same run)
+            step_factorised = step_factorised | (made & ~first)
             met = converged
-            converged = converged & (made | (not cfg.check_stability))
+            converged = converged & (step_factorised | (not cfg.check_stability))
+            # (without the stability check no factorisation is owed: chords while they contract)
+            owed = cfg.check_stability & ~step_factorised & (rn * rn <= tol * r_ref)
             keep = ok & ~met & (rn <= cfg.reuse * jnp.linalg.norm(r)) & \
-                (cfg.linear.stability(state) == Stability.STABLE)
+                (cfg.linear.stability(state) == Stability.STABLE) & ~owed
         # stability from the last factorised tangent (at the iterate before the converged one)
         if cfg.check_stability:
             done = jnp.where(stab == Stability.STABLE, Status.CONVERGED,
@@ -576,7 +587,7 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
         # residual met the tolerance anyway, the attempt ends
         status = jnp.where((stab == Stability.FAILED) & ~converged, Status.LINEAR_SOLVE, status)
         return (it + 1, jnp.where(ok, v, u), jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), status, state, keep,
-                scale)
+                scale, step_factorised)
 
     def assemble_and_solve(u, first, rhs, state):
         """A Newton step with the tangent at u (at g0 for the predictor): (dx, state, stability)."""
@@ -605,8 +616,8 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
     if chord:
         status0 = jnp.where(cfg.linear.stability(state) == Stability.STABLE, -1, Status.UNSTABLE_TANGENT)
     keep0 = jnp.asarray(reusing) & (cfg.linear.stability(state) == Stability.STABLE)
-    it, u_new, _, r, status, state, _, _ = jax.lax.while_loop(
-        cond, body, (jnp.array(0), u, Pi0, r0, status0, state, keep0, jnp.zeros((), u.dtype)))
+    it, u_new, _, r, status, state, _, _, _ = jax.lax.while_loop(
+        cond, body, (jnp.array(0), u, Pi0, r0, status0, state, keep0, jnp.zeros((), u.dtype), jnp.array(False)))
     return u_new, status, it, jnp.linalg.norm(r), state
 
 
