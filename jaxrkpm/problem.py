@@ -118,14 +118,17 @@ class Problem:
         """K_ff^-1 rhs at the equilibrium ``sol`` (differentiable, transposable)."""
         return S.sensitivity(self.ops, self.params, self.config, sol.u, sol.g, sol.load, rhs, state)
 
-    def response(self, sol: Solution, dG, state=None, refine: float = 0.0):
-        """du (m, Nf, d) of the free coefficients for m prescribed directions dG (m, Nb, d)."""
-        return S.response(self.ops, self.params, self.config, sol.u, sol.g, sol.load, dG, state, refine)
+    def response(self, sol: Solution, dG, state=None, refine: float = 0.0, guess=None):
+        """du (m, Nf, d) of the free coefficients for m prescribed directions dG (m, Nb, d)
+        (``guess``: a response to start the refinement from; see ``jaxrkpm.solve.sensitivity``)."""
+        return S.response(self.ops, self.params, self.config, sol.u, sol.g, sol.load, dG, state, refine, guess)
 
-    def jacobian(self, sol: Solution, dG, idx, psi, state=None, refine: float = 0.0):
+    def jacobian(self, sol: Solution, dG, idx, psi, state=None, refine: float = 0.0, du=None):
         """d(displacement at points)/d(direction) (P, d, m) for the directions dG (m, Nb, d)
         at points with shape functions (idx, psi), from one factorisation (``state``;
         ``refine`` > 0, the relative residual to refine to, where it factorises an earlier,
-        nearby state: see ``jaxrkpm.solve.sensitivity``)."""
-        du = self.response(sol, dG, state, refine)
+        nearby state: see ``jaxrkpm.solve.sensitivity``), or from their ``response`` ``du``
+        where it is already known."""
+        if du is None:
+            du = self.response(sol, dG, state, refine)
         return S.point_jacobian(self.ops, idx, psi, sol.u, sol.g, du, dG)

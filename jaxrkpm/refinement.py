@@ -28,10 +28,11 @@ def _python_loop(cond, body, state):
 
 
 def preconditioned_cg(matvec, precondition, b, rtol: float, maxiter: int, *, columns: bool = False,
-                      loop=_python_loop):
+                      loop=_python_loop, x0=None):
     """Conjugate gradients on K x = b (K symmetric positive definite) preconditioned by
     ``precondition`` (an approximate K^-1 that is symmetric positive definite, e.g. the
-    factorisation of K at a nearby state), from x = 0, until |b - K x| <= rtol |b| or
+    factorisation of K at a nearby state), from x = ``x0`` (default 0: a guess, such as the
+    solution of a nearby system, saves iterations), until |b - K x| <= rtol |b| or
     ``maxiter`` iterations. ``columns``: the last axis of b holds independent right-hand
     sides, each with its own step lengths and test (one product of K and of the
     preconditioner per iteration serves all). ``loop``: how to run the iterations, a
@@ -46,10 +47,12 @@ def preconditioned_cg(matvec, precondition, b, rtol: float, maxiter: int, *, col
         return xp.sum(u * v, axis=axes)
 
     goal = rtol * xp.sqrt(dot(b, b))
-    z = precondition(b)
-    rz = dot(b, z)
+    x = xp.zeros_like(b) if x0 is None else x0
+    r = b if x0 is None else b - matvec(x0)
+    z = precondition(r)
+    rz = dot(r, z)
     # state: iteration, x, r, p, r.z, live (columns still iterating), curved (no breakdown)
-    start = (0, xp.zeros_like(b), b, z, rz, xp.sqrt(dot(b, b)) > goal, xp.ones_like(goal, dtype=bool))
+    start = (0, x, r, z, rz, xp.sqrt(dot(r, r)) > goal, xp.ones_like(goal, dtype=bool))
 
     def cond(s):
         return (s[0] < maxiter) & xp.any(s[5])

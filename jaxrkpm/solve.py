@@ -919,7 +919,7 @@ REFINE_MAX = 20   # CG preconditioned by a kept factorisation: at most this many
 #                   (each m Hessian-vector products)
 
 
-def sensitivity(ops, params, cfg: Config, u, g, load, rhs, state=None, refine: float = 0.0):
+def sensitivity(ops, params, cfg: Config, u, g, load, rhs, state=None, refine: float = 0.0, guess=None):
     """x = K_ff^-1 rhs at the equilibrium (u, g, load), rhs (Nf, d) or (Nf, d, m): the one
     linearised solve behind every implicit derivative (solve's JVP, ``response``, Jacobians).
     ``state``: a factorisation of K_ff there to reuse (default: factorise now).
@@ -930,7 +930,9 @@ def sensitivity(ops, params, cfg: Config, u, g, load, rhs, state=None, refine: f
     that relative residual. Why CG, not the stationary refinement x += solve(rhs - K x): that
     contracts by the kept factorisation's chord factor per step, and needed 25 corrections
     where CG took 9 (10^3 cube, a factorisation 10 control steps old; 0.49 s against 0.23 s).
-    0: ``state`` factorises this very tangent (no refinement).
+    ``guess`` (rhs's shape): where CG starts (e.g. the solution at the previous control step;
+    the result meets the same residual test). 0: ``state`` factorises this very tangent (no
+    refinement).
 
     A custom linear solve: the matrix-vector product is the exact Hessian-vector product of
     the energy, the solve uses the factorisation, and symmetry makes it transposable (so
@@ -947,8 +949,9 @@ def sensitivity(ops, params, cfg: Config, u, g, load, rhs, state=None, refine: f
     def solve(mv, b):
         if not refine:
             return cfg.linear.solve(state, b)
+        x0 = None if guess is None else jax.lax.stop_gradient(guess)
         return preconditioned_cg(mv, partial(cfg.linear.solve, state), b, refine, REFINE_MAX,
-                                 columns=b.ndim > u.ndim, loop=jax.lax.while_loop)[0]
+                                 columns=b.ndim > u.ndim, loop=jax.lax.while_loop, x0=x0)[0]
 
     return jax.lax.custom_linear_solve(matvec, rhs, solve=solve, symmetric=True)
 
@@ -980,13 +983,14 @@ def _solve_path_jvp(cfg, primals, tangents):
 solve_path_jit = jax.jit(solve_path_diff, static_argnames=("cfg",))
 
 
-def response(ops, params, cfg: Config, u, g, load, dG, state=None, refine: float = 0.0):
+def response(ops, params, cfg: Config, u, g, load, dG, state=None, refine: float = 0.0, guess=None):
     """Implicit sensitivity of the free coefficients to m prescribed directions dG (m, Nb, d):
-    K_ff du = -K_fg dG with one factorisation (``state``, or a new one; ``refine``: see
-    ``sensitivity``). Returns (m, Nf, d)."""
+    K_ff du = -K_fg dG with one factorisation (``state``, or a new one; ``refine`` and
+    ``guess``, a response (m, Nf, d) to start from: see ``sensitivity``). Returns (m, Nf, d)."""
     dr = jax.vmap(lambda dg: jax.jvp(lambda x: residual(ops, params, cfg.W, u, x, load),
                                      (g,), (dg,))[1])(dG)                      # (m, Nf, d)
-    du = -sensitivity(ops, params, cfg, u, g, load, jnp.moveaxis(dr, 0, -1), state, refine)   # (Nf, d, m)
+    x0 = None if guess is None else -jnp.moveaxis(guess, 0, -1)
+    du = -sensitivity(ops, params, cfg, u, g, load, jnp.moveaxis(dr, 0, -1), state, refine, x0)   # (Nf, d, m)
     return jnp.moveaxis(du, -1, 0)
 
 

@@ -72,6 +72,12 @@ def test_preconditioned_cg_on_host_and_in_jit():
                                               1e-10, 40, columns=True, loop=jax.lax.while_loop))
     x, its, ok = run(jnp.asarray(b))
     assert bool(np.all(ok)) and np.allclose(np.asarray(x), exact, rtol=0, atol=1e-8 * np.abs(exact).max(0))
+    # from a guess near the solution (a nearby system's): the same residual test, fewer iterations
+    x0 = exact[:, 0] + 1e-4 * rng.standard_normal(40)
+    cold = preconditioned_cg(lambda v: K @ v, lambda r: near @ r, b[:, 0], 1e-10, 40)
+    warm = preconditioned_cg(lambda v: K @ v, lambda r: near @ r, b[:, 0], 1e-10, 40, x0=x0)
+    assert warm[2] and warm[1] < cold[1]
+    assert np.linalg.norm(b[:, 0] - K @ warm[0]) <= 1e-10 * np.linalg.norm(b[:, 0])
     indefinite = K - 10.0 * np.eye(40)
     x, its, ok = preconditioned_cg(lambda v: indefinite @ v, lambda r: near @ r, b[:, 0], 1e-10, 40)
     assert not ok
