@@ -179,7 +179,8 @@ def _block_edges(n):
 
 def factor_blocks(L):
     """The Cholesky factor L (n, n) as the row blocks of U = L^T (TRIANGULAR_BLOCK rows
-    each, every one its own array): U_i = L[:, a:c]^T, a column panel of L.
+    each, every one its own array, held flat as ``DenseState`` holds its matrices):
+    U_i = L[:, a:c]^T, a column panel of L.
 
     Why separate arrays: a product with a slice of L taken inside jit ran ~8x slower than
     the same product with the slice held as an array (XLA:CPU, n = 2,400), so the blocks are
