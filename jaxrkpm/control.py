@@ -271,7 +271,9 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
         # with a kept factorisation the response is refined by CG: it starts from the last
         # one (a nearby state's; measured at the 10^3 cube, a 20-iteration loop: 0.251 -> 0.205 s an
         # iteration, 10 iterations: 0.253 -> 0.246, where the early moves change the response more)
-        du = ctrl.response(s.c, state, s.du if ctrl.keeps else None)
+        # (a response that is not finite, after a failed solve, is no guess: CG starts from 0)
+        guess = jnp.where(jnp.all(jnp.isfinite(s.du)), s.du, 0.0) if ctrl.keeps else None
+        du = ctrl.response(s.c, state, guess)
         dmp = control_increment(ctrl.jacobian(s.c, state, du), e, gain, clamp, damping)
         mp = s.mp + dmp
         c, c_state = ctrl.settle(s.c, state, g_of(ctrl, cg_base, mp), lim, max_corr)
