@@ -566,7 +566,7 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
             # where it does most: once |r| is low enough that a Newton step from there meets
             # the tolerance (quadratic convergence, |r|^2 <= tol r_ref), so the chord steps
             # after it contract at once (10^3 cube, 30% in 10 steps: 76 -> 40 iterations, the
-            # same 10 factorisations, 5.37 -> 4.08 s, same run)
+            # same 10 factorisations, 5.37 -> 4.08 s, quiet machine, runs minutes apart)
             step_factorised = step_factorised | (made & ~first)
             met = converged
             converged = converged & (step_factorised | (not cfg.check_stability))
