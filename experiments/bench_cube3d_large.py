@@ -93,7 +93,8 @@ def run_case(n, solver, repeats, out_npz, check_stability=True):
     profile = {"assembly_s": assembly_one * its, "assembly_one_s": assembly_one, **host}
     profile["other_s"] = solve_s - profile["assembly_s"] - linear_s
     np.savez(out_npz, u=np.asarray(sol.u))
-    return {"n": n, "solver": solver, "path": model.linear.name, "dof": int(len(model.sets.free) * 3), "check_stability": check_stability,
+    return {"n": n, "solver": solver, "path": model.linear.name, "dof": int(len(model.sets.free) * 3),
+            "check_stability": check_stability,
             "build_s": build_s, "cold_solve_s": cold_s, "warm_solve_s": solve_s, "warm_solves": times,
             "status": sol.outcome.name, "newton_iterations": its, "residual": float(sol.residual_norm),
             "profile": profile, "peak_rss_after_build_gb": build_peak, "peak_rss_gb": peak_gb()}

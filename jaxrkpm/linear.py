@@ -123,7 +123,7 @@ def elimination_layout(A, pair_i, pair_j, free, bnd) -> Elimination:
             out[(c, *map(slice, np.shape(x)))] = x
         return out
 
-    local = np.full(Nb, 0, np.int64)   # an essential particle's position within its component
+    local = np.zeros(Nb, np.int64)   # an essential particle's position within its component
     for r in rows:
         local[r] = np.arange(len(r))
     fb = np.stack([np.full(P, C), np.zeros(P, np.int64), np.zeros(P, np.int64)])
@@ -186,10 +186,7 @@ def factor_blocks(L):
     the same product with the slice held as an array (XLA:CPU, n = 2,400), so the blocks are
     cut once per factorisation instead of at every solve. Why column panels of L: LAPACK
     leaves L column-major, where a panel is contiguous and its transpose is row-major with
-    no copy. Held as row blocks of L instead, inside a Newton loop whose carry kept them
-    (and K) in LAPACK's column-major layout, every solve copied all of them to the
-    row-major layout of XLA's products (10^3 cube, n = 2,400: a kept-factorisation solve
-    15 ms, against 6.6 ms with the blocks outside the loop)."""
+    no copy (row blocks of L were copied at every solve inside a loop: see ``DenseState``)."""
     edges = _block_edges(L.shape[0])
     return jax.lax.optimization_barrier(tuple(L[:, a:c].T.ravel() for a, c in zip(edges[:-1], edges[1:])))
 

@@ -64,8 +64,9 @@ def test_preconditioned_cg_on_host_and_in_jit():
     near = np.linalg.inv(K + 0.3 * np.diag(rng.uniform(0.0, 5.0, 40)))   # an earlier state's
     b = rng.standard_normal((40, 3)) * np.array([1.0, 1e-3, 1e3])         # columns of any size
     exact = np.linalg.solve(K, b)
+    matvec, precondition = (lambda v: K @ v), (lambda r: near @ r)
     for j in range(3):
-        x, its, ok = preconditioned_cg(lambda v: K @ v, lambda r: near @ r, b[:, j], 1e-10, 40)
+        x, its, ok = preconditioned_cg(matvec, precondition, b[:, j], 1e-10, 40)
         assert ok and 0 < its < 40
         assert np.abs(x - exact[:, j]).max() < 1e-8 * np.abs(exact[:, j]).max()
     run = jax.jit(lambda b: preconditioned_cg(lambda v: jnp.asarray(K) @ v, lambda r: jnp.asarray(near) @ r, b,
@@ -74,10 +75,10 @@ def test_preconditioned_cg_on_host_and_in_jit():
     assert bool(np.all(ok)) and np.allclose(np.asarray(x), exact, rtol=0, atol=1e-8 * np.abs(exact).max(0))
     # from a guess near the solution (a nearby system's): the same residual test, fewer iterations
     x0 = exact[:, 0] + 1e-4 * rng.standard_normal(40)
-    cold = preconditioned_cg(lambda v: K @ v, lambda r: near @ r, b[:, 0], 1e-10, 40)
-    warm = preconditioned_cg(lambda v: K @ v, lambda r: near @ r, b[:, 0], 1e-10, 40, x0=x0)
+    cold = preconditioned_cg(matvec, precondition, b[:, 0], 1e-10, 40)
+    warm = preconditioned_cg(matvec, precondition, b[:, 0], 1e-10, 40, x0=x0)
     assert warm[2] and warm[1] < cold[1]
     assert np.linalg.norm(b[:, 0] - K @ warm[0]) <= 1e-10 * np.linalg.norm(b[:, 0])
     indefinite = K - 10.0 * np.eye(40)
-    x, its, ok = preconditioned_cg(lambda v: indefinite @ v, lambda r: near @ r, b[:, 0], 1e-10, 40)
+    x, its, ok = preconditioned_cg(lambda v: indefinite @ v, precondition, b[:, 0], 1e-10, 40)
     assert not ok
