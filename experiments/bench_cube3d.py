@@ -12,8 +12,9 @@ they fail). "Jacobian": ``Model.jacobian`` as a user calls it (its own factorisa
 a factorisation of an earlier state, refactorised only where a correction cuts |r| by less than
 --reuse; both to the solver's residual tolerance rtol = 1e-10 x the internal force scale); the
 loop includes its one initial factorisation (``loop_*_s`` / iterations is the amortised cost).
-The full solve is timed with full Newton and with modified Newton (``Config.reuse``: a kept
-factorisation while the residual contracts; same tolerance). --integration runs each case
+The full solve is timed as ``model.solve`` gives it by default (eager, dense: modified Newton,
+``Config.reuse`` = ``Model.newton_reuse``, a kept factorisation while the residual contracts;
+--reuse sets another) and with full Newton (reuse=0); both to the same tolerance. --integration runs each case
 with Gauss and/or nodal (SCNI) integration and reports the displacement of a probe point (the
 top edge's midpoint, which bulges), so that integrations and sizes can be compared against the
 finest case run. "newton_iteration_parts_s" profiles one Newton iteration (pair blocks,
@@ -88,8 +89,9 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
                      precision=precision)
     build_s = time.perf_counter() - t0
     g = jnp.array([-0.3, 0.0, 0.0])
-    solve_s, sol = timed(lambda: model.solve({"right": g}, steps=10), repeats)
-    # modified Newton (Config.reuse): a kept factorisation while the residual contracts
+    solve_s, sol = timed(lambda: model.solve({"right": g}, steps=10, reuse=0), repeats)   # full Newton
+    # the default (modified Newton on the dense path: a kept factorisation while |r| contracts)
+    reuse = model.newton_reuse if reuse is None else reuse
     reuse_s, re = timed(lambda: model.solve({"right": g}, steps=10, reuse=reuse), repeats)
     centre = np.array([[0.5, 0.5, 0.5]])
     jac_s, _ = timed(lambda: model.jacobian(sol, "right", centre), repeats)
@@ -139,13 +141,13 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
             "probe_displacement_at_0.5_1_1": np.asarray(model.displacement(sol, np.array([[0.5, 1.0, 1.0]])))[0].tolist(),
             "loop_factorise_every_step": loop[0.0], "loop_kept_factorisation": loop[keep], "keep": keep,
             "loop_ratio_kept_over_every_step": loop[keep]["s_per_iteration"] / loop[0.0]["s_per_iteration"],
-            "full_newton_over_reuse_solve": solve_s / reuse_s,
+            "full_newton_over_default_solve": solve_s / reuse_s,
             "dof": int(len(model.sets.free) * 3), "path": model.linear.name,
             "mixed_precision": bool(getattr(model.linear, "mixed", False)),
             "status": sol.outcome.name, "newton_iterations": int(sol.iterations),
-            "warm_solve_s": solve_s, "reuse": reuse, "reuse_warm_solve_s": reuse_s,
-            "reuse_status": re.outcome.name, "reuse_newton_iterations": int(re.iterations),
-            "reuse_max_du_difference": float(abs(re.u - sol.u).max()), "jacobian_s": jac_s, "control_step_s": step_s,
+            "full_newton_warm_solve_s": solve_s, "default_reuse": reuse, "default_warm_solve_s": reuse_s,
+            "default_status": re.outcome.name, "default_newton_iterations": int(re.iterations),
+            "default_max_du_difference": float(abs(re.u - sol.u).max()), "jacobian_s": jac_s, "control_step_s": step_s,
             "control_step_parts_s": {"factorise": fact_s, "jacobian_from_state": jfrom_s, "settle": settle_s},
             "newton_iteration_parts_s": parts,
             "control_step_newton": int(moved.iterations), "control_step_status": int(moved.status),
@@ -215,7 +217,8 @@ def main(argv=None):
     p.add_argument("--n", type=int, nargs="*", default=[6, 10], help="particles per edge")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--solver", default="auto", choices=["auto", "dense", "sparse"])
-    p.add_argument("--reuse", type=float, default=0.1, help="Config.reuse of the modified-Newton solve")
+    p.add_argument("--reuse", type=float, default=None,
+                   help="Config.reuse of the default solve (default: the model's newton_reuse)")
     p.add_argument("--keep", type=float, default=0.5, help="track(reuse=...) of the kept-factorisation control loop")
     p.add_argument("--integration", nargs="*", default=["gauss"], choices=["gauss", "scni", "mscni"])
     p.add_argument("--loop-steps", type=int, default=10, help="control loop iterations timed")
@@ -244,8 +247,8 @@ def main(argv=None):
     for n in a.n:
         for integration, precision in itertools.product(a.integration, a.precision):
             r = subprocess.run([sys.executable, "-m", "experiments.bench_cube3d", "--case", str(n),
-                                "--repeats", str(a.repeats), "--solver", a.solver, "--reuse", str(a.reuse),
-                                "--integration", integration, "--loop-steps", str(a.loop_steps),
+                                "--repeats", str(a.repeats), "--solver", a.solver,
+                                *(["--reuse", str(a.reuse)] if a.reuse is not None else []), "--integration", integration, "--loop-steps", str(a.loop_steps),
                                 "--keep", str(a.keep), "--precision", precision],
                                capture_output=True, text=True)
             key = f"cube_{n}" + ("" if integration == "gauss" else f"_{integration}") + \

@@ -45,6 +45,13 @@ MIXED_MIN = 1000
 # dense matrices fit: K_ff, its factor and their workspace, about DENSE_COPIES n^2 doubles
 DENSE_COPIES = 4
 ACCELERATOR_DENSE_LIMIT = 20_000   # where the device does not report its memory
+# Config.reuse of an eager ``Model.solve`` on the dense path (``reuse=None``): modified Newton,
+# a kept factorisation while each step cuts |r| by 10x (same residual tolerance). Measured
+# (30% compression in 10 steps, same run, quiet; full / modified Newton): 9^2 0.03 / 0.02 s,
+# 20^2 0.31 / 0.18, 35^2 3.5 / 1.76, 6^3 0.75 / 0.37, 8^3 2.34 / 1.14 (30 -> 40 iterations,
+# 10 factorisations instead of 30). Not under jit/vmap: a vmapped lax.cond evaluates both
+# branches, so lock-step members would assemble at every iteration and iterate more
+NEWTON_REUSE = 0.1
 
 
 def dense_limit(dim: int, device=None) -> int:
@@ -477,6 +484,9 @@ class Model:
         solved with ``stable_branch=True`` from the last stable state (on to a stable state
         of a bifurcated branch; ``Solution.critical`` records the point); its compile is paid
         only then, and only in eager calls. False: stop there; True: always (also under jit).
+        ``reuse`` None (default): ``newton_reuse`` in eager calls (modified Newton on the dense
+        path: ~2x faster, the same residual tolerance), 0 (full Newton) under jit/vmap; a
+        number sets Config.reuse.
 
         Differentiable (jax.jacfwd / jax.grad) in the prescribed values, ``loads`` and
         ``params`` by implicit differentiation of the converged equilibrium. The derivative
@@ -503,9 +513,12 @@ class Model:
         # point does the rest of the path run with the stable-branch solve, so its longer
         # compile is paid on first need (eager calls only: under jit the status is a tracer)
         auto = options.get("stable_branch") is None
-        options = {k: v for k, v in options.items() if not (k == "stable_branch" and v is None)}
         params, lim = self.params_with(params), Limits.of(steps, max_iter, max_cuts)
         loads = jnp.asarray(loads, jnp.float64)
+        if options.get("reuse") is None:
+            eager = all(map(_is_concrete, jax.tree.leaves((g, loads, params, start))))
+            options["reuse"] = self.newton_reuse if eager else 0.0
+        options = {k: v for k, v in options.items() if not (k == "stable_branch" and v is None)}
         sol = solve_path_jit(self.ops, params, self.config(**options), lim, start.u, start.g, g,
                              jnp.asarray(start.load, jnp.float64), loads)
         status = _concrete(sol.status)
@@ -518,6 +531,13 @@ class Model:
             # under jax.jacfwd / jax.grad the fields are tracers: the error carries their values
             raise SolveError(Solution(*jax.tree.map(_concrete, tuple(sol))))
         return sol
+
+    @property
+    def newton_reuse(self) -> float:
+        """Config.reuse of an eager ``solve`` where none is given: NEWTON_REUSE (modified
+        Newton) on the dense path; 0 (full Newton) on the sparse and Krylov paths, which
+        already keep their factorisation or hierarchy as a preconditioner."""
+        return NEWTON_REUSE if isinstance(self.linear, DenseSolver) else 0.0
 
     def continuation(self, ds: float, **options):
         """The equilibrium path through limit points by arc-length continuation: an

@@ -267,6 +267,12 @@ def test_tracking_with_kept_factorisations_reaches_the_waypoints(planar):
     kept = track(model, PATHS["setpoint"], "paddle", CP, reuse=0.5)
     assert kept.status == TrackStatus.DONE
     assert kept.max_waypoint_error < 1e-4
+    # the dense path's default (reuse=None) keeps factorisations; factorising at every step
+    # (reuse=0) reaches each waypoint at the same iteration, at the same place to the tolerances
+    default, every = track(model, PATHS["setpoint"], "paddle", CP), \
+        track(model, PATHS["setpoint"], "paddle", CP, reuse=0)
+    assert np.array_equal(default.reached, kept.reached) and np.array_equal(every.reached, kept.reached)
+    assert np.abs(np.asarray(every.achieved) - np.asarray(kept.achieved)).max() < 1e-8
     with pytest.raises(ValueError, match="reuse"):
         track(model, PATHS["setpoint"], "paddle", CP, reuse=1.5)
 

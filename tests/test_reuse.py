@@ -1,7 +1,9 @@
 """Modified Newton (Config.reuse): a kept factorisation serves later iterations and the next
 load step while the residual contracts; the equilibrium is full Newton's to the tolerance,
 and the solve still stops where full Newton's does at an instability. One small clamped
-strip (experiments.elastica) serves both: its compiled solves are shared."""
+strip (experiments.elastica) serves both: its compiled solves are shared. Eager dense solves
+use it by default (``Model.newton_reuse``), so full Newton is asked for by reuse=0."""
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -20,7 +22,7 @@ def push(model, shortening, **options):
 
 
 def test_reuse_reaches_full_newton_equilibrium(strip):
-    full, kept = push(strip, 0.02), push(strip, 0.02, reuse=0.1)
+    full, kept = push(strip, 0.02, reuse=0), push(strip, 0.02, reuse=0.1)
     assert full.converged and kept.converged
     # chord steps converge linearly: more (cheap) iterations than full Newton's, but the one
     # factorisation a load step is made where a Newton step finishes it (measured: 30
@@ -38,12 +40,41 @@ def test_reuse_still_stops_at_the_instability(strip):
     its start; with the factorisation of an earlier iterate, measured, the solve went on to
     t = 0.6875 and a K_ff with a negative eigenvalue)."""
     # stable_branch=False: the stop itself (by default the solve would go on past it)
-    full, kept = push(strip, 0.05, stable_branch=False), push(strip, 0.05, reuse=0.1, stable_branch=False)
+    full, kept = push(strip, 0.05, reuse=0, stable_branch=False), push(strip, 0.05, reuse=0.1, stable_branch=False)
     assert full.outcome == jr.Status.UNSTABLE_TANGENT
     assert kept.outcome == full.outcome
     assert float(kept.t) == pytest.approx(float(full.t), abs=1e-12)
     K = np.asarray(strip.problem().tangent(kept.u, kept.g))
     assert np.linalg.eigvalsh(K)[0] > 0           # the state kept is stable
+
+
+class Recorded(Exception):
+    pass
+
+
+def test_eager_dense_solves_default_to_modified_newton(strip, monkeypatch):
+    """reuse=None (default): modified Newton in an eager solve on the dense path, full Newton
+    under jit (and vmap, where a vmapped cond would run both branches) and on the sparse path."""
+    assert strip.newton_reuse == jr.model.NEWTON_REUSE > 0
+    default = push(strip, 0.02)
+    assert int(default.iterations) == int(push(strip, 0.02, reuse=jr.model.NEWTON_REUSE).iterations)
+    assert int(default.iterations) != int(push(strip, 0.02, reuse=0).iterations)
+    seen = []
+
+    def record(ops, params, cfg, *args):     # the solve's static settings, then stop
+        seen.append(cfg.reuse)
+        raise Recorded
+
+    monkeypatch.setattr(jr.model, "solve_path_jit", record)
+    g = strip.prescribed({"right": jnp.array([-0.02 * L, 0.0])})
+    for call in (lambda: strip.solve_g(g), lambda: jax.jit(lambda g: strip.solve_g(g, throw=False))(g),
+                 lambda: jax.vmap(lambda g: strip.solve_g(g, throw=False))(g[None]),
+                 lambda: strip.solve_g(g, reuse=0.3)):
+        with pytest.raises(Recorded):
+            call()
+    assert seen == [jr.model.NEWTON_REUSE, 0.0, 0.0, 0.3]
+    sets = {name: strip.set_indices(name) for name in strip.set_names}
+    assert jr.Model(strip.body, strip.material, essential=sets, solver="sparse").newton_reuse == 0.0
 
 
 def test_reuse_must_lie_in_unit_interval(strip):
