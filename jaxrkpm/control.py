@@ -129,9 +129,12 @@ class ControlledModel(NamedTuple):
         J = self.problem.jacobian(sol, self.G, self.idx, self.psi, du=du)
         return J.reshape(-1, self.G.shape[0])
 
-    def settle(self, sol: Solution, state, g1, lim: Limits, max_corr: int):
+    def settle(self, sol: Solution, state, g1, lim: Limits, max_corr: int, du=None):
         """Equilibrium at the prescribed values g1 from the converged ``sol``: returns
-        (Solution, the factorisation to keep).
+        (Solution, the factorisation to keep). ``du`` (Nf, d): the change of the free
+        coefficients predicted for the move (the response times the move: the linearisation
+        at ``sol``, see ``track_loop``); where given and finite, the chord starts from
+        sol.u + du at g1 instead of from the kept factorisation's own predictor.
 
         The Newton predictor and up to ``max_corr`` (with ``keeps``: KEPT_CORRECTIONS) chord corrections with the factorisation
         ``state`` (no assembly), to the solver's residual tolerance. Where they fail (a
@@ -152,7 +155,11 @@ class ControlledModel(NamedTuple):
         def chord(u, g0, st):
             return prob.newton(u, g0, g1, sol.load, sol.load, max_iter=cap + 1, state=st, chord=True)
 
-        u, st, its, rn, learned = chord(sol.u, sol.g, state)
+        u0, g0 = sol.u, sol.g
+        if du is not None:
+            predicted = jnp.all(jnp.isfinite(du))
+            u0, g0 = jnp.where(predicted, sol.u + du, sol.u), jnp.where(predicted, g1, sol.g)
+        u, st, its, rn, learned = chord(u0, g0, state)
         if self.keeps:
             state = learned   # with a quasi-Newton solver: the secant pairs of the corrections
 
@@ -282,7 +289,10 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
         du = ctrl.response(s.c, state, guess)
         dmp = control_increment(ctrl.jacobian(s.c, state, du), e, gain, clamp, damping)
         mp = s.mp + dmp
-        c, c_state = ctrl.settle(s.c, state, g_of(ctrl, cg_base, mp), lim, max_corr)
+        # with a kept factorisation (of an earlier state) its own predictor is poor: the
+        # response, refined to this state's, predicts the move to first order
+        du_move = jnp.einsum("a,aij->ij", dmp, du) if ctrl.keeps else None
+        c, c_state = ctrl.settle(s.c, state, g_of(ctrl, cg_base, mp), lim, max_corr, du_move)
         if same:
             p, p_state = c, c_state
         else:

@@ -172,7 +172,7 @@ def test_tracking_fast_path_with_the_sparse_solver(planar):
     sparse = jr.Model(model.body, model.material, essential={n: model.set_indices(n) for n in model.set_names},
                       solver="sparse")
     path = PATHS["setpoint"]
-    dense_run = track(model, path, "paddle", CP)
+    dense_run = track(model, path, "paddle", CP, reuse=0)   # the dense default keeps factorisations
     jsparse.reset_stats()
     sparse_run = track(sparse, path, "paddle", CP)
     stats = dict(jsparse.STATS)
@@ -246,7 +246,7 @@ def test_kept_factorisation_settles_to_full_newton(planar):
         assert Status.of(s.status) == Status.CONVERGED
     # no refactorisation: the base is still the factorisation at the start; pairs were learnt
     assert np.array_equal(np.asarray(state.base.Linv), np.asarray(state0.base.Linv)) and int(state.count) > 0
-    ref = model.solve_g(s.g, initial=sol, loads=sol.load)          # full Newton, fresh tangents
+    ref = model.solve_g(s.g, initial=sol, loads=sol.load, reuse=0)   # full Newton, fresh tangents
     assert np.abs(np.asarray(s.u - ref.u)).max() < 1e-9 * np.abs(np.asarray(ref.u)).max()
     prob = model.problem()
     assert float(jnp.linalg.norm(prob.residual(s.u, s.g))) <= 1e-10 * float(prob.force_scale(s.u, s.g))
@@ -260,6 +260,19 @@ def test_kept_factorisation_settles_to_full_newton(planar):
     stale = np.asarray(jax.jit(lambda p, st: p.jacobian(s, side.G, side.idx, side.psi, st).reshape(-1, 2))(
         side.problem, state))
     assert np.abs(stale - Jref).max() > 1e-3 * np.abs(Jref).max()     # refinement did the work
+    # the response predicts a move to first order (track_loop passes it to settle): from it
+    # the stale factorisation's chord needs fewer corrections than from its own predictor,
+    # and lands on the same equilibrium
+    dmp = jnp.array([0.002, 0.001])
+    g1 = s.g + jnp.einsum("a,abi->bi", dmp, side.G)
+    du = jax.jit(lambda sd, s, st: sd.response(s, st))(side, s, state)
+    own, _ = settle(side, s, state, g1)
+    predicted, _ = jax.jit(lambda sd, s, st, g1, du: sd.settle(s, st, g1, lim, 6, du))(
+        side, s, state, g1, jnp.einsum("a,aij->ij", dmp, du))
+    assert Status.of(predicted.status) == Status.CONVERGED == Status.of(own.status)
+    print("chord iterations from the response / own predictor", int(predicted.iterations), int(own.iterations))
+    assert int(predicted.iterations) < int(own.iterations)
+    assert np.abs(np.asarray(predicted.u - own.u)).max() < 1e-9 * np.abs(np.asarray(own.u)).max()
 
 
 def test_tracking_with_kept_factorisations_reaches_the_waypoints(planar):
