@@ -71,9 +71,9 @@ QN_MEMORY = 8   # secant pairs a kept factorisation carries (``ControlledModel.o
 # 1e-4 0.13 s (1e-5); with a fresh factorisation 0.03 s
 JACOBIAN_RTOL = 1e-6
 # track(reuse=None) on the dense path: factorisations kept across control steps, refactorised
-# where a chord correction cuts |r| by less than 2x. Measured (same run, quiet, a control step
-# factorising every step / kept): 10^3 cube 0.32 / 0.20 s; the 2D box path 2.20 / 1.86 s, the
-# same waypoints reached at the same iterations. Not on the sparse path, whose chord
+# where a chord correction cuts |r| by less than 2x. Measured (same run, quiet, factorising
+# every step / kept): 10^3 cube 0.333 / 0.178 s a control step; the 2D box path 2.12 / 1.42 s,
+# the same waypoints reached at the same iterations. Not on the sparse path, whose chord
 # corrections are refined host solves with no secant update (14^3: 1.32 / 2.11 s a step)
 KEPT_REUSE = 0.5
 KEPT_CORRECTIONS = 30   # chord corrections allowed with a kept factorisation (each must still
