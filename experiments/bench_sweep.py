@@ -20,15 +20,20 @@ and the first (cold) call is reported separately. The two paths' deviations are 
 (they agree to round-off). Prints JSON, with the load average before and after (quote the
 ratios of one run; the machine may be shared).
 
+Both solve alike: with "map" batching (CPU) modified Newton, as an eager ``model.solve``
+does by default (``Model.newton_reuse``); with "vmap" full Newton (the loop is given reuse=0).
+
 ``floor`` (for the largest count the loop ran): what the same solves cost in arithmetic
-alone, from the pieces of one full-Newton iteration timed per member inside one jitted
+alone, from the pieces of a Newton iteration timed per member inside one jitted
 ``lax.map`` over that many states (no dispatch, no Python): assembly + Cholesky
 (``factorise``), the triangular solves, one energy + gradient (a line-search trial), the
 internal force scale (the convergence test); the Jacobian is one factorisation and the
 solves of its two directions. ``floor_s`` = the Newton iterations the batched run reported
-x an iteration + the Jacobians x a Jacobian; ``ceiling_speedup`` = loop / floor_s is the
-most any batching of these solves could gain over the loop on this machine, if it made every
-overhead vanish and cost no more per member than the unbatched kernels.
+x an iteration without its factorisation + the factorisations (full Newton: one an
+iteration; modified Newton: at least one a solve, so a lower bound) + the Jacobians x a
+Jacobian; ``ceiling_speedup`` = loop / floor_s is the most any batching of these solves
+could gain over the loop on this machine, if it made every overhead vanish and cost no
+more per member than the unbatched kernels.
 
 ``--devices N`` splits the configurations over N XLA host devices (one per core; shard_map,
 ``needle.insert(n_devices=N)``), the loop stays on one: say so when quoting it."""
@@ -88,14 +93,16 @@ def batched(models, depths, target, batching="map", n_devices=1):
     return np.asarray(out.target_u[..., 0]), np.asarray(out.status), np.asarray(out.iterations)
 
 
-def loop(models, depths, target):
+def loop(models, depths, target, reuse):
+    """The same solves one call at a time; ``reuse``: the batched path's Config.reuse (map:
+    modified Newton, as an eager solve's default; vmap: full Newton)."""
     target = np.atleast_2d(target)
     dev = np.zeros((len(models), len(depths)))
     status = np.zeros((len(models), len(depths)), int)
     for i, model in enumerate(models):
         sol = model.initial()
         for k, depth in enumerate(depths):
-            sol = model.solve({"needle": [0.0, float(depth)]}, initial=sol, throw=False)
+            sol = model.solve({"needle": [0.0, float(depth)]}, initial=sol, throw=False, reuse=reuse)
             status[i, k] = int(sol.status)
             dev[i, k] = float(model.displacement(sol, target)[0, 0])
             if status[i, k] == Status.CONVERGED:
@@ -118,10 +125,13 @@ def per_member(fn, states, repeats=3):
     return statistics.median(times) / jax.tree.leaves(states)[0].shape[0]
 
 
-def floor(model, phantom, depths, iterations: int, jacobians: int, samples: int = 40) -> dict:
-    """The arithmetic of ``iterations`` full-Newton iterations and ``jacobians`` Jacobians of
-    the phantom sweep, from its kernels timed per member (see the module docstring), at
-    ``samples`` states near the model's equilibrium at the last of ``depths`` (perturbed)."""
+def floor(model, phantom, depths, iterations: int, jacobians: int, factorisations: int,
+          samples: int = 40) -> dict:
+    """The arithmetic of ``iterations`` Newton iterations, ``factorisations`` of them
+    assembling and factorising the tangent (full Newton: all; modified Newton: at least one
+    per solve, so the floor is a lower bound), and ``jacobians`` Jacobians of the phantom
+    sweep, from its kernels timed per member (see the module docstring), at ``samples``
+    states near the model's equilibrium at the last of ``depths`` (perturbed)."""
     prob = model.problem()
     sol = model.initial()
     for depth in depths:
@@ -139,12 +149,12 @@ def floor(model, phantom, depths, iterations: int, jacobians: int, samples: int 
         "force_scale_s": per_member(lambda u: prob.force_scale(u, g), us),
         "jacobian_rhs_s": per_member(lambda u: prob.response(sol._replace(u=u), dG, state=state), us),
     }
-    iteration = piece["factorise_s"] + piece["triangular_solves_s"] + piece["energy_and_gradient_s"] \
-        + piece["force_scale_s"]
+    iteration = piece["triangular_solves_s"] + piece["energy_and_gradient_s"] + piece["force_scale_s"]
     jacobian = piece["factorise_s"] + piece["jacobian_rhs_s"]
-    total = iterations * iteration + jacobians * jacobian
+    total = iterations * iteration + factorisations * piece["factorise_s"] + jacobians * jacobian
     return {"per_member": piece, "newton_iteration_s": iteration, "jacobian_s": jacobian,
-            "newton_iterations": int(iterations), "jacobians": int(jacobians), "floor_s": total}
+            "newton_iterations": int(iterations), "factorisations": int(factorisations),
+            "jacobians": int(jacobians), "floor_s": total}
 
 
 def main(argv=None):
@@ -173,6 +183,7 @@ def main(argv=None):
     for count in args.counts:
         models = configurations(phantom, count)
         run = (models, depths, phantom.target, args.batching, args.devices)
+        reuse = models[0].newton_reuse if args.batching == "map" else 0.0   # what insert solves with
         cold_b, (dev_b, st_b, its_b) = timed(batched, *run)
         row = {"configurations": count, "increments": args.increments,
                "solves": count * args.increments,
@@ -180,8 +191,8 @@ def main(argv=None):
                "newton_iterations": int(its_b.sum()), "batched_cold_s": cold_b}
         do_loop = count <= args.loop_max
         if do_loop:
-            cold_l, (dev_l, st_l) = timed(loop, models, depths, phantom.target)
-            solved = (its_b.sum(), int(np.sum(st_l == Status.CONVERGED)))
+            cold_l, (dev_l, st_l) = timed(loop, models, depths, phantom.target, reuse)
+            solved = (its_b.sum(), int(np.sum(st_l == Status.CONVERGED)), its_b.sum() if reuse == 0 else st_l.size)
             row["loop_cold_s"] = cold_l
             row["max_abs_difference"] = float(np.max(np.abs(dev_b - dev_l)))
             row["status_agree"] = bool(np.all(st_b == st_l))
@@ -189,7 +200,7 @@ def main(argv=None):
         for _ in range(args.repeats):
             tb.append(timed(batched, *run)[0])
             if do_loop:
-                tl.append(timed(loop, models, depths, phantom.target)[0])
+                tl.append(timed(loop, models, depths, phantom.target, reuse)[0])
         row["batched_warm_median_s"] = statistics.median(tb)
         row["batched_warm_per_configuration_s"] = statistics.median(tb) / count
         if do_loop:
@@ -209,8 +220,8 @@ def main(argv=None):
               "per_configuration_vs_single": {r["configurations"]: r["batched_warm_per_configuration_s"] / base
                                               for r in rows}}
     if last_loop is not None:
-        row, model, (iterations, jacobians) = last_loop
-        fl = floor(model, phantom, depths, iterations, jacobians)
+        row, model, (iterations, jacobians, factorisations) = last_loop
+        fl = floor(model, phantom, depths, iterations, jacobians, factorisations)
         fl["configurations"] = row["configurations"]
         fl["loop_warm_s"] = row["loop_warm_median_s"]
         fl["batched_warm_s"] = row["batched_warm_median_s"]

@@ -385,7 +385,11 @@ def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, batched, with_jacobian
       the loop (1.17x, load 4.4 falling to 1.6); the arithmetic of the same 7,363 Newton
       iterations and 1,142 Jacobians alone (bench_sweep's ``floor``; assembly + Cholesky
       1.2 of an iteration's 1.4 ms) is 12.0 s, so no batching of these solves can beat
-      the loop by more than ~1.6x on this CPU.
+      the loop by more than ~1.6x on this CPU. Since then "map" solves with modified
+      Newton (``Model.newton_reuse``), as the eager loop does by default: 20
+      configurations, same run, quiet, full / modified Newton: map 7.53 / 5.61 s, loop
+      8.21 / 6.16 s (the same 1.1x between them; 1,812 / 2,300 iterations, fewer of them
+      factorising).
     - GPU: "vmap" (one batched kernel per operation, native batched factorisations; see
       ``linear.one_at_a_time``). H100: 5.78 s against 31.2 s for the Python loop of the
       same solves (5.4x), equal to 1e-16.
@@ -438,6 +442,10 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
         raise ValueError(f"depths must be a non-empty 1D array of finite needle depths, got {depths!r}")
     ref = models[0]
     prob, batched = stack_models(models)
+    if batching == "map":
+        # one member at a time: modified Newton's branch is a branch (as in an eager solve);
+        # in lock step (vmap) it would run both sides, so full Newton stays there
+        prob = prob.with_config(reuse=ref.newton_reuse)
     d = ref.dim
     direction = np.eye(d)[-1] if direction is None else np.asarray(direction, float)
     if direction.shape != (d,) or not np.isclose(np.linalg.norm(direction), 1.0):
