@@ -387,7 +387,7 @@ def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, batched, with_jacobian
       1.2 of an iteration's 1.4 ms) is 12.0 s, so no batching of these solves can beat
       the loop by more than ~1.6x on this CPU. Since then "map" solves with modified
       Newton (``Model.newton_reuse``), as the eager loop does by default: 20
-      configurations, same run, quiet, full / modified Newton: map 7.53 / 5.61 s, loop
+      configurations, consecutive runs, quiet, full / modified Newton: map 7.53 / 5.61 s, loop
       8.21 / 6.16 s (the same 1.1x between them; 1,812 / 2,300 iterations, fewer of them
       factorising).
     - GPU: "vmap" (one batched kernel per operation, native batched factorisations; see
