@@ -74,7 +74,7 @@ JACOBIAN_RTOL = 1e-6
 # where a chord correction cuts |r| by less than 2x. Measured (same run, quiet, factorising
 # every step / kept): 10^3 cube 0.333 / 0.178 s a control step; the 2D box path 2.12 / 1.42 s,
 # the same waypoints reached at the same iterations. Not on the sparse path, whose chord
-# corrections are refined host solves with no secant update (14^3: 1.32 / 2.11 s a step)
+# corrections are refined host solves with no secant update (14^3: 1.54 / 1.89 s a step)
 KEPT_REUSE = 0.5
 KEPT_CORRECTIONS = 30   # chord corrections allowed with a kept factorisation (each must still
 #                         cut |r| by Config.reuse: 0.5**30 ~ 1e-9 of the predictor's residual)
