@@ -207,7 +207,6 @@ def arc_step(ops, params, cfg, max_iter, u0, g0, dg, lam0, state0, du_prev, dlam
     du = dlam * ut
 
     r_ref = jnp.abs(dlam) * jnp.sqrt(qq)   # the out-of-balance load the step puts on
-    floor = S.roundoff_floor(ops, params, W, S.coefficients(ops, u0, g0))
 
     def at(du, dlam):
         lam = lam0 + dlam
@@ -222,7 +221,7 @@ def arc_step(ops, params, cfg, max_iter, u0, g0, dg, lam0, state0, du_prev, dlam
         r, q, detmin = res(u, g0, dg, lam0, lam)
         rn = jnp.linalg.norm(r)
         finite = jnp.all(jnp.isfinite(r)) & jnp.all(jnp.isfinite(q))
-        scale = S.internal_force_scale(ops, params, W, S.coefficients(ops, u, g))
+        scale, floor = S.force_scales(ops, params, W, S.coefficients(ops, u, g))
         converged = rn <= jnp.maximum(cfg.rtol * jnp.maximum(r_ref, scale), floor)
         state = cfg.linear.init(ops, S.pair_blocks(ops, params, W, S.coefficients(ops, u, g)))
         # K [dr, dt] = [-r, q]: the residual correction and the tangent at this iterate

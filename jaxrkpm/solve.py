@@ -340,37 +340,44 @@ def residual(ops, params, W, u, g, load):
     return jax.grad(lambda v: energy(ops, params, W, v, g, load)[0])(u)
 
 
+def _scatter_norm(ops: Ops, X, like):
+    """|| sum_q w |grad Psi| |X| || for per-point (G, S, d, d) tensors X: the size of the terms
+    summed onto the particles."""
+    contrib = jnp.einsum("gskj,gsij->gski", jnp.abs(by_group(ops, ops.dpsi)), jnp.abs(X)) * \
+        by_group(ops, ops.w)[:, :, None, None]
+    return jnp.linalg.norm(_group_sum_scatter(ops, contrib, like))
+
+
 def internal_force_scale(ops, params, W, d):
     """|| sum_q w |grad Psi| |P| ||: the size of the terms summed into the residual."""
     F = group_gradients(ops, d)
     p, axes = _group_params(ops, params)
     P = _per_group(jax.grad(_point_energy(W)), axes)(F, p)
-    contrib = jnp.einsum("gskj,gsij->gski", jnp.abs(by_group(ops, ops.dpsi)), jnp.abs(P)) * \
-        by_group(ops, ops.w)[:, :, None, None]
-    return jnp.linalg.norm(_group_sum_scatter(ops, contrib, d)) + jnp.linalg.norm(ops.f_ext)
+    return _scatter_norm(ops, P, d) + jnp.linalg.norm(ops.f_ext)
 
 
-ROUNDOFF_FACTOR = 100.0   # the convergence floor in units of eps x stiffness scale (see roundoff_floor);
+ROUNDOFF_FACTOR = 100.0   # the convergence floor in units of eps x stiffness scale (see force_scales);
 #                           the round-off actually left in |r| is ~0.05-0.5 of one unit
 
 
-def roundoff_floor(ops, params, W, d):
-    """The residual norm below which |r| carries no information: ROUNDOFF_FACTOR x machine
-    epsilon x || sum_q w |grad Psi| |dP/dF : F| ||, the force that rounding the strain
+def force_scales(ops, params, W, d):
+    """(``internal_force_scale``, round-off floor) at d from one pass (a jvp of the stress
+    along F gives P and dP/dF : F together; two passes cost ~2x, measured at the 9x9 box).
+
+    The floor is the residual norm below which |r| carries no information: ROUNDOFF_FACTOR x
+    machine epsilon x || sum_q w |grad Psi| |dP/dF : F| ||, the force that rounding the strain
     E = (F^T F - I)/2 to machine precision produces (dP/dF : F is the stress change of a unit
     relative stretch: a stiffness). Without it, a tiny load step (steps=10**6, or a 1e-9
     prescribed displacement) asks for |r| <= rtol x (a tiny force) and never converges."""
     F = group_gradients(ops, d)
     p, axes = _group_params(ops, params)
 
-    def stiffness(F, p):
-        return jax.jvp(lambda G: jax.grad(_point_energy(W))(G, p), (F,), (F,))[1]
+    def stress_and_stiffness(F, p):
+        return jax.jvp(lambda G: jax.grad(_point_energy(W))(G, p), (F,), (F,))
 
-    dP = _per_group(stiffness, axes)(F, p)
-    contrib = jnp.einsum("gskj,gsij->gski", jnp.abs(by_group(ops, ops.dpsi)), jnp.abs(dP)) * \
-        by_group(ops, ops.w)[:, :, None, None]
+    P, dP = _per_group(stress_and_stiffness, axes)(F, p)
     eps = jnp.finfo(d.dtype).eps
-    return ROUNDOFF_FACTOR * eps * jnp.linalg.norm(_group_sum_scatter(ops, contrib, d))
+    return _scatter_norm(ops, P, d) + jnp.linalg.norm(ops.f_ext), ROUNDOFF_FACTOR * eps * _scatter_norm(ops, dP, d)
 
 
 # doubles of (chunk, K, K, d, d) local tangent blocks held at once by pair_blocks (public: a
@@ -458,8 +465,8 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
     The first linear solve is the predictor: it carries the prescribed increment,
     K_ff(u, g0) du = -(r(u, g0, l1) + K_fg (g1 - g0)); later ones are Newton steps at g1.
     Converged when |r| <= max(rtol max(|r + K_fg dg|, internal force scale), round-off
-    floor) (``roundoff_floor`` at the start of the step; the force scale at the iterate after
-    the last step that assembled the tangent, or after the predictor: chord steps reuse it).
+    floor) (the force scale at the iterate after the last step that assembled the tangent,
+    or after the predictor: chord steps reuse it; the floor there, after the predictor).
 
     ``chord=False``: every iteration assembles the tangent and solves through
     ``cfg.linear.newton_solve`` (which may reuse ``state``, e.g. as a preconditioner), then a
@@ -483,7 +490,6 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
     r_pred, kfg_dg = jax.jvp(lambda g: res(u, g, l1), (g0,), (g1 - g0,))
     rhs0 = r_pred + kfg_dg
     r_ref = jnp.linalg.norm(rhs0)
-    floor = roundoff_floor(ops, params, W, coefficients(ops, u, g0))
     halvings = 0 if chord else cfg.line_search
 
     def evaluate(v):
@@ -526,7 +532,7 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
     reusing = (not chord) and cfg.reuse > 0 and cfg.linear.name == "dense"
 
     def body(c):
-        it, u, Pi, r, _, state, keep, scale, step_factorised = c
+        it, u, Pi, r, _, state, keep, scales, step_factorised = c
         first = it == 0
         rhs = jnp.where(first, rhs0, r)
         made = True
@@ -547,9 +553,13 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
         rn = jnp.linalg.norm(r_v)
         # the force scale of the tolerance: at the iterate after each assembled step, kept
         # through the chord steps that follow it (they move the state by less than the step
-        # before them, so the scale by a relative O(|du|); it cost ~30% of a chord correction)
-        fresh = lambda: internal_force_scale(ops, params, W, coefficients(ops, v, g1))
-        scale = fresh() if made is True else when(first | made, fresh, scale)
+        # before them, so the scale by a relative O(|du|); it cost ~30% of a chord correction);
+        # the round-off floor once a call, with the first scale (one pass gives both)
+        d_v = lambda: coefficients(ops, v, g1)
+        scales = when(first, lambda: force_scales(ops, params, W, d_v()), scales)
+        scale, floor = scales
+        scale = when(~first & made, lambda: internal_force_scale(ops, params, W, d_v()), scale)
+        scales = (scale, floor)
         tol = jnp.maximum(cfg.rtol * jnp.maximum(r_ref, scale), floor)
         converged = ok & (rn <= tol)
         cap = max_iter
@@ -587,7 +597,7 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
         # residual met the tolerance anyway, the attempt ends
         status = jnp.where((stab == Stability.FAILED) & ~converged, Status.LINEAR_SOLVE, status)
         return (it + 1, jnp.where(ok, v, u), jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), status, state, keep,
-                scale, step_factorised)
+                scales, step_factorised)
 
     def assemble_and_solve(u, first, rhs, state):
         """A Newton step with the tangent at u (at g0 for the predictor): (dx, state, stability)."""
@@ -617,7 +627,8 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
         status0 = jnp.where(cfg.linear.stability(state) == Stability.STABLE, -1, Status.UNSTABLE_TANGENT)
     keep0 = jnp.asarray(reusing) & (cfg.linear.stability(state) == Stability.STABLE)
     it, u_new, _, r, status, state, _, _, _ = jax.lax.while_loop(
-        cond, body, (jnp.array(0), u, Pi0, r0, status0, state, keep0, jnp.zeros((), u.dtype), jnp.array(False)))
+        cond, body, (jnp.array(0), u, Pi0, r0, status0, state, keep0, (jnp.zeros((), u.dtype),) * 2,
+                     jnp.array(False)))
     return u_new, status, it, jnp.linalg.norm(r), state
 
 
@@ -684,8 +695,8 @@ def descend(ops, params, cfg: Config, max_iter, u, g, load):
         return Pi, detmin, r
 
     def tol(v):
-        d = coefficients(ops, v, g)
-        return jnp.maximum(cfg.rtol * internal_force_scale(ops, params, W, d), roundoff_floor(ops, params, W, d))
+        scale, floor = force_scales(ops, params, W, coefficients(ops, v, g))
+        return jnp.maximum(cfg.rtol * scale, floor)
 
     def shifted_cholesky(K, tau_prev, tau_min):
         beta = SHIFT_FLOOR * jnp.max(jnp.abs(jnp.diagonal(K)))
