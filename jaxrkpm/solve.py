@@ -556,10 +556,8 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
         # before them, so the scale by a relative O(|du|); it cost ~30% of a chord correction);
         # the round-off floor once a call, with the first scale (one pass gives both)
         d_v = lambda: coefficients(ops, v, g1)
-        scales = when(first, lambda: force_scales(ops, params, W, d_v()), scales)
-        scale, floor = scales
+        scale, floor = when(first, lambda: force_scales(ops, params, W, d_v()), scales)
         scale = when(~first & made, lambda: internal_force_scale(ops, params, W, d_v()), scale)
-        scales = (scale, floor)
         tol = jnp.maximum(cfg.rtol * jnp.maximum(r_ref, scale), floor)
         converged = ok & (rn <= tol)
         cap = max_iter
@@ -597,7 +595,7 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
         # residual met the tolerance anyway, the attempt ends
         status = jnp.where((stab == Stability.FAILED) & ~converged, Status.LINEAR_SOLVE, status)
         return (it + 1, jnp.where(ok, v, u), jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), status, state, keep,
-                scales, step_factorised)
+                (scale, floor), step_factorised)
 
     def assemble_and_solve(u, first, rhs, state):
         """A Newton step with the tangent at u (at g0 for the predictor): (dx, state, stability)."""
