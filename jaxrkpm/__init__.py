@@ -31,13 +31,14 @@ _PUBLIC = {
     "Springs": "boundary", "Body": "geometry",
     "Fung": "materials", "Material": "materials", "NeoHookean": "materials", "Quadratic": "materials",
     "SaintVenantKirchhoff": "materials", "pk2": "materials", "green_lagrange": "materials",
+    "det": "materials",
     "Model": "model", "SolveError": "model", "Solution": "solve", "Status": "solve",
     "arc_length": "continuation", "point_load": "continuation", "EquilibriumPath": "continuation",
     "PathStatus": "continuation",
 }
 
 __all__ = ["mesh", "Body", "Model", "Springs", "Solution", "Status", "SolveError", "Material", "Quadratic", "Fung",
-           "SaintVenantKirchhoff", "NeoHookean", "pk2", "green_lagrange", "arc_length", "point_load",
+           "SaintVenantKirchhoff", "NeoHookean", "pk2", "green_lagrange", "det", "arc_length", "point_load",
            "EquilibriumPath", "PathStatus"]
 
 

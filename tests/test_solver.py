@@ -219,6 +219,46 @@ def test_tangent_chunked_assembly_matches_one_chunk(block9, monkeypatch):
     assert np.abs(swept - whole).max() < 1e-12 * np.abs(whole).max()
 
 
+def test_det_by_cofactors_is_the_determinant():
+    """jaxrkpm.det (cofactors up to 3x3, used by the log-det energies and the line search's
+    det F) equals the LU determinant, and so do its first and second derivatives."""
+    rng = np.random.default_rng(6)
+    for d in (1, 2, 3, 4):
+        A = jnp.asarray(np.eye(d) + 0.3 * rng.standard_normal((5, d, d)))
+        assert np.abs(np.asarray(jr.det(A) - jnp.linalg.det(A))).max() < 1e-13
+        f = lambda M: jnp.log(jnp.abs(jr.det(M)))
+        g = lambda M: jnp.log(jnp.abs(jnp.linalg.det(M)))
+        assert np.abs(np.asarray(jax.vmap(jax.hessian(f))(A) - jax.vmap(jax.hessian(g))(A))).max() < 1e-10
+
+
+def test_3d_tangent_from_one_triangle_is_the_energy_hessian(monkeypatch):
+    """A 3D body's neighbour lists are long (K = 64 at a 5^3 cube): its pair blocks are formed
+    for one triangle of each group's (K, K) blocks and completed by transposes. They equal
+    the whole square's assembly, and the tangent equals the energy's Hessian (products with
+    random vectors by autodiff), at a random deformed state."""
+    from jaxrkpm import solve as jsolve
+    body = jr.Body.grid((5, 5, 5), 0.25)
+    sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
+    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets)
+    ops, cfg = model.ops, model.config()
+    assert ops.idx.shape[1] // jsolve.HALF_PART >= 2            # the triangle is taken
+    rng = np.random.default_rng(4)
+    u = 0.02 * rng.standard_normal((len(model.sets.free), 3))
+    g = model.prescribed({"right": jnp.array([-0.1, 0.02, 0.0])})
+    d = jsolve.coefficients(ops, u, g)
+    half = np.asarray(jsolve.pair_blocks(ops, model.params, cfg.W, d))
+    monkeypatch.setattr(jsolve, "HALF_PART", 10**6)           # the whole square
+    whole = np.asarray(jsolve.pair_blocks(ops, model.params, cfg.W, d))
+    assert np.abs(half - whole).max() < 1e-12 * np.abs(whole).max()
+    monkeypatch.undo()
+    prob = model.problem()
+    K = np.asarray(prob.tangent(jnp.asarray(u), g))
+    grad = jax.grad(lambda v: prob.energy(v, g))
+    for v in rng.standard_normal((2,) + u.shape):
+        Hv = np.asarray(jax.jvp(grad, (jnp.asarray(u),), (jnp.asarray(v),))[1]).ravel()
+        assert np.abs(K @ v.ravel() - Hv).max() < 1e-10 * np.abs(Hv).max()
+
+
 def test_jit_and_eager_agree():
     """The jitted residual, tangent and Newton solve agree with eager (un-jitted) execution
     (a 3x3 block: eager execution dispatches every operation on its own)."""
