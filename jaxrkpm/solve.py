@@ -425,9 +425,9 @@ def pair_blocks(ops, params, W, d):
     Q, K, dim = ops.dpsi.shape
     n_pairs = ops.pair_i.shape[0]
     G = ops.groups.shape[0]
-    n_parts = K // HALF_PART
+    n_parts = max(1, K // HALF_PART)
     half = n_parts >= 2
-    cut = np.linspace(0, K, n_parts + 1).astype(int) if half else np.array([0, K])
+    cut = np.linspace(0, K, n_parts + 1).astype(int)
     parts = [slice(a, b) for a, b in zip(cut[:-1], cut[1:])]
     # within a diagonal product (a, a) both orders of a pair are formed: the (m, k), m > k,
     # are sent past the last pair (a scatter drops them)
@@ -449,7 +449,7 @@ def pair_blocks(ops, params, W, d):
         pid = pid.transpose(0, 2, 1)
         blocks, ids = [], []
         for a, rows in enumerate(parts):
-            for cols in (parts[a:] if half else parts):
+            for cols in parts[a:]:
                 blocks.append(jnp.einsum("cxm,cxn->cmn", B[:, :, rows], Y[:, :, cols].reshape(c, s * dim, -1)))
                 ij = pid[:, rows, cols]
                 if half and rows == cols:
