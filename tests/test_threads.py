@@ -76,3 +76,37 @@ def test_blas_threads_default_and_override(monkeypatch):
         assert threads.ENV in str(e) and "keep" in str(e)
     else:
         raise AssertionError("a bad JAXRKPM_BLAS_THREADS must raise")
+
+
+def test_sparse_threads_default_and_override(monkeypatch):
+    from jaxrkpm import threads
+    monkeypatch.delenv(threads.SPARSE_ENV, raising=False)
+    assert threads.sparse_threads() == threads.usable_cores() >= 1
+    monkeypatch.setenv(threads.SPARSE_ENV, "1")
+    assert threads.sparse_threads() == 1
+    for bad in ("0", "all", "-2"):
+        monkeypatch.setenv(threads.SPARSE_ENV, bad)
+        try:
+            threads.sparse_threads()
+        except ValueError as e:
+            assert threads.SPARSE_ENV in str(e)
+        else:
+            raise AssertionError(f"{threads.SPARSE_ENV}={bad} must raise")
+
+
+def test_row_parts_product_is_the_product(monkeypatch):
+    """The tangent's product in row parts on several threads equals SciPy's whole product,
+    for any number of parts (more parts than block rows included) and several right-hand
+    sides; small matrices are not cut."""
+    import numpy as np
+    import scipy.sparse as sp
+    from jaxrkpm import sparse
+    rng = np.random.default_rng(0)
+    K = sp.random(60, 60, density=0.2, random_state=1, format="csr")
+    K = sp.bsr_matrix(K + K.T + sp.eye(60), blocksize=(3, 3))
+    x, X = rng.standard_normal(60), rng.standard_normal((60, 4))
+    monkeypatch.setattr(sparse, "PARALLEL_MIN_BLOCKS", 1)
+    for threads in (1, 2, 3, 25):
+        product = sparse.row_parts_product(K, threads)
+        assert np.allclose(product(x), K @ x, rtol=0, atol=1e-13)
+        assert np.allclose(product(X), K @ X, rtol=0, atol=1e-13)
