@@ -499,6 +499,11 @@ def linear_state(ops, params, cfg: Config, u, g):
 
 
 # ---------------------------------------------------------------------------- Newton
+# relative residual of an iterative solver's predictor solve: the predictor is a linearised
+# step, off by O(increment^2) whatever its solve's accuracy
+PREDICTOR_RTOL = 1e-4
+
+
 def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: bool = False):
     """Newton from the equilibrium at (g0, l0) to (g1, l1); returns (u, status, iterations,
     |r|, linear state).
@@ -641,17 +646,22 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
     def assemble_and_solve(u, first, rhs, state):
         """A Newton step with the tangent at u (at g0 for the predictor): (dx, state, stability)."""
         blocks = pair_blocks(ops, params, W, coefficients(ops, u, jnp.where(first, g0, g1)))
-        # inexact Newton (only without the stability check): far from equilibrium the
-        # linear solve need only be as accurate as the step is good (a forcing term
-        # proportional to the residual keeps the convergence quadratic), near it solves
-        # are tight. With the check, every solve is tight: an iterative solver finds
-        # negative curvature only in a rich Krylov space (measured: with loose early solves
-        # a buckling column's CG path, SuperLU-preconditioned, passed the critical point
-        # and reported the state beyond it, lowest eigenvalue -2.5e-5, as stable)
+        # inexact Newton (iterative linear solvers): far from equilibrium the linear solve
+        # need only be as accurate as the step is good (a forcing term proportional to the
+        # residual keeps the convergence quadratic), near it solves are tight. With the
+        # stability check only the predictor's solve may stop early: an iterative solver
+        # finds negative curvature only in a rich Krylov space (measured: with loose early
+        # corrections a buckling column's CG path, SuperLU-preconditioned, passed the
+        # critical point and reported the state beyond it, lowest eigenvalue -2.5e-5, as
+        # stable), and the predictor's tangent is the previous equilibrium's, which that
+        # equilibrium's own tight solves checked (20^3 cube: its CG solves 7-24 -> ~4-9
+        # iterations at rtol 1e-4)
         forcing = None
         if not cfg.check_stability:
             rel = jnp.linalg.norm(rhs) / jnp.maximum(r_ref, 1e-300)
             forcing = jnp.where(rel > 1e-4, jnp.minimum(1e-2 * rel, 1e-4), 1e-11)
+        elif cfg.linear.tight_rtol is not None:
+            forcing = jnp.where(first, PREDICTOR_RTOL, cfg.linear.tight_rtol)
         return cfg.linear.newton_solve(state, ops, blocks, rhs, forcing)
 
     if chord:

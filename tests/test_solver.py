@@ -312,6 +312,22 @@ def test_sparse_path_matches_dense(block9, factorisation):
     assert np.array_equal(np.asarray(b.u), np.asarray(c.u))
 
 
+def test_sparse_path_factorises_again_when_cg_slows(block9, monkeypatch):
+    """A kept factorisation whose CG solves slow down (more than ``growth`` x the iterations
+    per decade of its first) is replaced by the current tangent's after the solve: with
+    growth 0 every CG solve is followed by a factorisation, and the path is the same."""
+    body, sets, dense = block9
+    sparse = jr.Model(body, MATERIALS["NeoHookean"], essential=sets, solver="sparse")
+    monkeypatch.setattr(sparse.linear.system, "growth", 0.0)
+    a = dense.solve({"right": jnp.array([-0.2, 0.1])}, steps=2)
+    jsparse.reset_stats()
+    b = sparse.solve({"right": jnp.array([-0.2, 0.1])}, steps=2)
+    assert np.abs(np.asarray(a.u) - np.asarray(b.u)).max() < 1e-10
+    stats = dict(jsparse.STATS)
+    assert stats["cg_solves"] >= 2 and stats["factorisations"] == 1 + stats["cg_solves"]
+    assert b.outcome == jr.Status.CONVERGED    # stable: the new factorisations' inertia says so
+
+
 @pytest.fixture(scope="module")
 def block3d():
     """5x4x4 neo-Hookean block pushed and sheared, solved on the dense path with full Newton
