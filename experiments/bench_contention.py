@@ -14,7 +14,10 @@ Workloads:
 - ``needle``: the 2D phantom's 5 paddle positions x 5 increments (``needle.insert``);
 - ``box``: the 2D box path (Gauss, 9x9) of the tracking study;
 - ``cube10`` / ``cube10_control``: the 10^3 cube's full solve and one control step;
-- ``sweep20``: the needle sweep of experiments/bench_sweep.py, 20 configurations.
+- ``sweep20``: the needle sweep of experiments/bench_sweep.py, 20 configurations;
+- ``cube20``: the 20^3 cube's full solve on the sparse path (PARDISO and the CG products on
+  ``JAXRKPM_SPARSE_THREADS`` threads, every core by default; not in the default set: ~3 min
+  a repeat pair).
 Prints JSON (also the load average before and after: other jobs on the machine skew both)."""
 from __future__ import annotations
 
@@ -108,9 +111,19 @@ def sweep_workload():
     return lambda: batched(models, depths, ph.target)
 
 
+def cube20_workload():
+    import jaxrkpm as jr
+    body = jr.Body.grid((20, 20, 20), 1.0 / 19)
+    sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
+    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets, solver="sparse")
+    move = {"right": np.array([-0.3, 0.0, 0.0])}
+    return lambda: jax.block_until_ready(model.solve(move, steps=10).u)
+
+
 WORKLOADS = {"cholesky": cholesky_workload, "cube6": cube6_workload, "needle": needle_workload,
              "box": box_workload, "cube10": cube10_workload, "cube10_control": cube10_control_workload,
-             "sweep20": sweep_workload}
+             "sweep20": sweep_workload, "cube20": cube20_workload}
+DEFAULT = [w for w in WORKLOADS if w != "cube20"]
 
 
 def timed_call(fn, busy: bool) -> float:
@@ -129,10 +142,11 @@ def timed_call(fn, busy: bool) -> float:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--workloads", nargs="+", choices=list(WORKLOADS), default=list(WORKLOADS))
+    ap.add_argument("--workloads", nargs="+", choices=list(WORKLOADS), default=DEFAULT)
     ap.add_argument("--repeats", type=int, default=5)
     args = ap.parse_args(argv)
     result = {"blas_threads": os.environ.get(jaxrkpm.threads.ENV, str(jaxrkpm.threads.DEFAULT)),
+              "sparse_threads": jaxrkpm.threads.sparse_threads(),
               "load_average_before": os.getloadavg(), "workloads": {}}
     for name in args.workloads:
         fn = WORKLOADS[name]()
