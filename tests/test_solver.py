@@ -312,6 +312,38 @@ def test_sparse_path_matches_dense(block9, factorisation):
     assert np.array_equal(np.asarray(b.u), np.asarray(c.u))
 
 
+@pytest.mark.parametrize("copying", [False, True])
+def test_host_callback_in_jit_and_vmap(copying, monkeypatch):
+    """The host callback of the sparse and Krylov solvers: the same results through
+    buffer_callback (XLA's buffers, read-only views) and the pure_callback fallback, under
+    jit and vmap (one member at a time)."""
+    from jaxrkpm import linear
+    if copying:
+        monkeypatch.setattr(linear, "buffer_callback", None)
+    elif linear.buffer_callback is None:
+        pytest.skip("this JAX has no buffer_callback")
+    calls = []
+
+    def host(a, b):
+        calls.append(a.shape)
+        return np.asarray(a) * 2 + np.asarray(b).sum(), np.int64(a.shape[0])
+
+    out = (jax.ShapeDtypeStruct((3,), jnp.float64), jax.ShapeDtypeStruct((), jnp.int64))
+    f = jax.jit(lambda a, b: linear.host_callback(host, out, a, b))
+    a, b = jnp.arange(6.0).reshape(2, 3), jnp.ones((2, 4))
+    x, n = jax.vmap(f)(a, b)
+    assert np.array_equal(np.asarray(x), np.asarray(a) * 2 + 4) and np.array_equal(np.asarray(n), [3, 3])
+    assert calls == [(3,), (3,)]
+    if not copying:     # the views are XLA's own buffers: writing to them must fail
+        def writes(a):
+            a[0] = 1.0
+            return a
+
+        with pytest.raises(Exception, match="read-only"):
+            jax.block_until_ready(jax.jit(lambda a: linear.host_callback(
+                writes, jax.ShapeDtypeStruct((3,), jnp.float64), a))(a[0]))
+
+
 def test_sparse_path_factorises_again_when_cg_slows(block9, monkeypatch):
     """A kept factorisation whose CG solves slow down (more than ``growth`` x the iterations
     per decade of its first) is replaced by the current tangent's after the solve: with
