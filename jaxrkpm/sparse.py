@@ -391,9 +391,9 @@ class Elimination:
         return out
 
     def kff(self, K):
-        """v -> K_ff v = T^T K T v for the full tangent K (a sparse matrix: its products in
-        row parts on the sparse threads, ``row_parts_product``; or any x -> K @ x)."""
-        product = row_parts_product(K) if sp.isspmatrix_bsr(K) else K.__matmul__
+        """v -> K_ff v = T^T K T v for the full tangent K (BSR, ``block_matrix``; its
+        products in row parts on the sparse threads, ``row_parts_product``)."""
+        product = row_parts_product(K)
         return lambda v: self.reduce(product(self.expand(v)))
 
 
