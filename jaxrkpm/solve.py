@@ -459,8 +459,12 @@ def pair_blocks(ops, params, W, d):
         return acc + jax.ops.segment_sum(blocks, jnp.concatenate(ids), num_segments=n_pairs)
 
     zero = jnp.zeros((n_pairs, dim, dim), d.dtype)
-    chunk = max(1, BLOCK_BUDGET // (K * K * dim * dim))
-    if G <= chunk:
+    # windows of equal size: with ``chunk`` groups each the last window, shifted back to end
+    # at G, recomputed up to a whole window of groups already summed (the needle phantom,
+    # G = 106 in windows of 104: 1.86 ms against 0.80 ms in two windows of 53)
+    windows = -(-G // max(1, BLOCK_BUDGET // (K * K * dim * dim)))
+    chunk = -(-G // windows)
+    if windows == 1:
         U = chunk_sum(zero, ops.groups, ops.pair_id)
     else:
         def body(i, acc):
@@ -474,7 +478,7 @@ def pair_blocks(ops, params, W, d):
             pid = jax.lax.dynamic_slice_in_dim(ops.pair_id, start, chunk)
             return chunk_sum(acc, jnp.where(seen, Q, grp), pid)
 
-        U = jax.lax.fori_loop(0, -(-G // chunk), body, zero)
+        U = jax.lax.fori_loop(0, windows, body, zero)
     if half:
         U = U + jnp.where((ops.pair_i == ops.pair_j)[:, None, None], 0.0, jnp.swapaxes(U[ops.pair_t], -1, -2))
     return U + spring_blocks(ops, params, n_pairs, dim)
