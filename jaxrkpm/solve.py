@@ -255,9 +255,12 @@ class Solution(NamedTuple):
 def coefficients(ops: Ops, u, g):
     """Full RK coefficients (N, d): free ones from u, essential ones by eq 3.22."""
     N, dim = ops.f_ext.shape
-    d = jnp.zeros((N, dim), u.dtype).at[ops.free].set(u)
+    # the free and the essential particles are distinct: said, so that the derivatives of
+    # these scatters are plain gathers (JAX otherwise tracks which of the duplicates won
+    # with an integer scatter and gather of its own: 6 more kernels in every residual)
+    d = jnp.zeros((N, dim), u.dtype).at[ops.free].set(u, unique_indices=True)
     s = jnp.einsum("bk,bki->bi", ops.nb_psi, d[ops.nb_idx])
-    return d.at[ops.bnd].set(ops.Dbinv @ (g - s))
+    return d.at[ops.bnd].set(ops.Dbinv @ (g - s), unique_indices=True)
 
 
 def deformation_gradients(idx, dpsi, d):
