@@ -108,10 +108,12 @@ class Problem:
         return S.newton(self.ops, self.params, self.config, max_iter, u, g0, g1,
                         jnp.asarray(l0, jnp.float64), jnp.asarray(l1, jnp.float64), state, chord)
 
-    def solve(self, limits: Limits, u0, g0, g1, l0, l1) -> Solution:
+    def solve(self, limits: Limits, u0, g0, g1, l0, l1, state=None) -> Solution:
         """Adaptive load stepping from the equilibrium (u0, g0, l0) to (g1, l1),
-        differentiable in g1, l1 and the parameters (implicit function theorem)."""
-        return S.solve_path_diff(self.ops, self.params, self.config, limits, u0, g0, g1, l0, l1)
+        differentiable in g1, l1 and the parameters (implicit function theorem). ``state``:
+        a factorisation of K_ff at that start (``factorise``), which the first step reuses
+        where the solver keeps states (see ``jaxrkpm.solve.solve_path``)."""
+        return S.solve_path_diff(self.ops, self.params, self.config, limits, u0, g0, g1, l0, l1, state)
 
     # ------------------------------------------------------------- implicit derivatives
     def sensitivity(self, sol: Solution, rhs, state=None):

@@ -867,13 +867,17 @@ def switch_branch(ops, params, cfg: Config, max_iter, u, g, load):
     return v, found, lam, mode, its
 
 
-def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l0, l1) -> Solution:
+def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l0, l1, state0=None) -> Solution:
     """Adaptive load stepping from the equilibrium (u0, g0, l0) to (g1, l1).
 
     Halves the step on failure (up to lim.max_cuts times below the initial step), grows it
     by ``cfg.growth`` after easy steps (never above the initial step). On failure the last
     converged state is returned with the failing status. The linear solver's state runs
     through every step (a sparse factorisation keeps preconditioning later steps).
+    ``state0``: a factorisation of K_ff at the start (u0, g0, l0), e.g. the one an implicit
+    Jacobian at that equilibrium made: the first step starts from it where the solver keeps
+    states (modified Newton's predictor, ``Config.reuse``; the sparse path's preconditioner),
+    so the same matrix is not factorised twice; full Newton ignores it.
 
     Past a critical point (``switches_branch(cfg)``): a step whose equilibrium has a K_ff that
     is not positive definite is cut (as any failure) until it is at most dt0 / 2**cfg.locate
@@ -950,7 +954,7 @@ def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l
 
     zero = jnp.array(0)
     init = (jnp.array(0.0), jnp.array(dt0), u0, zero, zero, zero, zero, jnp.array(0.0), jnp.array(False),
-            cfg.linear.empty(ops, u0.dtype), zero, Critical.empty(u0), zero)
+            cfg.linear.empty(ops, u0.dtype) if state0 is None else state0, zero, Critical.empty(u0), zero)
     t, _, u, status, iters, steps, cuts, rn, unknown, _, branch, crit, _ = jax.lax.while_loop(cond, body, init)
     status = jnp.where((status == 0) & unknown, Status.STABILITY_UNKNOWN, status)
     g, load = at(t)
@@ -1024,18 +1028,19 @@ def sensitivity(ops, params, cfg: Config, u, g, load, rhs, state=None, refine: f
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(2,))
-def solve_path_diff(ops, params, cfg, lim, u0, g0, g1, l0, l1):
+def solve_path_diff(ops, params, cfg, lim, u0, g0, g1, l0, l1, state0=None):
     """``solve_path`` differentiable in (g1, l1, params) by the implicit function theorem at
     the converged state: K_ff du = -(dr/dg dg + dr/dl dl + dr/dp dp). No Newton iteration is
-    differentiated; the path start (u0, g0, l0) only selects the equilibrium branch."""
-    return solve_path(ops, params, cfg, lim, u0, g0, g1, l0, l1)
+    differentiated; the path start (u0, g0, l0) and ``state0`` only select the equilibrium
+    branch and where Newton starts."""
+    return solve_path(ops, params, cfg, lim, u0, g0, g1, l0, l1, state0)
 
 
 @solve_path_diff.defjvp
 def _solve_path_jvp(cfg, primals, tangents):
-    ops, params, lim, u0, g0, g1, l0, l1 = primals
-    _, dparams, _, _, _, dg1, _, dl1 = tangents
-    sol = solve_path_diff(ops, params, cfg, lim, u0, g0, g1, l0, l1)
+    ops, params, lim, u0, g0, g1, l0, l1, state0 = primals
+    _, dparams, _, _, _, dg1, _, dl1, _ = tangents
+    sol = solve_path_diff(ops, params, cfg, lim, u0, g0, g1, l0, l1, state0)
     # a failed solve has no derivative: NaN, never the finite derivative of the kept state
     # (a factor, not a select, so the tangent stays linear and reverse mode transposes it)
     valid = jnp.where(reached_equilibrium(sol.status), 1.0, jnp.nan)
