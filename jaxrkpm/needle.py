@@ -394,9 +394,9 @@ def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, batched, with_jacobian
       factorisations (``linear.triangular_pair``, ``solve.pair_blocks``'s equal windows),
       80 configurations, one run, quiet: map 12.0 s against 15.6 s for the loop (1.30x;
       9,446 iterations both, deviations equal to 1.4e-16, statuses equal), where it was
-      23.1 s against 24.2 s (1.05x) before both changes. The rest is arithmetic: 5,521
-      factorisations (1.3 ms each) and 26,912 energy evaluations, 58% of them in the last
-      two increments, where the 58 failing solves cut their steps.
+      23.1 s against 24.2 s (1.05x) before both changes. The rest is arithmetic: 4,401
+      factorisations (1.3 ms each; 5,521 before the carry) and 26,912 energy evaluations,
+      68% of them in the last two increments, where the 58 failing solves cut their steps.
     - GPU: "vmap" (one batched kernel per operation, native batched factorisations; see
       ``linear.one_at_a_time``). H100: 5.78 s against 31.2 s for the Python loop of the
       same solves (5.4x), equal to 1e-16.
