@@ -211,9 +211,10 @@ def by_columns(f, b):
     many matrix-vector products, worst where the matrix is contracted over its rows (A^T b
     without a transposed copy): one thread, n = 138, k = 2, 13.2 us against 1.0 us a
     column; a kept L^-1's solve 14.1 us against 6.7 us by columns (the 2D box path's
-    tracking: 1.12 -> 1.06-1.07 s). Not for large matrices, which each column would stream
-    from memory again: at n = 2,400 (the 10^3 cube, three columns) the kept control loop
-    took 0.18-0.20 s a step by columns against 0.16-0.18 s (runs interleaved)."""
+    tracking, interleaved runs: 1.19 / 1.30 s -> 1.16 / 1.10 s). Not for large matrices,
+    which each column would stream from memory again: at n = 2,400 (the 10^3 cube, three
+    columns) the kept control loop took 0.18-0.20 s a step by columns against 0.16-0.18 s
+    (runs interleaved)."""
     if b.shape[0] > TRIANGULAR_BLOCK or b.shape[1] == 1:
         return f(b)
     return jnp.concatenate([f(b[:, j:j + 1]) for j in range(b.shape[1])], axis=1)
