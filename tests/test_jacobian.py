@@ -290,6 +290,19 @@ def test_tracking_with_kept_factorisations_reaches_the_waypoints(planar):
         track(model, PATHS["setpoint"], "paddle", CP, reuse=1.5)
 
 
+def vmapped_solves(solver, Ks, b, rtol):
+    """``solver``'s factorisation and solve of each matrix of Ks with the right-hand sides
+    b, per member under vmap, each equal to numpy's solve to ``rtol``: the solutions."""
+    def solve(K, b):
+        return solver.solve(solver.factorise(K), b)
+
+    xs = np.asarray(jax.vmap(solve)(jnp.asarray(np.stack(Ks)), jnp.asarray(np.stack([b] * len(Ks)))))
+    for k, M in enumerate(Ks):
+        ref = np.linalg.solve(M, b)
+        assert np.abs(xs[k] - ref).max() < rtol * np.abs(ref).max(), k
+    return xs
+
+
 @pytest.mark.parametrize("n", [5, 300])
 def test_blocked_triangular_solves_equal_a_dense_solve(n, monkeypatch):
     """DenseSolver's block substitution (``triangular_pair``: row blocks of L^T and inverted
@@ -309,14 +322,8 @@ def test_blocked_triangular_solves_equal_a_dense_solve(n, monkeypatch):
     x = np.asarray(linear.triangular_pair(rows, linear.blocked_inverses(rows), jnp.asarray(b)))
     assert np.abs(x - np.linalg.solve(K, b)).max() < 1e-10 * np.abs(x).max()
 
-    def solve(K, b):     # through the solver's state, as Newton calls it
-        dense = linear.DenseSolver()
-        return dense.solve(dense.factorise(jnp.asarray(K)), b)
-
-    Ks = np.stack([K, K - 2 * np.eye(n) * np.linalg.eigvalsh(K)[0] - np.eye(n) * 0.5])   # SPD, indefinite
-    xs = np.asarray(jax.vmap(solve)(jnp.asarray(Ks), jnp.asarray(np.stack([b, b]))))
-    for k in range(2):
-        assert np.abs(xs[k] - np.linalg.solve(Ks[k], b)).max() < 1e-9 * np.abs(xs[k]).max()
+    # through the solver's state, as Newton calls it; SPD and indefinite
+    vmapped_solves(linear.DenseSolver(), [K, K - 2 * np.eye(n) * np.linalg.eigvalsh(K)[0] - np.eye(n) * 0.5], b, 1e-9)
 
 
 @pytest.mark.parametrize("n", [40, 300])
@@ -333,15 +340,8 @@ def test_kept_inverse_solves_several_columns_as_a_dense_solve(n):
     Kind = K - 2 * np.eye(n) * np.linalg.eigvalsh(K)[0] - np.eye(n) * 0.5
     b = rng.standard_normal((n, 3))
     dense = linear.DenseSolver(inverse=True)
-
-    def solve(K, b):
-        return dense.solve(dense.factorise(K), b)
-
-    xs = np.asarray(jax.vmap(solve)(jnp.asarray(np.stack([K, Kind])), jnp.asarray(np.stack([b, b]))))
-    for k, M in enumerate((K, Kind)):
-        ref = np.linalg.solve(M, b)
-        assert np.abs(xs[k] - ref).max() < 1e-9 * np.abs(ref).max(), k
-    one = np.asarray(solve(jnp.asarray(K), jnp.asarray(b[:, 1:2])))
+    xs = vmapped_solves(dense, [K, Kind], b, 1e-9)
+    one = np.asarray(dense.solve(dense.factorise(jnp.asarray(K)), jnp.asarray(b[:, 1:2])))
     assert np.abs(one - xs[0][:, 1:2]).max() < 1e-12 * np.abs(one).max()
 
 
@@ -367,10 +367,7 @@ def test_mixed_precision_solves_to_double_accuracy(inverse, monkeypatch):
     def solve(K, b):
         return mixed.solve(mixed.factorise(K), b)
 
-    xs = np.asarray(jax.vmap(solve)(jnp.asarray(np.stack([K, Kind])), jnp.asarray(np.stack([b, b]))))
-    for k, A in enumerate((K, Kind)):
-        ref = np.linalg.solve(A, b)
-        assert np.abs(xs[k] - ref).max() < 1e-11 * np.abs(ref).max(), k
+    vmapped_solves(mixed, [K, Kind], b, 1e-11)
     state = mixed.factorise(jnp.asarray(K))
     assert (state.Linv if inverse else state.rows[0]).dtype == jnp.float32
     assert linear.Stability.of(mixed.stability(state)) == linear.Stability.STABLE
