@@ -70,6 +70,11 @@ class Problem:
         """The size of the terms summed into the residual (the convergence test's scale)."""
         return S.internal_force_scale(self.ops, self.params, self.config.W, self.coefficients(u, g))
 
+    def roundoff_floor(self, u, g):
+        """The residual norm below which |r| carries no information at (u, g) (the convergence
+        test's floor; see jaxrkpm.solve.force_scales)."""
+        return S.force_scales(self.ops, self.params, self.config.W, self.coefficients(u, g))[1]
+
     def tangent_blocks(self, u, g):
         """The tangent in the full coefficients as (P, d, d) particle-pair blocks."""
         return S.pair_blocks(self.ops, self.params, self.config.W, self.coefficients(u, g))
@@ -97,16 +102,18 @@ class Problem:
         return self.config.linear.stability(state)
 
     # ------------------------------------------------------------------------- nonlinear
-    def newton(self, u, g0, g1, l0=1.0, l1=1.0, *, max_iter=25, state=None, chord=False):
+    def newton(self, u, g0, g1, l0=1.0, l1=1.0, *, max_iter=25, state=None, chord=False, floor=None):
         """One Newton solve from the equilibrium at (g0, l0) to (g1, l1): (u, status code,
         iterations, |r|, linear state). ``chord=True`` reuses the factorisation ``state``
-        for every step (no assembly); see jaxrkpm.solve.newton."""
+        for every step (no assembly); ``floor``: the round-off floor of the residual test
+        (``roundoff_floor`` of a nearby state; default: computed in the solve); see
+        jaxrkpm.solve.newton."""
         if state is None:
             if chord:
                 raise ValueError("a chord solve needs the factorisation to reuse (state=...)")
             state = self.config.linear.empty(self.ops, jnp.result_type(u))
         return S.newton(self.ops, self.params, self.config, max_iter, u, g0, g1,
-                        jnp.asarray(l0, jnp.float64), jnp.asarray(l1, jnp.float64), state, chord)
+                        jnp.asarray(l0, jnp.float64), jnp.asarray(l1, jnp.float64), state, chord, floor)
 
     def solve(self, limits: Limits, u0, g0, g1, l0, l1, state=None) -> Solution:
         """Adaptive load stepping from the equilibrium (u0, g0, l0) to (g1, l1),

@@ -325,9 +325,13 @@ def _group_sum_scatter(ops: Ops, contrib, like):
     return jnp.zeros_like(like).at[rep].add(contrib.sum(1))
 
 
-def energy_full(ops: Ops, params: Params, W, d, load):
-    """Total potential energy in the full coefficients; aux: min det F."""
-    F = group_gradients(ops, d)
+def energy_full(ops: Ops, params: Params, W, d, load, dF=0.0):
+    """Total potential energy in the full coefficients; aux: min det F.
+
+    ``dF`` (G, S, d, d), added to F at the integration points by group, is zero in value: the
+    energy's gradient with respect to it is the stress w P there (``weighted_stress``), which
+    the backward pass of the residual computes anyway."""
+    F = group_gradients(ops, d) + dF
     p, axes = _group_params(ops, params)
     Wq = _per_group(_point_energy(W), axes)(F, p)
     det_F = jnp.where(ops.groups < ops.w.shape[0], det(F), jnp.inf)   # padding: not a point
@@ -335,8 +339,8 @@ def energy_full(ops: Ops, params: Params, W, d, load):
             jnp.min(det_F))
 
 
-def energy(ops, params, W, u, g, load):
-    return energy_full(ops, params, W, coefficients(ops, u, g), load)
+def energy(ops, params, W, u, g, load, dF=0.0):
+    return energy_full(ops, params, W, coefficients(ops, u, g), load, dF)
 
 
 def residual(ops, params, W, u, g, load):
@@ -344,12 +348,33 @@ def residual(ops, params, W, u, g, load):
     return jax.grad(lambda v: energy(ops, params, W, v, g, load)[0])(u)
 
 
-def _scatter_norm(ops: Ops, X, like):
-    """|| sum_q w |grad Psi| |X| || for per-point (G, S, d, d) tensors X: the size of the terms
-    summed onto the particles."""
-    contrib = jnp.einsum("gskj,gsij->gski", jnp.abs(by_group(ops, ops.dpsi)), jnp.abs(X)) * \
-        by_group(ops, ops.w)[:, :, None, None]
-    return jnp.linalg.norm(_group_sum_scatter(ops, contrib, like))
+def energy_residual_stress(ops, params, W, u, g, load):
+    """(Pi, min det F, r_f, w P) in one pass: the energy, its gradient and the weighted first
+    Piola stress at the integration points by group (G, S, d, d), the gradient with respect
+    to ``energy_full``'s dF (so the force scale needs no second pass through the material:
+    at the 9x9 box that pass cost ~2x the residual)."""
+    dF = jnp.zeros(ops.groups.shape + (u.shape[-1],) * 2, u.dtype)
+    (Pi, det_min), (r, wP) = jax.value_and_grad(lambda x, e: energy(ops, params, W, x, g, load, e),
+                                                argnums=(0, 1), has_aux=True)(u, dF)
+    return Pi, det_min, r, wP
+
+
+def _weighted(ops: Ops, X):
+    """w X for per-point (G, S, ...) tensors X (zero in the padding slots)."""
+    return by_group(ops, ops.w).reshape(ops.groups.shape + (1,) * (X.ndim - 2)) * X
+
+
+def _scatter_norm(ops: Ops, wX):
+    """|| sum_q |grad Psi| |w X| || for weighted per-point (G, S, d, d) tensors w X: the size of
+    the terms summed onto the particles."""
+    contrib = jnp.einsum("gskj,gsij->gski", jnp.abs(by_group(ops, ops.dpsi)), jnp.abs(wX))
+    return jnp.linalg.norm(_group_sum_scatter(ops, contrib, jnp.zeros(ops.f_ext.shape, wX.dtype)))
+
+
+def stress_force_scale(ops, wP):
+    """|| sum_q |grad Psi| |w P| || + |f_ext| from the weighted stress w P (G, S, d, d): the
+    size of the terms summed into the residual."""
+    return _scatter_norm(ops, wP) + jnp.linalg.norm(ops.f_ext)
 
 
 def internal_force_scale(ops, params, W, d):
@@ -357,7 +382,7 @@ def internal_force_scale(ops, params, W, d):
     F = group_gradients(ops, d)
     p, axes = _group_params(ops, params)
     P = _per_group(jax.grad(_point_energy(W)), axes)(F, p)
-    return _scatter_norm(ops, P, d) + jnp.linalg.norm(ops.f_ext)
+    return stress_force_scale(ops, _weighted(ops, P))
 
 
 ROUNDOFF_FACTOR = 100.0   # the convergence floor in units of eps x stiffness scale (see force_scales);
@@ -381,7 +406,7 @@ def force_scales(ops, params, W, d):
 
     P, dP = _per_group(stress_and_stiffness, axes)(F, p)
     eps = jnp.finfo(d.dtype).eps
-    return _scatter_norm(ops, P, d) + jnp.linalg.norm(ops.f_ext), ROUNDOFF_FACTOR * eps * _scatter_norm(ops, dP, d)
+    return stress_force_scale(ops, _weighted(ops, P)), ROUNDOFF_FACTOR * eps * _scatter_norm(ops, _weighted(ops, dP))
 
 
 # doubles of (chunk, K, K, d, d) local tangent blocks held at once by pair_blocks (public: a
@@ -511,15 +536,21 @@ def linear_state(ops, params, cfg: Config, u, g):
 PREDICTOR_RTOL = 1e-4
 
 
-def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: bool = False):
+def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: bool = False, floor=None):
     """Newton from the equilibrium at (g0, l0) to (g1, l1); returns (u, status, iterations,
     |r|, linear state).
 
     The first linear solve is the predictor: it carries the prescribed increment,
     K_ff(u, g0) du = -(r(u, g0, l1) + K_fg (g1 - g0)); later ones are Newton steps at g1.
+    ``g0`` None: u is an iterate at g1 (e.g. a state predicted by the caller) and the first
+    solve a Newton step there (a residual pass instead of the predictor's linearisation).
     Converged when |r| <= max(rtol max(|r + K_fg dg|, internal force scale), round-off
     floor) (the force scale at the iterate after the last step that assembled the tangent,
-    or after the predictor: chord steps reuse it; the floor there, after the predictor).
+    or after the predictor: chord steps reuse it; the floor there, after the predictor, unless
+    ``floor`` gives it: e.g. one that the caller computed at a nearby state and keeps, as the
+    control loop does, since the floor's own pass through the material cost as much as a
+    chord correction). The force scale comes from the stress that each residual evaluation
+    computes (``energy_residual_stress``): no pass of its own.
 
     ``chord=False``: every iteration assembles the tangent and solves through
     ``cfg.linear.newton_solve`` (which may reuse ``state``, e.g. as a preconditioner), then a
@@ -540,14 +571,16 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
     after a tangent of this load step was factorised (its stability is the one reported)."""
     W = cfg.W
     res = partial(residual, ops, params, W)
-    r_pred, kfg_dg = jax.jvp(lambda g: res(u, g, l1), (g0,), (g1 - g0,))
-    rhs0 = r_pred + kfg_dg
+    if g0 is None:   # no increment: the residual at (u, g1), not a linearisation along g1 - g0 = 0
+        g0, rhs0 = g1, res(u, g1, l1)
+    else:
+        r_pred, kfg_dg = jax.jvp(lambda g: res(u, g, l1), (g0,), (g1 - g0,))
+        rhs0 = r_pred + kfg_dg
     r_ref = jnp.linalg.norm(rhs0)
     halvings = 0 if chord else cfg.line_search
 
     def evaluate(v):
-        (Pi, detmin), r = jax.value_and_grad(lambda x: energy(ops, params, W, x, g1, l1), has_aux=True)(v)
-        return Pi, detmin, r
+        return energy_residual_stress(ops, params, W, v, g1, l1)
 
     def line_search(u, Pi, r, du, first):
         slope = jnp.sum(du * r)
@@ -558,10 +591,10 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
             return (~c[1]) & (c[0] <= halvings)
 
         def body(c):
-            k, _, _, _, _, any_finite, _ = c
+            k, _, _, _, _, _, any_finite, _ = c
             alpha = 0.5 ** k
             v = u + alpha * du
-            Pi_v, det_v, r_v = evaluate(v)
+            Pi_v, det_v, r_v, wP_v = evaluate(v)
             finite = jnp.isfinite(Pi_v) & jnp.all(jnp.isfinite(r_v))
             valid = finite & (det_v > 0)
             lower_r = jnp.linalg.norm(r_v) < rn
@@ -569,13 +602,15 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
                 decrease = first | lower_r
             else:
                 decrease = (Pi_v <= Pi + cfg.armijo * alpha * slope) | lower_r | ~start_ok
-            return (k + 1, valid & decrease, v, Pi_v, r_v, any_finite | finite, det_v > 0)
+            return (k + 1, valid & decrease, v, Pi_v, r_v, wP_v, any_finite | finite, det_v > 0)
 
-        init = (jnp.array(0), jnp.array(False), u, Pi, r, jnp.array(False), jnp.array(True))
-        _, accepted, v, Pi_v, r_v, any_finite, det_ok = jax.lax.while_loop(cond, body, init)
+        init = (jnp.array(0), jnp.array(False), u, Pi, r, wP0, jnp.array(False), jnp.array(True))
+        # no halvings (chord): the one trial step, without a loop around it
+        search = body if halvings == 0 else partial(jax.lax.while_loop, cond, body)
+        _, accepted, v, Pi_v, r_v, wP_v, any_finite, det_ok = search(init)
         why = jnp.where(~any_finite, Status.NONFINITE,
                         jnp.where(~det_ok, Status.INVERTED, Status.LINE_SEARCH))
-        return accepted, v, Pi_v, r_v, why
+        return accepted, v, Pi_v, r_v, wP_v, why
 
     def cond(c):
         return c[4] < 0
@@ -598,7 +633,7 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
                 lambda: (*assemble_and_solve(u, first, rhs, state), True))
         else:
             dx, state, stab = assemble_and_solve(u, first, rhs, state)
-        ok, v, Pi_v, r_v, why = line_search(u, Pi, r, -dx, first)
+        ok, v, Pi_v, r_v, wP_v, why = line_search(u, Pi, r, -dx, first)
         if chord and hasattr(cfg.linear, "update"):
             # a quasi-Newton solver learns from each correction (the predictor's step also
             # changes the load: not a secant pair of one residual)
@@ -607,11 +642,13 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
         # the force scale of the tolerance: at the iterate after each assembled step, kept
         # through the chord steps that follow it (they move the state by less than the step
         # before them, so the scale by a relative O(|du|); it cost ~30% of a chord correction);
-        # the round-off floor once a call, with the first scale (one pass gives both)
-        d_v = lambda: coefficients(ops, v, g1)
-        scale, floor = when(first, lambda: force_scales(ops, params, W, d_v()), scales)
-        scale = when(~first & made, lambda: internal_force_scale(ops, params, W, d_v()), scale)
-        tol = jnp.maximum(cfg.rtol * jnp.maximum(r_ref, scale), floor)
+        # the round-off floor once a call after the predictor, where not given
+        scale = when(first | made, lambda: stress_force_scale(ops, wP_v), scales[0])
+        if floor is None:
+            floor_now = when(first, lambda: force_scales(ops, params, W, coefficients(ops, v, g1))[1], scales[1])
+        else:
+            floor_now = jnp.asarray(floor, u.dtype)
+        tol = jnp.maximum(cfg.rtol * jnp.maximum(r_ref, scale), floor_now)
         converged = ok & (rn <= tol)
         cap = max_iter
         if chord and cfg.reuse > 0:
@@ -648,7 +685,7 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
         # residual met the tolerance anyway, the attempt ends
         status = jnp.where((stab == Stability.FAILED) & ~converged, Status.LINEAR_SOLVE, status)
         return (it + 1, jnp.where(ok, v, u), jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), status, state, keep,
-                (scale, floor), step_factorised)
+                (scale, floor_now), step_factorised)
 
     def assemble_and_solve(u, first, rhs, state):
         """A Newton step with the tangent at u (at g0 for the predictor): (dx, state, stability)."""
@@ -676,8 +713,9 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
         # admissible): the energy and residual at (u, g1) would go unused, so they are not
         # evaluated (one energy-gradient pass per settle saved)
         Pi0, r0 = jnp.array(jnp.inf, u.dtype), rhs0
+        wP0 = jnp.zeros(ops.groups.shape + (u.shape[-1],) * 2, u.dtype)
     else:
-        Pi0, _, r0 = evaluate(u)
+        Pi0, _, r0, wP0 = evaluate(u)
     status0 = jnp.array(-1)
     if chord:
         status0 = jnp.where(cfg.linear.stability(state) == Stability.STABLE, -1, Status.UNSTABLE_TANGENT)

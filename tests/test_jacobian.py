@@ -275,6 +275,39 @@ def test_kept_factorisation_settles_to_full_newton(planar):
     assert np.abs(np.asarray(predicted.u - own.u)).max() < 1e-9 * np.abs(np.asarray(own.u)).max()
 
 
+def test_second_order_prediction_along_a_straight_move(planar):
+    """predicted_change: with the response at the state before the last move, the change of
+    the free coefficients for a move along the same line is predicted to second order (its
+    error falls as the move cubed, the first-order prediction's as its square); a move across
+    the last one, or a response that is not finite, gets the first-order prediction."""
+    from jaxrkpm.control import ControlledModel, predicted_change
+
+    model, sol = planar
+    side = ControlledModel.of(model, "paddle", CP)
+    response = jax.jit(lambda sd, s: sd.response(s, sd.problem.factorise(s.u, s.g)))
+    errors = []
+    for h in (0.01, 0.005):
+        move = h * jnp.array([1.0, -0.5])
+        at = lambda k: model.solve_g(sol.g + k * jnp.einsum("a,abi->bi", move, side.G), initial=sol,
+                                     loads=sol.load)
+        s1, s2 = at(1), at(2)
+        du0, du1 = response(side, sol), response(side, s1)
+        true = np.asarray(s2.u - s1.u)
+        first = np.asarray(predicted_change(du1, move))
+        second = np.asarray(predicted_change(du1, move, du0, move))
+        errors.append((np.abs(first - true).max(), np.abs(second - true).max()))
+    (a1, a2), (b1, b2) = errors
+    print("prediction errors (first, second order) at moves 0.01 and 0.005:", errors)
+    assert a2 < 0.2 * a1
+    assert 1.6 < np.log2(a1 / b1) < 2.4       # first order: error ~ move^2
+    assert np.log2(a2 / b2) > 2.6             # second order: error ~ move^3
+    across = jnp.array([0.005, 0.01])         # orthogonal to the last move
+    assert np.array_equal(np.asarray(predicted_change(du1, across, du0, move)),
+                          np.asarray(predicted_change(du1, across)))
+    assert np.array_equal(np.asarray(predicted_change(du1, move, du0 * jnp.nan, move)), first)
+    assert np.array_equal(np.asarray(predicted_change(du1, move, du0, jnp.zeros(2))), first)
+
+
 def test_tracking_with_kept_factorisations_reaches_the_waypoints(planar):
     model, _ = planar
     kept = track(model, PATHS["setpoint"], "paddle", CP, reuse=0.5)
