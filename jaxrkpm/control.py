@@ -223,28 +223,28 @@ class TrackResult:
                f"{len(self.error) - 1} iterations)"
 
 
-def predicted_change(du, dmp, du_last=None, last_move=None):
-    """The change of the free coefficients (Nf, d) predicted for the move ``dmp`` (d_mp,) of
-    the manipulation point from the response ``du`` = d u / d mp (d_mp, Nf, d) there: du . dmp,
-    to first order. Given the response ``du_last`` at the state before the ``last_move``,
-    plus the second-order term 1/2 H[dmp, dmp] (H = d^2 u / d mp^2), estimated from the change
-    of the response along the last move, du - du_last ~ H[last_move, .], as
-    c H[last_move, dmp] with c = dmp . last_move / |last_move|^2: exact where the moves are
-    parallel (a path's straight legs, where the control moves by the increment clamp); where
-    they turn, the estimate misses the part across the last move and the prediction stays
-    first-order accurate. No second-order term where no move preceded (``last_move`` = 0) or
-    ``du_last`` is not finite (after a failed solve).
-
-    Measured on the 9x9 box path (1,440 iterations, a kept factorisation): 4,764 -> 2,523 chord
-    solves, the same iterations and waypoint errors (9.995e-5 both)."""
-    first = jnp.einsum("a,aij->ij", dmp, du)
-    if du_last is None:
-        return first
+def response_trend(du, dmp, du_last, last_move):
+    """The change of the response du = d u / d mp (d_mp, Nf, d) over the move ``dmp`` (d_mp,)
+    of the manipulation point, H[dmp, .] with H = d^2 u / d mp^2, estimated from its change
+    along the last move: du - du_last ~ H[last_move, .] (``du_last``: the response at the state
+    before ``last_move``), so H[dmp, .] ~ c (du - du_last) with c = dmp . last_move /
+    |last_move|^2. Exact to first order where the moves are parallel (a path's straight legs,
+    where the control moves by the increment clamp); where they turn it misses the part across
+    the last move. Zero where no move preceded (``last_move`` = 0) or ``du_last`` is not finite
+    (after a failed solve)."""
     p2 = jnp.sum(last_move * last_move)
     valid = (p2 > 0) & jnp.all(jnp.isfinite(du_last))
     c = jnp.where(valid, jnp.sum(dmp * last_move) / jnp.where(valid, p2, 1.0), 0.0)
-    change = jnp.where(valid, du - du_last, 0.0)
-    return first + 0.5 * c * jnp.einsum("a,aij->ij", dmp, change)
+    return c * jnp.where(valid, du - du_last, 0.0)
+
+
+def predicted_change(du, dmp, trend=None):
+    """The change of the free coefficients (Nf, d) for the move ``dmp`` (d_mp,) from the
+    response ``du`` (d_mp, Nf, d): du . dmp, to first order; with the ``response_trend`` over
+    that move, plus the second-order term 1/2 H[dmp, dmp] (second-order accurate along a
+    straight leg of the path, first-order where it turns)."""
+    first = jnp.einsum("a,aij->ij", dmp, du)
+    return first if trend is None else first + 0.5 * jnp.einsum("a,aij->ij", dmp, trend)
 
 
 @partial(jax.jit, static_argnames=("same", "max_iter", "max_steps", "window", "max_corr"))
@@ -295,8 +295,9 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
         status: jax.Array
         c_state: object   # the kept factorisations (``ControlledModel.keeps``; else unused)
         p_state: object
-        du: jax.Array     # the controller's last response (keeps: where the next one's CG starts)
+        du: jax.Array     # the controller's last response
         last_move: jax.Array   # the move of the last iteration (zero where it hit a waypoint or failed)
+        du_next: jax.Array     # the response predicted at the current state (keeps: where its CG starts)
 
     class Step(NamedTuple):   # what one iteration changes (the history is written outside the cond)
         mp: jax.Array
@@ -308,6 +309,7 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
         c_state: object
         p_state: object
         du: jax.Array
+        trend: jax.Array   # the response's predicted change over the move (``response_trend``)
 
     def cond(s):
         return (s.status < 0) & (s.wp < n_wp)
@@ -317,17 +319,20 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
 
     def step(s, e):
         state = factorisation(ctrl, s.c, s.c_state)
-        # with a kept factorisation the response is refined by CG: it starts from the last
-        # one (a nearby state's; measured at the 10^3 cube, a 20-iteration loop: 0.251 -> 0.205 s an
-        # iteration, 10 iterations: 0.253 -> 0.246, where the early moves change the response more)
-        # (a response that is not finite, after a failed solve, is no guess: CG starts from 0)
-        guess = jnp.where(jnp.all(jnp.isfinite(s.du)), s.du, 0.0) if ctrl.keeps else None
+        # with a kept factorisation the response is refined by CG: it starts from the one
+        # predicted for this state (the last one plus its trend; measured at the 10^3 cube, a
+        # 20-iteration loop, starting from the last response instead of 0: 0.251 -> 0.205 s an
+        # iteration; at the 9x9 box path, from the predicted one instead of the last: CG
+        # iterations 2-4 -> 0-1 a step) (one that is not finite, after a failed solve, is no
+        # guess: CG starts from 0)
+        guess = jnp.where(jnp.all(jnp.isfinite(s.du_next)), s.du_next, 0.0) if ctrl.keeps else None
         du = ctrl.response(s.c, state, guess)
         dmp = control_increment(ctrl.jacobian(s.c, state, du), e, gain, clamp, damping)
         mp = s.mp + dmp
         # with a kept factorisation (of an earlier state) its own predictor is poor: the
         # response, refined to this state's, predicts the move, to second order along the path
-        du_move = predicted_change(du, dmp, s.du, s.last_move) if ctrl.keeps else None
+        trend = response_trend(du, dmp, s.du, s.last_move)
+        du_move = predicted_change(du, dmp, trend) if ctrl.keeps else None
         c, c_state = ctrl.settle(s.c, state, g_of(ctrl, cg_base, mp), lim, max_corr, du_move, c_floor)
         if same:
             p, p_state = c, c_state
@@ -335,21 +340,21 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
             p, p_state = plant.settle(s.p, factorisation(plant, s.p, s.p_state), g_of(plant, pg_base, mp),
                                       lim, max_corr, floor=p_floor)
         return Step(mp, c, p, plant.measure(p), c.iterations + (0 if same else p.iterations),
-                    jnp.maximum(c.status, p.status), c_state, p_state, du)
+                    jnp.maximum(c.status, p.status), c_state, p_state, du, trend)
 
     def body(s):
         e = desired[s.wp] - s.cp
         hit = jnp.linalg.norm(e) < tol
         keep = Step(s.mp, s.c, s.p, s.cp, jnp.array(0, s.c.iterations.dtype), jnp.array(0, s.c.status.dtype),
-                    s.c_state, s.p_state, s.du)
+                    s.c_state, s.p_state, s.du, s.du)
         # the step is taken and discarded on the (few) iterations that hit a waypoint: cheaper
         # than a lax.cond around it on every iteration. The factorisations it made are kept
         # even then (and after a failed solve): each is of a nearby state, which is all a kept
         # factorisation is (the residual test decides convergence), and a select would copy
         # them (3 n^2 doubles) at every iteration
         new = step(s, e)
-        st = jax.tree.map(lambda a, b: jnp.where(hit, a, b), keep._replace(c_state=None, p_state=None, du=None),
-                          new._replace(c_state=None, p_state=None, du=None))
+        st = jax.tree.map(lambda a, b: jnp.where(hit, a, b), keep._replace(c_state=None, p_state=None, du=None, trend=None),
+                          new._replace(c_state=None, p_state=None, du=None, trend=None))
         moved = ~hit
         ok = reached_equilibrium(st.c.status) & reached_equilibrium(st.p.status)
         k = s.k + moved
@@ -378,7 +383,8 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
             since_best=jnp.where(hit, 0, since), mp=mp, c=c, p=p, cp=cp, hist=h,
             reached=s.reached.at[at_wp].set(s.k.astype(s.reached.dtype), mode="drop"),
             achieved=s.achieved.at[at_wp].set(s.cp, mode="drop"), status=jnp.where(hit, s.status, status),
-            c_state=c_state, p_state=p_state, du=new.du, last_move=jnp.where(ok & moved, st.mp - s.mp, 0.0))
+            c_state=c_state, p_state=p_state, du=new.du, last_move=jnp.where(ok & moved, st.mp - s.mp, 0.0),
+            du_next=jnp.where(ok & moved, new.du + new.trend, new.du))
 
     def first_state(side, sol):   # the factorisation kept from the start (a placeholder if none is)
         if side.keeps:
@@ -389,7 +395,8 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
     p_state0 = c_state0 if same else first_state(plant, p0)
     s0 = S(jnp.array(0), jnp.array(0), jnp.array(0), jnp.array(jnp.inf), jnp.array(0), jnp.zeros(dim_mp),
            c0, p0, cp0, hist, -jnp.ones(n_wp, jnp.int32), jnp.zeros((n_wp, n_cp)), jnp.array(-1),
-           c_state0, p_state0, jnp.zeros((dim_mp,) + c0.u.shape, c0.u.dtype), jnp.zeros(dim_mp))
+           c_state0, p_state0, jnp.zeros((dim_mp,) + c0.u.shape, c0.u.dtype), jnp.zeros(dim_mp),
+           jnp.zeros((dim_mp,) + c0.u.shape, c0.u.dtype))
     s = jax.lax.while_loop(cond, body, s0)
     status = jnp.where(s.status < 0, TrackStatus.DONE, s.status)
     return s.k, status, s.hist, s.reached, s.achieved, s.c, s.p

@@ -276,11 +276,13 @@ def test_kept_factorisation_settles_to_full_newton(planar):
 
 
 def test_second_order_prediction_along_a_straight_move(planar):
-    """predicted_change: with the response at the state before the last move, the change of
-    the free coefficients for a move along the same line is predicted to second order (its
-    error falls as the move cubed, the first-order prediction's as its square); a move across
-    the last one, or a response that is not finite, gets the first-order prediction."""
-    from jaxrkpm.control import ControlledModel, predicted_change
+    """response_trend and predicted_change: with the response at the state before the last
+    move, a move along the same line changes the free coefficients as predicted to second
+    order (the error falls as the move cubed; the first-order prediction's as its square), and
+    the response as predicted to first order (the error falls as the move squared; taking the
+    last response as it is: as the move). A move across the last one, or a last response that
+    is not finite, gets no trend."""
+    from jaxrkpm.control import ControlledModel, predicted_change, response_trend
 
     model, sol = planar
     side = ControlledModel.of(model, "paddle", CP)
@@ -291,21 +293,23 @@ def test_second_order_prediction_along_a_straight_move(planar):
         at = lambda k: model.solve_g(sol.g + k * jnp.einsum("a,abi->bi", move, side.G), initial=sol,
                                      loads=sol.load)
         s1, s2 = at(1), at(2)
-        du0, du1 = response(side, sol), response(side, s1)
-        true = np.asarray(s2.u - s1.u)
-        first = np.asarray(predicted_change(du1, move))
-        second = np.asarray(predicted_change(du1, move, du0, move))
-        errors.append((np.abs(first - true).max(), np.abs(second - true).max()))
-    (a1, a2), (b1, b2) = errors
-    print("prediction errors (first, second order) at moves 0.01 and 0.005:", errors)
-    assert a2 < 0.2 * a1
-    assert 1.6 < np.log2(a1 / b1) < 2.4       # first order: error ~ move^2
-    assert np.log2(a2 / b2) > 2.6             # second order: error ~ move^3
-    across = jnp.array([0.005, 0.01])         # orthogonal to the last move
-    assert np.array_equal(np.asarray(predicted_change(du1, across, du0, move)),
-                          np.asarray(predicted_change(du1, across)))
-    assert np.array_equal(np.asarray(predicted_change(du1, move, du0 * jnp.nan, move)), first)
-    assert np.array_equal(np.asarray(predicted_change(du1, move, du0, jnp.zeros(2))), first)
+        du0, du1, du2 = response(side, sol), response(side, s1), response(side, s2)
+        trend = response_trend(du1, move, du0, move)
+        change = np.asarray(s2.u - s1.u)
+        errors.append([np.abs(np.asarray(predicted_change(du1, move)) - change).max(),
+                       np.abs(np.asarray(predicted_change(du1, move, trend)) - change).max(),
+                       np.abs(np.asarray(du1 - du2)).max(), np.abs(np.asarray(du1 + trend - du2)).max()])
+    a, b = np.array(errors)
+    print("errors at moves 0.01 and 0.005 (change: first, second order; response: last, with trend):", a, b)
+    order = np.log2(a / b)
+    assert a[1] < 0.2 * a[0] and a[3] < 0.2 * a[2]
+    assert 1.6 < order[0] < 2.4 and order[1] > 2.6      # the change: move^2, move^3
+    assert 0.6 < order[2] < 1.4 and order[3] > 1.6      # the response: move, move^2
+    zero = np.zeros_like(np.asarray(du1))
+    across = jnp.array([0.005, 0.01])                    # orthogonal to the last move
+    assert np.array_equal(np.asarray(response_trend(du1, across, du0, move)), zero)
+    assert np.array_equal(np.asarray(response_trend(du1, move, du0 * jnp.nan, move)), zero)
+    assert np.array_equal(np.asarray(response_trend(du1, move, du0, jnp.zeros(2))), zero)
 
 
 def test_tracking_with_kept_factorisations_reaches_the_waypoints(planar):
