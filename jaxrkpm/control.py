@@ -271,7 +271,7 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
     # solve.ROUNDOFF_FACTOR), and the tracked object moves by small increments, so the floor of
     # the start serves the whole path; its own pass through the material cost as much as a
     # chord correction (9x9 box path, with the force scale from the residual's pass too:
-    # 1.03-1.20 -> 0.97-1.03 s, four interleaved runs each)
+    # 1.06-1.20 -> 0.97-1.03 s, four interleaved runs each)
     c_floor = ctrl.problem.roundoff_floor(c0.u, c0.g)
     p_floor = c_floor if same else plant.problem.roundoff_floor(p0.u, p0.g)
     H = max_steps + 1
