@@ -137,9 +137,9 @@ class ControlledModel(NamedTuple):
         (Solution, the factorisation to keep). ``du`` (Nf, d): the change of the free
         coefficients predicted for the move (``predicted_change``); where given, the chord
         starts at g1 from sol.u + du (from sol.u where du is not finite) instead of from the
-        kept factorisation's own predictor. ``floor``: the
-        round-off floor of the chord's residual test (``Problem.roundoff_floor``), where the
-        caller keeps one (default: the chord computes it).
+        kept factorisation's own predictor. ``floor``: the round-off floor of the chord's
+        residual test (``Problem.roundoff_floor``), where the caller keeps one (default: the
+        chord computes it).
 
         The Newton predictor and up to ``max_corr`` (with ``keeps``: KEPT_CORRECTIONS) chord corrections with the factorisation
         ``state`` (no assembly), to the solver's residual tolerance. Where they fail (a
@@ -356,8 +356,8 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
         # factorisation is (the residual test decides convergence), and a select would copy
         # them (3 n^2 doubles) at every iteration
         new = step(s, e)
-        st = jax.tree.map(lambda a, b: jnp.where(hit, a, b), keep._replace(c_state=None, p_state=None, du=None, trend=None),
-                          new._replace(c_state=None, p_state=None, du=None, trend=None))
+        unselected = dict(c_state=None, p_state=None, du=None, trend=None)
+        st = jax.tree.map(lambda a, b: jnp.where(hit, a, b), keep._replace(**unselected), new._replace(**unselected))
         moved = ~hit
         ok = reached_equilibrium(st.c.status) & reached_equilibrium(st.p.status)
         k = s.k + moved

@@ -329,7 +329,7 @@ def energy_full(ops: Ops, params: Params, W, d, load, dF=0.0):
     """Total potential energy in the full coefficients; aux: min det F.
 
     ``dF`` (G, S, d, d), added to F at the integration points by group, is zero in value: the
-    energy's gradient with respect to it is the stress w P there (``weighted_stress``), which
+    energy's gradient with respect to it is the stress w P there (``energy_residual_stress``), which
     the backward pass of the residual computes anyway."""
     F = group_gradients(ops, d) + dF
     p, axes = _group_params(ops, params)
@@ -353,10 +353,14 @@ def energy_residual_stress(ops, params, W, u, g, load):
     Piola stress at the integration points by group (G, S, d, d), the gradient with respect
     to ``energy_full``'s dF (so the force scale needs no second pass through the material:
     at the 9x9 box that pass cost ~2x the residual)."""
-    dF = jnp.zeros(ops.groups.shape + (u.shape[-1],) * 2, u.dtype)
     (Pi, det_min), (r, wP) = jax.value_and_grad(lambda x, e: energy(ops, params, W, x, g, load, e),
-                                                argnums=(0, 1), has_aux=True)(u, dF)
+                                                argnums=(0, 1), has_aux=True)(u, zero_stress(ops, u))
     return Pi, det_min, r, wP
+
+
+def zero_stress(ops: Ops, u):
+    """Zeros of the shape of the stress by group (G, S, d, d), in u's dtype."""
+    return jnp.zeros(ops.groups.shape + (u.shape[-1],) * 2, u.dtype)
 
 
 def _weighted(ops: Ops, X):
@@ -641,7 +645,7 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
         rn = jnp.linalg.norm(r_v)
         # the force scale of the tolerance: at the iterate after each assembled step, kept
         # through the chord steps that follow it (they move the state by less than the step
-        # before them, so the scale by a relative O(|du|); it cost ~30% of a chord correction);
+        # before them, so the scale by a relative O(|du|));
         # the round-off floor once a call after the predictor, where not given
         scale = when(first | made, lambda: stress_force_scale(ops, wP_v), scales[0])
         if floor is None:
@@ -713,7 +717,7 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
         # admissible): the energy and residual at (u, g1) would go unused, so they are not
         # evaluated (one energy-gradient pass per settle saved)
         Pi0, r0 = jnp.array(jnp.inf, u.dtype), rhs0
-        wP0 = jnp.zeros(ops.groups.shape + (u.shape[-1],) * 2, u.dtype)
+        wP0 = zero_stress(ops, u)
     else:
         Pi0, _, r0, wP0 = evaluate(u)
     status0 = jnp.array(-1)
