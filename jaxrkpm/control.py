@@ -334,7 +334,7 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
         mp = s.mp + dmp
         # with a kept factorisation (of an earlier state) its own predictor is poor: the
         # response, refined to this state's, predicts the move, to second order along the path
-        trend = response_trend(du, dmp, s.du, s.last_move)
+        trend = response_trend(du, dmp, s.du, s.last_move) if ctrl.keeps else jnp.zeros_like(du)
         du_move = predicted_change(du, dmp, trend) if ctrl.keeps else None
         c, c_state = ctrl.settle(s.c, state, g_of(ctrl, cg_base, mp), lim, max_corr, du_move, c_floor)
         if same:

@@ -68,7 +68,8 @@ class Problem:
 
     def force_scale(self, u, g):
         """The size of the terms summed into the residual (the convergence test's scale)."""
-        return S.internal_force_scale(self.ops, self.params, self.config.W, self.coefficients(u, g))
+        wP = S.energy_residual_stress(self.ops, self.params, self.config.W, u, g, 1.0)[3]
+        return S.stress_force_scale(self.ops, wP)
 
     def roundoff_floor(self, u, g):
         """The residual norm below which |r| carries no information at (u, g) (the convergence
@@ -104,7 +105,8 @@ class Problem:
     # ------------------------------------------------------------------------- nonlinear
     def newton(self, u, g0, g1, l0=1.0, l1=1.0, *, max_iter=25, state=None, chord=False, floor=None):
         """One Newton solve from the equilibrium at (g0, l0) to (g1, l1): (u, status code,
-        iterations, |r|, linear state). ``chord=True`` reuses the factorisation ``state``
+        iterations, |r|, linear state); ``g0`` None: ``u`` is already an iterate at g1 (no
+        predictor). ``chord=True`` reuses the factorisation ``state``
         for every step (no assembly); ``floor``: the round-off floor of the residual test
         (``roundoff_floor`` of a nearby state; default: computed in the solve); see
         jaxrkpm.solve.newton."""

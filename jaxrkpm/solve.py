@@ -381,20 +381,12 @@ def stress_force_scale(ops, wP):
     return _scatter_norm(ops, wP) + jnp.linalg.norm(ops.f_ext)
 
 
-def internal_force_scale(ops, params, W, d):
-    """|| sum_q w |grad Psi| |P| ||: the size of the terms summed into the residual."""
-    F = group_gradients(ops, d)
-    p, axes = _group_params(ops, params)
-    P = _per_group(jax.grad(_point_energy(W)), axes)(F, p)
-    return stress_force_scale(ops, _weighted(ops, P))
-
-
 ROUNDOFF_FACTOR = 100.0   # the convergence floor in units of eps x stiffness scale (see force_scales);
 #                           the round-off actually left in |r| is ~0.05-0.5 of one unit
 
 
 def force_scales(ops, params, W, d):
-    """(``internal_force_scale``, round-off floor) at d from one pass (a jvp of the stress
+    """(``stress_force_scale``, round-off floor) at d from one pass (a jvp of the stress
     along F gives P and dP/dF : F together; two passes cost ~2x, measured at the 9x9 box).
 
     The floor is the residual norm below which |r| carries no information: ROUNDOFF_FACTOR x
