@@ -4,7 +4,7 @@ Each workload runs warm in this process, ``repeats`` times quiet and ``repeats``
 a busy process (``python -c "while True: pass"``, started here and killed after each timed
 call) occupies one core, interleaved (quiet, busy, quiet, ...), so both see the same
 machine. Reported: medians and busy/quiet ratio (issue 20 asks <= 2.5), per workload, for the
-BLAS threading that ``import jaxrkpm`` sets (``jaxrkpm.threads``; run with
+BLAS threading that ``import jaxrkpm`` sets (``jaxrkpm.base.threads``; run with
 ``JAXRKPM_BLAS_THREADS=keep`` to measure the libraries' default threads instead).
 
 Workloads:
@@ -55,7 +55,7 @@ def cube6_workload():
 
 
 def needle_workload():
-    from jaxrkpm import needle as nd
+    from jaxrkpm import needle as nd  # FIXME split
     ph = nd.Phantom()
     models = [ph.model("none", p) for p in range(1, 6)]
     depths = ph.depths(5)
@@ -64,7 +64,7 @@ def needle_workload():
 
 def box_workload():
     """The 2D box path (Table 5.3: 9x9 Fung square, Gauss, gain 0.05, clamp 0.01)."""
-    from jaxrkpm.studies import track as T
+    from jaxrkpm.thesis.studies import track as T
     exp = T.build("box", 2, "gauss")
     return lambda: T.execute(exp)
 
@@ -86,8 +86,8 @@ def cube10_workload():
 def cube10_control_workload():
     """One control step of the 10^3 cube at 30% (factorisation, Jacobian of the centre, a 1%
     paddle increment settled): what experiments/bench_cube3d.py times as ``control_step_s``."""
-    from jaxrkpm.control import ControlledModel
-    from jaxrkpm.solve import Limits
+    from jaxrkpm.control.tracking.tracking import ControlledModel
+    from jaxrkpm.solvers.results import Limits
     model = cube10_models()
     sol = model.solve({"right": np.array([-0.3, 0.0, 0.0])}, steps=10)
     ctrl = ControlledModel.of(model, "right", np.array([[0.5, 0.5, 0.5]]))
@@ -105,7 +105,7 @@ def cube10_control_workload():
 def sweep_workload():
     """The needle sweep of experiments/bench_sweep.py at 20 configurations x 15 increments."""
     from bench_sweep import batched, configurations   # beside this script (sys.path[0])
-    from jaxrkpm import needle as nd
+    from jaxrkpm import needle as nd  # FIXME split
     ph = nd.Phantom()
     models, depths = configurations(ph, 20), ph.depths(15)
     return lambda: batched(models, depths, ph.target)
@@ -145,8 +145,8 @@ def main(argv=None):
     ap.add_argument("--workloads", nargs="+", choices=list(WORKLOADS), default=DEFAULT)
     ap.add_argument("--repeats", type=int, default=5)
     args = ap.parse_args(argv)
-    result = {"blas_threads": os.environ.get(jaxrkpm.threads.ENV, str(jaxrkpm.threads.DEFAULT)),
-              "sparse_threads": jaxrkpm.threads.sparse_threads(),
+    result = {"blas_threads": os.environ.get(jaxrkpm.base.threads.ENV, str(jaxrkpm.base.threads.DEFAULT)),
+              "sparse_threads": jaxrkpm.base.threads.sparse_threads(),
               "load_average_before": os.getloadavg(), "workloads": {}}
     for name in args.workloads:
         fn = WORKLOADS[name]()

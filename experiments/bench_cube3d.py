@@ -1,7 +1,7 @@
 """Benchmark of issue 20's table: a neo-Hookean n^3 cube (left face immobile, right face
 pushed 30% in 10 load steps), its warm full solve and model-based control steps.
 
-"Control step" (one iteration of ``jaxrkpm.control.track_loop``): at the converged 30% state,
+"Control step" (one iteration of ``jaxrkpm.control.tracking.track_loop``): at the converged 30% state,
 one factorisation of K_ff, the implicit Jacobian of the control point (the cube's centre) to
 the paddle's 3 rigid translations from it, and a 1% paddle increment settled from the previous
 state (Newton predictor + chord corrections with that factorisation; the adaptive path only if
@@ -20,7 +20,7 @@ top edge's midpoint, which bulges), so that integrations and sizes can be compar
 finest case run. "newton_iteration_parts_s" profiles one Newton iteration (pair blocks,
 dense matrix, factorisation, solve, energy and residual, force scale). --crossover times one
 Newton iteration's linear work dense against sparse (PARDISO where installed) at several
-sizes, the measurement behind ``jaxrkpm.model.DENSE_LIMIT``.
+sizes, the measurement behind ``jaxrkpm.model.model.DENSE_LIMIT``.
 Medians of warm repeats; each size runs in a fresh subprocess (its peak RSS is its own).
 Prints JSON; quote ratios within one run (the machine may be shared: the load average is
 printed)."""
@@ -79,8 +79,8 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
     import numpy as np
 
     import jaxrkpm as jr
-    from jaxrkpm.control import ControlledModel, track_loop
-    from jaxrkpm.solve import Limits
+    from jaxrkpm.control.tracking.tracking import ControlledModel, track_loop
+    from jaxrkpm.solvers.results import Limits
 
     body = jr.Body.grid((n, n, n), 1.0 / (n - 1))
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
@@ -189,7 +189,7 @@ def crossover(sizes, repeats, dim=3):
     """Dense (double and mixed precision) against sparse per Newton iteration at each size,
     interleaved (each case in a fresh subprocess); the crossover is the first size where
     sparse is faster than the dense path's precision="auto"."""
-    from jaxrkpm.model import MIXED_MIN
+    from jaxrkpm.model.model import MIXED_MIN
 
     rows = []
     for n in sizes:

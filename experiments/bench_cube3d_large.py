@@ -1,7 +1,7 @@
 """Benchmark of issue 20's large 3D cases: the neo-Hookean n^3 cube of ``bench_cube3d`` (left
 face immobile, right face pushed 30% in 10 load steps) at n >= 14, solved with each large-
 system linear solver ("sparse": PARDISO factorisations reused as CG preconditioners;
-"krylov": CG preconditioned by an algebraic multigrid hierarchy, ``jaxrkpm.krylov``).
+"krylov": CG preconditioned by an algebraic multigrid hierarchy, ``jaxrkpm.solvers.linalg.multigrid``).
 
 Per case (a fresh subprocess each, so peak memory is its own): the model build, a cold solve
 (compile included) and a warm one, Newton iterations, the peak resident memory after the
@@ -51,8 +51,9 @@ def run_case(n, solver, repeats, out_npz, check_stability=True):
     import numpy as np
 
     import jaxrkpm as jr
-    from jaxrkpm import krylov, sparse
-    from jaxrkpm.solve import coefficients, pair_blocks
+    from jaxrkpm.solvers.linalg import multigrid as krylov
+    from jaxrkpm.solvers.linalg import factorisations as sparse
+    from jaxrkpm.mechanics.assembly import coefficients, pair_blocks
 
     body = jr.Body.grid((n, n, n), 1.0 / (n - 1))
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
@@ -62,7 +63,7 @@ def run_case(n, solver, repeats, out_npz, check_stability=True):
     build_peak = peak_gb()
     g = np.array([-0.3, 0.0, 0.0])
     # check_stability=False: the user says the path is stable, so an iterative linear solve
-    # far from equilibrium may stop early (inexact Newton's forcing term, jaxrkpm.solve.newton)
+    # far from equilibrium may stop early (inexact Newton's forcing term, jaxrkpm.solvers.newton.newton)
     opts = {} if check_stability else {"check_stability": False}
     sparse.reset_stats()
     krylov.reset_stats()

@@ -1,4 +1,4 @@
-"""Benchmark: the 3D needle phantom (jaxrkpm.phantom3d.Phantom3D) at three resolutions, and its
+"""Benchmark: the 3D needle phantom (jaxrkpm.thesis.phantom3d.Phantom3D) at three resolutions, and its
 batched patch sweep against a Python loop.
 
 Per resolution (mesh size -> ~500, ~2,000, ~8,000 particles), in a fresh subprocess (its own
@@ -50,7 +50,7 @@ shared, load ~6-8 on 2 cores, so indicative only):
       the jitted solve: 0.78 GB at 2,089 particles (compiled memory_analysis).
     - PARDISO fill: 95 M factor entries at 6,197 particles (15,153 free DOF), 0.87 GB
       factorisation + 0.47 GB permanent; the pool keeps up to two factorisations (and an
-      evicted spare) across solves (jaxrkpm.sparse.FactorPool), the likely (not measured)
+      evicted spare) across solves (jaxrkpm.solvers.linalg.factorisations.FactorPool), the likely (not measured)
       reason the warm insertion's peak is 1.8 GB above the first's at 7,875; left to the
       factorisation-reuse work.
     - time: the model build 80 s (not split further); one 3D increment ~4-4.5 min at 7,875
@@ -98,7 +98,7 @@ def insertion(model, phantom, depths):
 
 def run_resolution(spacing, increments, repeats):
     import jaxrkpm as jr
-    from jaxrkpm.phantom3d import Phantom3D
+    from jaxrkpm.thesis.phantom3d import Phantom3D
     ph = Phantom3D(spacing=spacing)
     t_mesh, m = timed(ph.mesh)                                      # the mesher alone
     t_body, _ = timed(jr.Body.from_mesh, m)                          # the mesh -> particles alone
@@ -133,7 +133,7 @@ def loop(models, ph, depths):
 def batched(models, ph, depths):
     import jax
     import numpy as np
-    from jaxrkpm import needle as nd
+    from jaxrkpm import needle as nd  # FIXME split
     out = nd.insert(models, depths, ph.target, direction=ph.needle_direction)
     jax.block_until_ready(out)
     return ph.deviation_of(np.asarray(out.target_u))
@@ -141,7 +141,7 @@ def batched(models, ph, depths):
 
 def run_sweep(spacing, patches, increments, repeats):
     import numpy as np
-    from jaxrkpm.phantom3d import Phantom3D
+    from jaxrkpm.thesis.phantom3d import Phantom3D
     ph = Phantom3D(spacing=spacing)
     t_models, models = timed(lambda: [ph.model("none", p) for p in range(1, patches + 1)])
     depths = ph.depths(increments)

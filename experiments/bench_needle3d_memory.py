@@ -81,7 +81,7 @@ class Sampler:
 
 def pardiso_report(model):
     """PARDISO's memory report of each held factorisation (iparm 15-18, 1-based)."""
-    from jaxrkpm import sparse
+    from jaxrkpm.solvers.linalg import factorisations as sparse
     pool = sparse.pool(model.linear.system)
     facs = [f for f, _ in pool.slots.values()] + ([pool.spare] if pool.spare is not None else [])
     for f in facs:
@@ -96,8 +96,8 @@ def main(argv):
     spacing = float(argv[0])
     limit = float(argv[argv.index("--limit-gb") + 1]) if "--limit-gb" in argv else 8.0
     s = Sampler(limit)
-    from jaxrkpm.phantom3d import Phantom3D
-    from jaxrkpm.solve import BLOCK_BUDGET
+    from jaxrkpm.thesis.phantom3d import Phantom3D
+    from jaxrkpm.mechanics.assembly import BLOCK_BUDGET
     s.enter("body")
     t0 = time.time()
     ph = Phantom3D(spacing=spacing)

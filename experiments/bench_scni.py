@@ -18,7 +18,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-from jaxrkpm.studies.compress import setup
+from jaxrkpm.thesis.studies.compress import setup
 
 SCHEMES = ("gauss", "scni", "mscni")
 
@@ -31,7 +31,7 @@ class Case:
         model = setup(n, integration)
         if solver != "auto":
             import jaxrkpm as jr
-            from jaxrkpm.studies.compress import MATERIALS
+            from jaxrkpm.thesis.studies.compress import MATERIALS
             model = jr.Model(model.body, MATERIALS["fung"](), integration=integration, solver=solver,
                              essential={k: model.set_indices(k) for k in model.set_names})
         self.build_s = time.perf_counter() - t0

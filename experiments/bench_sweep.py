@@ -63,9 +63,10 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxrkpm import needle as nd  # noqa: E402
-from jaxrkpm.model import Model  # noqa: E402
-from jaxrkpm.solve import Status  # noqa: E402
+from jaxrkpm.control import batching  # noqa: E402
+from jaxrkpm.thesis import needle as nd  # noqa: E402
+from jaxrkpm.model.model import Model  # noqa: E402
+from jaxrkpm.solvers.results import Status  # noqa: E402
 
 
 def configurations(phantom: nd.Phantom, count: int) -> list[Model]:
@@ -162,7 +163,7 @@ def main(argv=None):
     ap.add_argument("--counts", type=int, nargs="+", default=[1, 5, 20, 80])
     ap.add_argument("--increments", type=int, default=15)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--batching", choices=nd.BATCHING, default=None,
+    ap.add_argument("--batching", choices=batching.BATCHING, default=None,
                     help="needle.insert's batching: lax.map of configurations, or vmap (lock step); "
                          "default: needle.default_batching() (map on CPU, vmap on GPU)")
     ap.add_argument("--loop-max", type=int, default=80,
@@ -170,7 +171,7 @@ def main(argv=None):
     ap.add_argument("--devices", type=int, default=1,
                     help="XLA host devices (cores) the batched call splits the configurations over")
     args = ap.parse_args(argv)
-    args.batching = args.batching or nd.default_batching()
+    args.batching = args.batching or batching.default_batching()
     if len(jax.devices()) < args.devices:
         raise SystemExit(f"--devices {args.devices}: JAX sees {len(jax.devices())} device(s); set "
                          "XLA_FLAGS=--xla_force_host_platform_device_count before JAX starts "

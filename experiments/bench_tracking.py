@@ -8,7 +8,7 @@
    (model.jacobian(method="implicit")) vs central finite differences (Algorithm 4, eps=1e-5),
    on the same planar setup at 9x9, 17x17 and 33x33 particles; ratio FD / implicit.
 
-   Also the Jacobian as the tracking loop takes it (jaxrkpm.control: one tangent assembly
+   Also the Jacobian as the tracking loop takes it (jaxrkpm.control.tracking: one tangent assembly
    and a Cholesky factorisation that the predictor of the next solve reuses) and its
    marginal cost there given that factorisation (m residual JVPs, m back-substitutions).
 
@@ -37,9 +37,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxrkpm.studies import track as T
-from jaxrkpm import control as C
-from jaxrkpm.thesis import TRACKING_MINUTES
+from jaxrkpm.thesis.studies import track as T
+from jaxrkpm.control import tracking as C
+from jaxrkpm.thesis.data import TRACKING_MINUTES
 
 # XLA compilations during a run (JAX's own compile events): a warm tracking run compiles nothing
 COMPILES = []

@@ -5,7 +5,7 @@ Gauss, SCNI and MSCNI. Per case: the stable-branch solve's status, the load frac
 whether the final state lies on a secondary branch, the critical points passed, the smallest
 eigenvalue of K_ff at the end, the run time; then an independent check of whether stable
 states exist past the point where the solve stopped: from the last stable
-state, an exact trust-region minimisation of the energy (``jaxrkpm.minimise.stable_beyond``:
+state, an exact trust-region minimisation of the energy (``jaxrkpm.solvers.minimise.stable_beyond``:
 scipy's trust-exact, dense Hessian, det F <= 0 refused) at load fractions increasing by
 ``--dt``, until it fails to end on an equilibrium with K_ff positive definite. Writes every
 row to a JSON file.
@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxrkpm as jr
-from jaxrkpm.minimise import stable_beyond
+from jaxrkpm.solvers.minimise import stable_beyond
 
 CASES = {
     "compression": (lambda: jr.Fung(alpha=1.0, beta=1.0), (-0.2, 0.0)),

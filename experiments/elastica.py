@@ -7,59 +7,31 @@ extensible elastica (four quarter waves; m = k^2 of the pinned elastica of lengt
 P / P_E = (2 K(m) / pi)^2, bending end shortening L (2 - 2 E(m) / K(m)), axial shortening
 P L / (E' h); P_E = 4 pi^2 E' I / L^2 (effective length L / 2, I = h^3 / 12).
 
-    python experiments/elastica.py [--out results/elastica]   # prints the table, writes elastica.png
+    python -m experiments.elastica [--out results/elastica]   # prints the table, writes elastica.png
 """
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
-from scipy.optimize import brentq
-from scipy.special import ellipe, ellipk
 
-import jaxrkpm as jr
-
-L, H, NX, NY = 1.0, 0.05, 81, 5
-LAM, MU = 1.0, 1.0
-E_PLANE = 4 * MU * (LAM + MU) / (LAM + 2 * MU)
-EULER = 4 * np.pi**2 * E_PLANE * (H**3 / 12) / L**2
-SHORTENINGS = (0.006, 0.01, 0.02, 0.04, 0.07, 0.10)   # of L; Euler's is 0.0082
+from tests.problems import E_PLANE, EULER, H, L, elastica_force, path, strip_model
 
 
-def elastica_force(shortening: float) -> float:
-    """End force of the clamped extensible elastica at an end shortening (a fraction of L)."""
-    def gap(P):
-        bend = shortening - P / (E_PLANE * H)
-        if bend <= 0:
-            return -1.0
-        m = brentq(lambda m: 2 - 2 * ellipe(m) / ellipk(m) - bend, 1e-14, 0.999)
-        return EULER * (2 * ellipk(m) / np.pi) ** 2 - P
-    return brentq(gap, EULER * (1 + 1e-9), 2 * EULER)
 
 
-def strip_model(nx: int = NX, ny: int = NY) -> jr.Model:
-    """The strip with sets "left" (x = 0) and "right" (x = L), both clamped."""
-    body = jr.Body.grid((nx, ny), L / (nx - 1))
-    sets = {"left": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > L - 1e-9)}
-    return jr.Model(body, jr.NeoHookean(lam=LAM, mu=MU), essential=sets)
 
 
-def path(model: jr.Model, shortenings=SHORTENINGS):
-    """Warm-started solves to each end shortening: [(shortening, solution)]."""
-    sol, out = model.initial(), []
-    for c in shortenings:
-        sol = model.solve({"right": jnp.array([-c * L, 0.0])}, initial=sol, stable_branch=True)
-        out.append((c, sol))
-    return out
+
+
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", default="results/elastica")
     a = p.parse_args(argv)
-    from jaxrkpm import plot
+    from jaxrkpm.io import plot
     model = strip_model()
     rows = path(model)
     print(f"Euler load P_E = {EULER:.5e} (axial strain {100 * EULER / (E_PLANE * H):.3f}%)")

@@ -40,8 +40,8 @@ import time
 
 import numpy as np
 
-from jaxrkpm import needle as nd
-from jaxrkpm.phantom3d import Phantom3D
+from jaxrkpm import needle as nd  # FIXME split
+from jaxrkpm.thesis.phantom3d import Phantom3D
 
 
 def options(argv, default_increments=4):

@@ -37,8 +37,8 @@ import time
 
 import numpy as np
 
-from jaxrkpm import needle as nd
-from jaxrkpm.phantom3d import Phantom3D
+from jaxrkpm import needle as nd  # FIXME split
+from jaxrkpm.thesis.phantom3d import Phantom3D
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from phantom3d_convergence import options  # noqa: E402

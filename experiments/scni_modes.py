@@ -16,8 +16,8 @@ import numpy as np
 import scipy.linalg as sla
 
 import jaxrkpm as jr
-from jaxrkpm import integration as integ
-from jaxrkpm import scni
+from jaxrkpm.discretise import quadrature as integ
+from jaxrkpm.discretise import scni
 
 BODIES = {
     "grid2d_9": lambda: jr.Body.grid((9, 9), 0.125),

@@ -7,7 +7,7 @@ Arms:
 - ``threaded-blas``: OpenBLAS with its default threads, jax's batched factorisations;
 - ``single-blas``: OPENBLAS_NUM_THREADS=1, jax's batched factorisations;
 - ``fixed``: single-threaded BLAS (``import jaxrkpm``) and factorisations and triangular
-  solves that run one batch member at a time (``jaxrkpm.linear.one_at_a_time``): what
+  solves that run one batch member at a time (``jaxrkpm.solvers.linalg.dense.one_at_a_time``): what
   DenseSolver does.
 
 Measured (loaded 2-core machine, 30 s timeout): threaded-blas and single-blas 0 of 3 finished,
@@ -39,7 +39,7 @@ lu = lambda A: jax.scipy.linalg.lu_factor(A)[0]
 cho_solve = lambda L, b: jax.scipy.linalg.cho_solve((L, True), b)
 lu_solve = lambda A, b: jax.scipy.linalg.lu_solve(jax.scipy.linalg.lu_factor(A), b)
 if sys.argv[1] == "fixed":
-    from jaxrkpm.linear import one_at_a_time
+    from jaxrkpm.solvers.linalg.dense import one_at_a_time
     cholesky, lu, cho_solve, lu_solve = map(one_at_a_time, (cholesky, lu, cho_solve, lu_solve))
 
 def member(A):

@@ -15,7 +15,7 @@ jax.config.update("jax_enable_x64", True)
 
 import pytest  # noqa: E402
 
-from jaxrkpm.programs import release_compiled_programs, release_if_crowded  # noqa: E402
+from jaxrkpm.base.programs import release_compiled_programs, release_if_crowded  # noqa: E402
 
 
 # A test worker that kept every program compiled by half the suite crossed Linux's cap on

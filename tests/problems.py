@@ -3,14 +3,25 @@
 The thesis' objects (the planar square with its paddle, the section 5.3.1 cube, the Figure
 6.1 phantom outline) come from :mod:`jaxrkpm.thesis`; the rest are the generic unit
 square / cube grids and the "block" (unit square, left edge held, right edge driven) that
-several files solve.
+several files solve, and two problems with independent references that the tests and the
+experiments share: the clamped strip that buckles (``strip_model``, against the extensible
+elastica) and the shallow arch that snaps through (``shallow_arch``, arc length against
+displacement control).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+import jax
 import jax.numpy as jnp
+import meshio
+import numpy as np
+from scipy.optimize import brentq
+from scipy.special import ellipe, ellipk
 
 import jaxrkpm as jr
 from jaxrkpm import thesis
+from jaxrkpm.model.continuation import arc_length, point_load
 
 FUNG = jr.Fung(alpha=1.0, beta=1.0)            # eq 5.2, Table 5.2 tensors
 PHANTOM = [list(v) for v in thesis.PHANTOM_OUTLINE]   # Figure 6.1 outline
@@ -39,7 +50,141 @@ def block(n: int = 9, material=FUNG, right: str = "right", **model_kw):
 
 
 def planar_solved(paddle=(-0.08, 0.05), steps: int = 2, **kw):
-    """The 9x9 chapter-5 square (:func:`jaxrkpm.thesis.planar_square`) solved with the paddle
+    """The 9x9 chapter-5 square (:func:`jaxrkpm.thesis.scenarios.planar_square`) solved with the paddle
     moved by ``paddle``: (model, solution)."""
     model = thesis.planar_square(9, **kw)
     return model, model.solve({"paddle": jnp.asarray(paddle)}, steps=steps)
+
+
+# ------------------------------------------------------------------ the buckling strip
+# Strip 1 x 0.05, 81 x 5 particles, neo-Hookean lam = mu = 1 (plane-strain modulus E' = 8/3),
+# both ends clamped, the right end pushed along the axis with no imperfection; the stable-branch
+# solve passes the bifurcation and follows the buckled branch. Reference: the clamped
+# extensible elastica (four quarter waves; m = k^2 of the pinned elastica of length L / 2):
+# P / P_E = (2 K(m) / pi)^2, bending end shortening L (2 - 2 E(m) / K(m)), axial shortening
+# P L / (E' h); P_E = 4 pi^2 E' I / L^2 (effective length L / 2, I = h^3 / 12).
+L, H, NX, NY = 1.0, 0.05, 81, 5
+LAM, MU = 1.0, 1.0
+E_PLANE = 4 * MU * (LAM + MU) / (LAM + 2 * MU)
+EULER = 4 * np.pi**2 * E_PLANE * (H**3 / 12) / L**2
+SHORTENINGS = (0.006, 0.01, 0.02, 0.04, 0.07, 0.10)   # of L; Euler's is 0.0082
+
+
+def elastica_force(shortening: float) -> float:
+    """End force of the clamped extensible elastica at an end shortening (a fraction of L)."""
+    def gap(P):
+        bend = shortening - P / (E_PLANE * H)
+        if bend <= 0:
+            return -1.0
+        m = brentq(lambda m: 2 - 2 * ellipe(m) / ellipk(m) - bend, 1e-14, 0.999)
+        return EULER * (2 * ellipk(m) / np.pi) ** 2 - P
+    return brentq(gap, EULER * (1 + 1e-9), 2 * EULER)
+
+
+def strip_model(nx: int = NX, ny: int = NY) -> jr.Model:
+    """The strip with sets "left" (x = 0) and "right" (x = L), both clamped."""
+    body = jr.Body.grid((nx, ny), L / (nx - 1))
+    sets = {"left": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > L - 1e-9)}
+    return jr.Model(body, jr.NeoHookean(lam=LAM, mu=MU), essential=sets)
+
+
+def path(model: jr.Model, shortenings=SHORTENINGS):
+    """Warm-started solves to each end shortening: [(shortening, solution)]."""
+    sol, out = model.initial(), []
+    for c in shortenings:
+        sol = model.solve({"right": jnp.array([-c * L, 0.0])}, initial=sol, stable_branch=True)
+        out.append((c, sol))
+    return out
+
+
+# ------------------------------------------------------------------ the snapping arch
+# A sinusoidal arch (span 1, thickness 0.05, rise 0.1), both end sections clamped, loaded at the
+# crown: arc-length continuation through the limit point, and the same discretisation with
+# the crown prescribed (displacement control) as the reference path.
+
+
+MATERIAL = jr.SaintVenantKirchhoff.plane_stress(1.0, 0.3)
+SUPPORT = 2.5          # kernel support in spacings: three particles through the thickness
+LIFT = 4e-3            # upward body force (per unit area) of the load model: a load without a limit point
+
+
+@dataclass(frozen=True)
+class Arch:
+    body: jr.Body
+    ends: dict          # "left", "right": the particles of the clamped end sections
+    crown: int          # index of the crown's mid-surface particle (the loaded point)
+
+    @property
+    def crown_point(self) -> np.ndarray:
+        return self.body.X[self.crown]
+
+
+def shallow_arch(n_along: int = 41, n_thick: int = 3, span: float = 1.0, thickness: float = 0.05,
+                 rise: float = 0.1) -> Arch:
+    """A sinusoidal arch y = rise sin(pi x / span), ``thickness`` measured normal to its
+    centre line, as a structured triangle mesh body: n_along x n_thick particles (both odd,
+    so that the crown is a particle), each quad split by the diagonal mirrored at mid-span
+    (the discretisation is symmetric, so a symmetric load gives a symmetric path)."""
+    if n_along % 2 == 0 or n_thick % 2 == 0 or n_along < 5 or n_thick < 3:
+        raise ValueError(f"n_along >= 5 and n_thick >= 3 must be odd (a crown particle), got {n_along}, {n_thick}")
+    s = np.linspace(0.0, span, n_along)
+    slope = rise * np.pi / span * np.cos(np.pi * s / span)
+    normal = np.stack([-slope, np.ones_like(s)], 1) / np.sqrt(1 + slope**2)[:, None]
+    centre = np.stack([s, rise * np.sin(np.pi * s / span)], 1)
+    t = np.linspace(-thickness / 2, thickness / 2, n_thick)
+    X = (centre[:, None, :] + t[None, :, None] * normal[:, None, :]).reshape(-1, 2)
+    idx = np.arange(n_along * n_thick).reshape(n_along, n_thick)
+    a, b = idx[:-1, :-1], idx[1:, :-1]        # (n_along - 1, n_thick - 1) quad corners
+    c, d = idx[1:, 1:], idx[:-1, 1:]
+    left = (np.arange(n_along - 1) < (n_along - 1) // 2)[:, None]
+    tri1 = np.where(left[..., None], np.stack([a, b, c], -1), np.stack([a, b, d], -1))
+    tri2 = np.where(left[..., None], np.stack([a, c, d], -1), np.stack([b, c, d], -1))
+    cells = np.concatenate([tri1.reshape(-1, 3), tri2.reshape(-1, 3)])
+    body = jr.Body.from_mesh(meshio.Mesh(X, [("triangle", cells)]), dim=2)
+    return Arch(body, {"left": idx[0], "right": idx[-1]}, int(idx[n_along // 2, n_thick // 2]))
+
+
+def load_model(arch: Arch) -> jr.Model:
+    """Ends clamped, the crown free; its own dead load is an upward body force ``LIFT`` (the
+    snap-through is driven by ``point_load`` at the crown instead)."""
+    return jr.Model(arch.body, MATERIAL, essential=arch.ends, support=SUPPORT, body_force=[0.0, LIFT])
+
+
+def crown_model(arch: Arch) -> jr.Model:
+    """The same discretisation with the crown point prescribed (displacement control)."""
+    return jr.Model(arch.body, MATERIAL, essential={**arch.ends, "crown": [arch.crown]}, support=SUPPORT)
+
+
+def crown_load(model: jr.Model, arch: Arch) -> np.ndarray:
+    """A unit downward force at the crown point as nodal loads."""
+    return point_load(model, [arch.crown_point], [0.0, -1.0])
+
+
+def displacement_control(model: jr.Model, depth: float, n: int):
+    """The crown pushed down to ``depth`` in n equal steps (each solve warm-started from the
+    last): crown deflections (n+1,) and the downward crown force (n+1,) = -reaction_y."""
+    v = np.linspace(0.0, depth, n + 1)
+    reaction = jax.jit(lambda s: model.reaction(s, "crown"))   # compiled once, not traced per call
+    sol, force = model.initial(), [0.0]
+    for vk in v[1:]:
+        sol = model.solve({"crown": [0.0, -vk]}, initial=sol)
+        force.append(-float(reaction(sol)[1]))
+    return v, np.asarray(force)
+
+
+def first_maximum(x, y) -> float:
+    """The first local maximum of y(x) (the limit point; past the snap the force rises
+    again), between samples: the vertex of the parabola through the sample and its two
+    neighbours."""
+    peaks = np.flatnonzero((y[1:-1] > y[:-2]) & (y[1:-1] >= y[2:])) + 1
+    if not len(peaks):
+        raise ValueError("no local maximum inside the samples: sample further")
+    k = int(peaks[0])
+    c2, c1, c0 = np.polyfit(x[k - 1:k + 2] - x[k], y[k - 1:k + 2], 2)
+    return float(c0 - c1 * c1 / (4 * c2))
+
+
+def snap(arch: Arch, model: jr.Model, ds: float = 0.03, steps: int = 40):
+    """The load-driven arch followed by arc length (cylindrical constraint, ds fixed)."""
+    return arc_length(model, ds, steps=steps, ds_max=ds, load_pattern=crown_load(model, arch),
+                      points=[arch.crown_point])

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 import jaxrkpm as jr
-from jaxrkpm.outcome import Outcome
+from jaxrkpm.base.outcome import Outcome
 
 ROOT = Path(__file__).resolve().parents[1]
-MODEL = ROOT / "jaxrkpm" / "model.py"
+MODEL = ROOT / "jaxrkpm" / "model" / "model.py"
 MAGIC = re.compile(r"^\s*(%%?[A-Za-z]|!)")
 
 
@@ -71,8 +71,8 @@ def test_outcomes_print_as_names_and_carry_messages():
     model = jr.Model(jr.Body.grid((3, 3), 0.5), jr.NeoHookean(1.0, 1.0), essential={"l": [0, 1, 2]})
     sol = model.solve()
     assert str(sol.outcome) == "CONVERGED" and f"{sol.outcome}" == "CONVERGED"
-    from jaxrkpm.control import TrackStatus
-    from jaxrkpm.linear import Stability
+    from jaxrkpm.control.tracking import TrackStatus
+    from jaxrkpm.solvers.linalg.base import Stability
     for kind in (jr.Status, TrackStatus, Stability):
         assert issubclass(kind, Outcome)
         for member in kind:
@@ -85,7 +85,7 @@ def test_unknown_inertia_is_reported_as_unknown(monkeypatch):
     """A factorisation that cannot tell the inertia (PARDISO with perturbed pivots, SuperLU
     with pivoting) gives STABILITY_UNKNOWN, never CONVERGED on a claimed positive definite
     tangent; the equilibrium is still returned (no SolveError)."""
-    from jaxrkpm import sparse
+    from jaxrkpm.solvers.linalg import factorisations as sparse
     body = jr.Body.grid((4, 4), 1 / 3)
     sets = {"l": body.select(lambda X: X[:, 0] < 1e-9), "r": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
     model = jr.Model(body, jr.NeoHookean(1.0, 1.0), essential=sets, solver="sparse", factorisation="superlu")
@@ -94,7 +94,7 @@ def test_unknown_inertia_is_reported_as_unknown(monkeypatch):
     assert sol.outcome == jr.Status.STABILITY_UNKNOWN and sol.converged
     assert "could not tell" in sol.message
     state = model.problem().factorise(sol.u, sol.g)
-    from jaxrkpm.linear import Stability
+    from jaxrkpm.solvers.linalg.base import Stability
     assert Stability.of(model.problem().stability(state)) == Stability.UNKNOWN
     # with the check off there is nothing to report
     assert model.solve({"r": [-0.05, 0.0]}, check_stability=False).outcome == jr.Status.CONVERGED
@@ -120,7 +120,7 @@ class FakeDevice:
 def test_auto_goes_dense_on_an_accelerator_while_the_matrices_fit():
     """solver="auto": the measured CPU crossover on a CPU; on a GPU, dense (no host callback)
     up to DENSE_COPIES n^2 doubles of device memory."""
-    from jaxrkpm.model import DENSE_COPIES, DENSE_LIMIT, dense_limit
+    from jaxrkpm.model.model import DENSE_COPIES, DENSE_LIMIT, dense_limit
     assert dense_limit(3, FakeDevice("cpu")) == DENSE_LIMIT[3] and dense_limit(2, FakeDevice("cpu")) == DENSE_LIMIT[2]
     n = dense_limit(3, FakeDevice("gpu", 80 * 2**30))
     assert 8 * DENSE_COPIES * n**2 <= 80 * 2**30 < 8 * DENSE_COPIES * (n + 1) ** 2
@@ -136,7 +136,7 @@ def test_precision_is_chosen_by_size_and_mixed_solves_equal_double(monkeypatch):
     an unknown precision is refused with the choices."""
     import jax.numpy as jnp
 
-    from jaxrkpm import model as model_module
+    from jaxrkpm.model import model as model_module
 
     body = jr.Body.grid((5, 5), 0.25)
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "push": body.select(lambda X: X[:, 0] > 1 - 1e-9)}

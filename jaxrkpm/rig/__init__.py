@@ -9,7 +9,7 @@ package's ``jaxrkpm/__init__.py`` (which loads JAX and the core); the separation
 rig module needs the core, not that Python skips the parent.
 
 The simulated rig and the material calibration, which do use the core, are in
-:mod:`jaxrkpm.rigsim`."""
+:mod:`jaxrkpm.thesis.rigsim`."""
 
 from .frames import (
     PivotResult,

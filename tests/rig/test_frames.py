@@ -5,15 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from jaxrkpm.rig.frames import (
-    RigidTransform,
-    Units,
-    arun_registration,
-    label_l_markers,
-    object_frame_from_l_markers,
-    pivot_calibration,
-    register_from_three_touches,
-)
+from jaxrkpm.rig.frames import RigidTransform, Units, arun_registration, label_l_markers, object_frame_from_l_markers, pivot_calibration, register_from_three_touches
 from jaxrkpm.rig.stereo import ParallelStereo, StereoTracker, render_markers
 
 

@@ -10,8 +10,7 @@ import socket
 import numpy as np
 import pytest
 
-from jaxrkpm.rig.link import (LinkClosed, LinkError, ProtocolError, RobotClient,
-                              SimulatedRobotServer)
+from jaxrkpm.rig.link import LinkClosed, LinkError, ProtocolError, RobotClient, SimulatedRobotServer
 from jaxrkpm.rig.stereo import StereoTracker, ParallelStereo, detect_blobs, draw_blobs, render_markers
 
 from .lines import read_reply

@@ -1,7 +1,7 @@
 """Layering: the hardware package jaxrkpm.rig (stereo, frames, link) imports nothing from the
 jaxrkpm solver core and not JAX. Allowed: the standard library, NumPy, SciPy, OpenCV and
 sibling rig modules. The simulated rig and the calibration, which need the core, live in
-jaxrkpm.rigsim.
+jaxrkpm.thesis.rigsim.
 
 Checked two ways: on the source (every import statement, at any depth, parsed with ``ast``)
 and by importing the package under a bare parent package (so jaxrkpm/__init__.py, which
@@ -82,8 +82,8 @@ def test_hardware_module_imports_no_core_and_no_jax(path):
     "import jaxrkpm",
     "import jaxrkpm.model",
     "from jaxrkpm import Model",
-    "from jaxrkpm.control import control_increment",
-    "from jaxrkpm.rigsim.sim import ClosedLoop",
+    "from jaxrkpm.control.tracking import control_increment",
+    "from jaxrkpm.thesis.rigsim.sim import ClosedLoop",
     "from jaxrkpm.rigid import x",          # a prefix of the package name is not the package
     "import optax",
     "def f():\n    if True:\n        import jax\n",   # nested, lazy imports count too

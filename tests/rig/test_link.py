@@ -11,17 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from jaxrkpm.rig.link import (
-    MAX_LINE_BYTES,
-    LinkClosed,
-    LinkTimeout,
-    RemoteError,
-    RobotClient,
-    SafetyError,
-    SafetyLimits,
-    SimulatedRobotServer,
-    encode_message,
-)
+from jaxrkpm.rig.link import MAX_LINE_BYTES, LinkClosed, LinkTimeout, RemoteError, RobotClient, SafetyError, SafetyLimits, SimulatedRobotServer, encode_message
 
 from .lines import read_reply
 

@@ -6,19 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from jaxrkpm.rig.stereo import (
-    AmbiguousMatchError,
-    CalibratedStereo,
-    MarkerCountError,
-    ParallelStereo,
-    StereoFrame,
-    StereoTracker,
-    auto_threshold,
-    detect_blobs,
-    draw_blobs,
-    match_by_row,
-    render_markers,
-)
+from jaxrkpm.rig.stereo import AmbiguousMatchError, CalibratedStereo, MarkerCountError, ParallelStereo, StereoFrame, StereoTracker, auto_threshold, detect_blobs, draw_blobs, match_by_row, render_markers
 
 ACCURACY_M = 0.5e-3          # thesis: camera accuracy 0.5 mm
 ROW_TOL_PX = 2.0

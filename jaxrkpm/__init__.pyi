@@ -1,0 +1,49 @@
+# The public API of jaxrkpm, declared once: ``__init__.py`` loads each name lazily from here
+# (lazy_loader.attach_stub), and type checkers and IDEs read it as the package's interface
+# (``from m import X as X``: an explicit re-export).
+from . import internal as internal, rig as rig
+from .base.outcome import Outcome as Outcome
+from .base.programs import release_if_crowded as release_if_crowded
+from .control.tracking import (
+    TrackResult as TrackResult,
+    TrackStatus as TrackStatus,
+    control_increment as control_increment,
+    path_deviation as path_deviation,
+    track as track,
+    waypoint_table as waypoint_table,
+)
+from .discretise.body import Body as Body
+from .discretise.mesh import (
+    cylinder as cylinder,
+    half_ellipsoid as half_ellipsoid,
+    lobe as lobe,
+    mirrored as mirrored,
+    read_mesh as read_mesh,
+    refine_mesh as refine_mesh,
+    tetrahedralise as tetrahedralise,
+)
+from .io.plot import deformed_particles as deformed_particles, deformed_surface as deformed_surface
+from .io.output import (
+    read_series as read_series,
+    write_series as write_series,
+    write_solution as write_solution,
+)
+from .mechanics.loads import Springs as Springs
+from .mechanics.materials import (
+    Fung as Fung,
+    Material as Material,
+    NeoHookean as NeoHookean,
+    Quadratic as Quadratic,
+    SaintVenantKirchhoff as SaintVenantKirchhoff,
+    det as det,
+    fung_tensor as fung_tensor,
+    green_lagrange as green_lagrange,
+    pk2 as pk2,
+)
+from .model.continuation import arc_length as arc_length, point_load as point_load
+from .model.model import Model as Model, SolveError as SolveError
+from .solvers.continuation import EquilibriumPath as EquilibriumPath, PathStatus as PathStatus
+from .solvers.linalg.base import Stability as Stability
+from .solvers.results import Solution as Solution, Status as Status
+
+__version__: str

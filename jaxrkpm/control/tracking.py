@@ -1,0 +1,493 @@
+"""Jacobian path tracking (thesis Algorithm 3): MP <- MP + K J^-1 e.
+
+The whole tracking run is one jitted while-loop: at each iteration the controller model's
+implicit Jacobian J = d CP / d MP is taken at its converged state, the manipulation point
+(a rigidly driven essential set) moves by K J^+ e clamped to ``clamp`` per component, and
+the models re-equilibrate. The plant (whose control point is measured) is the controller
+itself, or a second model (reduced -> refined control, section 5.3.1).
+
+Cost per iteration: one tangent assembly and one factorisation of K_ff at the converged
+state (the linear solver's explicit state, dense or sparse alike), shared by the Jacobian
+(m solves), the Newton predictor of the next solve and its chord corrections
+(``jaxrkpm.solvers.newton.newton(chord=True)``); the adaptive ``solve_path`` runs only if those fail
+(a tangent that is not positive definite, no residual decrease, det F <= 0).
+With ``track(reuse=...)`` the factorisation is kept across iterations instead (quasi-Newton
+chord corrections, ``linear.QuasiNewton``) and made again only where a correction cuts the
+residual by less than ``reuse``: same residual tolerance, and the Jacobian then comes from the
+kept factorisation (of a nearby earlier state) by iterative refinement with exact
+Hessian-vector products (``jaxrkpm.solvers.implicit.sensitivity(refine=...)``): the implicit Jacobian of
+the current state, to a relative residual of JACOBIAN_RTOL. That refinement starts from the
+response predicted along the path (``response_trend``), and the chord from the move's
+second-order prediction (``predicted_change``): on the 9x9 box path, 0-1 CG iterations and
+1.6 chord solves a control step.
+"""
+from __future__ import annotations
+
+from functools import partial
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..solvers.linalg.dense import DenseSolver
+from ..solvers.linalg.quasi_newton import QuasiNewton
+from ..model.model import Model
+from ..base.outcome import Outcome
+from ..discretise.polygons import distance_to_segment
+from ..solvers.problem import Problem
+from ..solvers.results import Limits, Solution, Status, reached_equilibrium
+from ..solvers.path import solve_path
+from ..solvers.loops import when
+
+
+class TrackStatus(Outcome):
+    DONE = 0, "every waypoint reached"
+    SOLVE_FAILED = 1, "a model solve failed; the history up to it is kept"
+    ITERATION_CAP = 2, "the waypoint was not reached within the iteration cap"
+    NO_PROGRESS = 3, ("the control point error stopped decreasing: the waypoint looks "
+                      "unreachable with this manipulation")
+    HISTORY_FULL = 4, "the total iteration budget (max_steps) ran out"
+
+
+def control_increment(J, e, gain, clamp, damping=0.0):
+    """K J^+ e, clamped so no component exceeds ``clamp``.
+
+    Square J: J^-1 e. Otherwise damped least squares: (J^T J + damping^2 I)^-1 J^T e
+    (more control than manipulation coordinates) or J^T (J J^T + damping^2 I)^-1 e."""
+    m, n = J.shape
+    if m >= n:
+        step = jnp.linalg.solve(J.T @ J + damping**2 * jnp.eye(n), J.T @ e)
+    else:
+        step = J.T @ jnp.linalg.solve(J @ J.T + damping**2 * jnp.eye(m), e)
+    if m == n:  # undamped square J: the plain inverse (better conditioned than the normal equations)
+        step = jnp.where(damping > 0, step, jnp.linalg.solve(J, e))
+    step = gain * step
+    biggest = jnp.max(jnp.abs(step))
+    return jnp.where(biggest > clamp, step * (clamp / biggest), step)
+
+
+QN_MEMORY = 8   # secant pairs a kept factorisation carries (``ControlledModel.of`` with reuse)
+# the Jacobian from a kept factorisation is refined until |K x - rhs| <= this x |rhs|: it only
+# sets the direction of a gained, clamped increment (the equilibria keep the solver's own
+# tolerance), and each correction costs m Hessian-vector products. Measured on the 10^3 cube
+# from a factorisation 5 control steps old: 1e-10 0.33 s (J to 1e-11), 1e-6 0.20 s (7e-8),
+# 1e-4 0.13 s (1e-5); with a fresh factorisation 0.03 s
+JACOBIAN_RTOL = 1e-6
+# track(reuse=None) on the dense path: factorisations kept across control steps, refactorised
+# where a chord correction cuts |r| by less than 2x. Measured (same run, quiet, factorising
+# every step / kept): 10^3 cube 0.280 / 0.128 s a control step; the 2D box path 1.24 / 0.63 s,
+# the same waypoints reached at the same iterations. Not on the sparse path, whose chord
+# corrections are refined host solves with no secant update (14^3: 1.54 / 1.89 s a step)
+KEPT_REUSE = 0.5
+KEPT_CORRECTIONS = 30   # chord corrections allowed with a kept factorisation (each must still
+#                         cut |r| by Config.reuse: 0.5**30 ~ 1e-9 of the predictor's residual)
+
+
+class ControlledModel(NamedTuple):
+    """One model inside the tracking loop (a pytree): its problem, the rigid directions of
+    the driven set and the control points' shape functions."""
+
+    problem: Problem
+    G: jax.Array     # (d_mp, Nb, d) rigid directions of the driven set
+    idx: jax.Array   # (C, K) control point neighbours
+    psi: jax.Array   # (C, K)
+
+    @staticmethod
+    def of(model: Model, driven: str, control_points, params=None, reuse: float = 0.0) -> "ControlledModel":
+        """``reuse`` in (0, 1): keep factorisations across control steps (``keeps``); the
+        chord corrections must then cut |r| by at least this factor each (Config.reuse).
+        A dense model then solves with ``QuasiNewton(DenseSolver(inverse=True))``: L^-1 is
+        kept (solves are matrix-vector products, and a kept factorisation serves many) and
+        the corrections' secant pairs improve it (L-BFGS), across control steps too."""
+        sf = model.shape_functions(np.atleast_2d(np.asarray(control_points, float)), gradients=False)
+        problem = model.problem(params)
+        if reuse:
+            problem = problem.with_config(reuse=reuse)
+            if isinstance(model.linear, DenseSolver):
+                problem = problem.with_config(linear=QuasiNewton(DenseSolver(inverse=True), QN_MEMORY))
+        return ControlledModel(problem, model.directions(driven), jnp.asarray(sf.idx), jnp.asarray(sf.psi))
+
+    @property
+    def keeps(self) -> bool:
+        """Whether a factorisation is kept across control steps (static: Config.reuse > 0)
+        and refactorised only where the chord corrections contract too slowly; else every
+        control step factorises K_ff at its converged state."""
+        return self.problem.config.reuse > 0
+
+    def measure(self, sol: Solution):
+        """Control point displacements, flattened (C*d,)."""
+        return self.problem.point_values(self.idx, self.psi, sol.u, sol.g).ravel()
+
+    def response(self, sol: Solution, state, guess=None):
+        """du (d_mp, Nf, d): the free coefficients' sensitivity to the manipulation point at
+        ``sol`` from its factorisation ``state`` (with ``keeps``, of an earlier state: refined
+        with exact products to this state's, to JACOBIAN_RTOL, from ``guess``, e.g. the
+        response of the previous control step, where given)."""
+        return self.problem.response(sol, self.G, state, refine=JACOBIAN_RTOL if self.keeps else 0.0, guess=guess)
+
+    def jacobian(self, sol: Solution, state, du=None):
+        """J = d CP / d MP (C*d, d_mp) at ``sol`` from its factorisation ``state`` (see
+        ``response``), or from the ``response`` ``du`` there where it is already known."""
+        du = self.response(sol, state) if du is None else du
+        J = self.problem.jacobian(sol, self.G, self.idx, self.psi, du=du)
+        return J.reshape(-1, self.G.shape[0])
+
+    def settle(self, sol: Solution, state, g1, lim: Limits, max_corr: int, du=None, floor=None):
+        """Equilibrium at the prescribed values g1 from the converged ``sol``: returns
+        (Solution, the factorisation to keep). ``du`` (Nf, d): the change of the free
+        coefficients predicted for the move (``predicted_change``); where given, the chord
+        starts at g1 from sol.u + du (from sol.u where du is not finite) instead of from the
+        kept factorisation's own predictor. ``floor``: the round-off floor of the chord's
+        residual test (``Problem.roundoff_floor``), where the caller keeps one (default: the
+        chord computes it).
+
+        The Newton predictor and up to ``max_corr`` (with ``keeps``: KEPT_CORRECTIONS) chord corrections with the factorisation
+        ``state`` (no assembly), to the solver's residual tolerance. Where they fail (a
+        tangent that is not positive definite, no residual decrease, det F <= 0, or with
+        ``keeps`` a correction that cuts |r| by less than Config.reuse): with ``keeps``, a
+        fresh factorisation at the chord's last iterate and chord corrections from there
+        (that factorisation is the one kept); then, if still not converged, the full
+        adaptive Newton path (and, with ``keeps``, a factorisation at its end).
+
+        With ``keeps`` the ``state`` may factorise an earlier state than ``sol``: the
+        stability reported is that of the factorisation used (of a nearby, earlier state),
+        and a loss of stability shows as a chord that stops contracting (a refactorisation,
+        whose stability is then checked)."""
+        prob = self.problem
+        # a kept factorisation is given up by its contraction (Config.reuse), not a count
+        cap = max(max_corr, KEPT_CORRECTIONS) if self.keeps else max_corr
+
+        def chord(u, g0, st):
+            return prob.newton(u, g0, g1, sol.load, sol.load, max_iter=cap + 1, state=st, chord=True, floor=floor)
+
+        u0, g0 = sol.u, sol.g
+        if du is not None:
+            # from the predicted state at g1; where the prediction is not finite (after a failed
+            # solve), from the last state moved to g1, whose residual the first step takes up
+            u0, g0 = jnp.where(jnp.all(jnp.isfinite(du)), sol.u + du, sol.u), None
+        u, st, its, rn, learned = chord(u0, g0, state)
+        if self.keeps:
+            state = learned   # with a quasi-Newton solver: the secant pairs of the corrections
+
+            def refactorised():
+                v, st2, its2, rn2, fresh = chord(u, None, prob.factorise(u, g1))
+                return v, st2, its + its2, rn2, fresh
+
+            u, st, its, rn, state = when(st != Status.CONVERGED, refactorised, (u, st, its, rn, state))
+        quick = Solution(u, g1, sol.load, jnp.zeros_like(sol.status), jnp.ones_like(sol.t),
+                         its.astype(sol.iterations.dtype), jnp.ones_like(sol.steps),
+                         jnp.zeros_like(sol.cuts), rn.astype(sol.residual_norm.dtype),
+                         jnp.zeros_like(sol.branch), sol.critical)
+
+        def full():
+            new = solve_path(prob.ops, prob.params, prob.config, lim, sol.u, sol.g, g1, sol.load, sol.load)
+            new = jax.tree.map(lambda a, b: a.astype(b.dtype), new, sol)   # the carry's dtypes
+            return new, (prob.factorise(new.u, new.g) if self.keeps else state)
+
+        return when(st != Status.CONVERGED, full, (quick, state))
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """History of a tracking run (numpy arrays, n = iterations run).
+
+    mp (n+1, d_mp) manipulation point displacement, cp (n+1, C*d) control point displacement
+    (plant), error (n+1,) |e| against the current waypoint, waypoint (n+1,) its index,
+    newton (n+1,) nonlinear iterations (linear solves: predictor + corrections) of the step,
+    solve_status (n+1,); reached (W,) iteration at which each waypoint was reached (-1 if
+    not); achieved (W, C*d) the control point there; desired (W, C*d)."""
+
+    mp: np.ndarray
+    cp: np.ndarray
+    error: np.ndarray
+    waypoint: np.ndarray
+    newton: np.ndarray
+    solve_status: np.ndarray
+    reached: np.ndarray
+    achieved: np.ndarray
+    desired: np.ndarray
+    status: TrackStatus
+    controller_solution: Solution
+    plant_solution: Solution
+
+    @property
+    def waypoint_errors(self) -> np.ndarray:
+        err = np.linalg.norm(self.achieved - self.desired, axis=1)
+        return np.where(self.reached >= 0, err, np.nan)
+
+    @property
+    def max_waypoint_error(self) -> float:
+        return float(np.nanmax(self.waypoint_errors)) if np.any(self.reached >= 0) else float("nan")
+
+    @property
+    def message(self) -> str:
+        n = int(np.sum(self.reached >= 0))
+        return f"{self.status.name}: {self.status.message} ({n}/{len(self.reached)} waypoints, " \
+               f"{len(self.error) - 1} iterations)"
+
+
+def response_trend(du, dmp, du_last, last_move):
+    """The change of the response du = d u / d mp (d_mp, Nf, d) over the move ``dmp`` (d_mp,)
+    of the manipulation point, H[dmp, .] with H = d^2 u / d mp^2, estimated from its change
+    along the last move: du - du_last ~ H[last_move, .] (``du_last``: the response at the state
+    before ``last_move``), so H[dmp, .] ~ c (du - du_last) with c = dmp . last_move /
+    |last_move|^2. Exact to first order where the moves are parallel (a path's straight legs,
+    where the control moves by the increment clamp); where they turn it misses the part across
+    the last move. Zero where no move preceded (``last_move`` = 0) or ``du_last`` is not finite
+    (after a failed solve)."""
+    p2 = jnp.sum(last_move * last_move)
+    valid = (p2 > 0) & jnp.all(jnp.isfinite(du_last))
+    c = jnp.where(valid, jnp.sum(dmp * last_move) / jnp.where(valid, p2, 1.0), 0.0)
+    return c * jnp.where(valid, du - du_last, 0.0)
+
+
+def predicted_change(du, dmp, trend=None):
+    """The change of the free coefficients (Nf, d) for the move ``dmp`` (d_mp,) from the
+    response ``du`` (d_mp, Nf, d): du . dmp, to first order; with the ``response_trend`` over
+    that move, plus the second-order term 1/2 H[dmp, dmp] (second-order accurate along a
+    straight leg of the path, first-order where it turns)."""
+    first = jnp.einsum("a,aij->ij", dmp, du)
+    return first if trend is None else first + 0.5 * jnp.einsum("a,aij->ij", dmp, trend)
+
+
+@partial(jax.jit, static_argnames=("same", "max_iter", "max_steps", "window", "max_corr"))
+def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: Limits, c0: Solution,
+               p0: Solution, desired, gain, clamp, tol, damping, max_iter: int, max_steps: int,
+               window: int, max_corr: int = 6):
+    """Algorithm 3 as one while-loop (see ``track`` for the arguments). Per iteration: one
+    factorisation of the controller at its converged state serves the Jacobian and the
+    settling of the next state (``ControlledModel.settle``); a separate plant is settled
+    the same way with its own factorisation. Returns (iterations, TrackStatus code, history
+    dict, reached, achieved, controller Solution, plant Solution)."""
+    dim_mp = ctrl.G.shape[0]
+    n_wp, n_cp = desired.shape
+
+    def g_of(side, g_base, mp):
+        return g_base + jnp.einsum("a,abi->bi", mp, side.G)
+
+    cg_base, pg_base = c0.g, p0.g   # the manipulation point moves relative to the start
+    # the chords' round-off floors, once, at the start: the floor is a stiffness times machine
+    # epsilon with a margin of 200-2,000x over the round-off actually left in |r| (see
+    # solve.ROUNDOFF_FACTOR), and the tracked object moves by small increments, so the floor of
+    # the start serves the whole path; its own pass through the material cost as much as a
+    # chord correction (9x9 box path, with the force scale from the residual's pass too:
+    # 1.06-1.20 -> 0.97-1.03 s, four interleaved runs each)
+    c_floor = ctrl.problem.roundoff_floor(c0.u, c0.g)
+    p_floor = c_floor if same else plant.problem.roundoff_floor(p0.u, p0.g)
+    H = max_steps + 1
+    hist = dict(mp=jnp.zeros((H, dim_mp)), cp=jnp.zeros((H, n_cp)), error=jnp.zeros(H),
+                waypoint=jnp.zeros(H, jnp.int32), newton=jnp.zeros(H, jnp.int32),
+                solve_status=jnp.zeros(H, jnp.int32))
+    cp0 = plant.measure(p0)
+    hist["cp"] = hist["cp"].at[0].set(cp0)
+    hist["error"] = hist["error"].at[0].set(jnp.linalg.norm(desired[0] - cp0))
+
+    class S(NamedTuple):
+        k: jax.Array
+        wp: jax.Array
+        it_wp: jax.Array
+        best: jax.Array
+        since_best: jax.Array
+        mp: jax.Array
+        c: Solution
+        p: Solution
+        cp: jax.Array
+        hist: dict
+        reached: jax.Array
+        achieved: jax.Array
+        status: jax.Array
+        c_state: object   # the kept factorisations (``ControlledModel.keeps``; else unused)
+        p_state: object
+        du: jax.Array     # the controller's last response
+        last_move: jax.Array   # the move of the last iteration (zero where it hit a waypoint or failed)
+        du_next: jax.Array     # the response predicted at the current state (keeps: where its CG starts)
+
+    class Step(NamedTuple):   # what one iteration changes (the history is written outside the cond)
+        mp: jax.Array
+        c: Solution
+        p: Solution
+        cp: jax.Array
+        newton: jax.Array
+        solve_status: jax.Array
+        c_state: object
+        p_state: object
+        du: jax.Array
+        trend: jax.Array   # the response's predicted change over the move (``response_trend``)
+
+    def cond(s):
+        return (s.status < 0) & (s.wp < n_wp)
+
+    def factorisation(side, sol, kept):
+        return kept if side.keeps else side.problem.factorise(sol.u, sol.g)
+
+    def step(s, e):
+        state = factorisation(ctrl, s.c, s.c_state)
+        # with a kept factorisation the response is refined by CG: it starts from the one
+        # predicted for this state (the last one plus its trend; measured at the 10^3 cube, a
+        # 20-iteration loop, starting from the last response instead of 0: 0.251 -> 0.205 s an
+        # iteration; at the 9x9 box path, from the predicted one instead of the last: CG
+        # iterations 2-4 -> 0-1 a step) (one that is not finite, after a failed solve, is no
+        # guess: CG starts from 0)
+        guess = jnp.where(jnp.all(jnp.isfinite(s.du_next)), s.du_next, 0.0) if ctrl.keeps else None
+        du = ctrl.response(s.c, state, guess)
+        dmp = control_increment(ctrl.jacobian(s.c, state, du), e, gain, clamp, damping)
+        mp = s.mp + dmp
+        # with a kept factorisation (of an earlier state) its own predictor is poor: the
+        # response, refined to this state's, predicts the move, to second order along the path
+        trend = response_trend(du, dmp, s.du, s.last_move) if ctrl.keeps else jnp.zeros_like(du)
+        du_move = predicted_change(du, dmp, trend) if ctrl.keeps else None
+        c, c_state = ctrl.settle(s.c, state, g_of(ctrl, cg_base, mp), lim, max_corr, du_move, c_floor)
+        if same:
+            p, p_state = c, c_state
+        else:
+            p, p_state = plant.settle(s.p, factorisation(plant, s.p, s.p_state), g_of(plant, pg_base, mp),
+                                      lim, max_corr, floor=p_floor)
+        return Step(mp, c, p, plant.measure(p), c.iterations + (0 if same else p.iterations),
+                    jnp.maximum(c.status, p.status), c_state, p_state, du, trend)
+
+    def body(s):
+        e = desired[s.wp] - s.cp
+        hit = jnp.linalg.norm(e) < tol
+        keep = Step(s.mp, s.c, s.p, s.cp, jnp.array(0, s.c.iterations.dtype), jnp.array(0, s.c.status.dtype),
+                    s.c_state, s.p_state, s.du, s.du)
+        # the step is taken and discarded on the (few) iterations that hit a waypoint: cheaper
+        # than a lax.cond around it on every iteration. The factorisations it made are kept
+        # even then (and after a failed solve): each is of a nearby state, which is all a kept
+        # factorisation is (the residual test decides convergence), and a select would copy
+        # them (3 n^2 doubles) at every iteration
+        new = step(s, e)
+        unselected = dict(c_state=None, p_state=None, du=None, trend=None)
+        st = jax.tree.map(lambda a, b: jnp.where(hit, a, b), keep._replace(**unselected), new._replace(**unselected))
+        moved = ~hit
+        ok = reached_equilibrium(st.c.status) & reached_equilibrium(st.p.status)
+        k = s.k + moved
+        # a failed solve keeps the last converged states: the history row of that iteration
+        # holds them (with the failed solve's status), never the attempted, unbalanced move
+        c = jax.tree.map(lambda a, b: jnp.where(ok, a, b), st.c, s.c)
+        p = jax.tree.map(lambda a, b: jnp.where(ok, a, b), st.p, s.p)
+        mp = jnp.where(ok, st.mp, s.mp)
+        cp = jnp.where(ok, st.cp, s.cp)
+        c_state, p_state = new.c_state, new.p_state
+        e_new = jnp.linalg.norm(desired[s.wp] - cp)
+        improved = e_new < 0.99 * s.best
+        best = jnp.where(improved, e_new, s.best)
+        since = jnp.where(improved, 0, s.since_best + 1)
+        at = jnp.where(moved, k, H)    # out of range: dropped (no history row for a waypoint hit)
+        row = dict(mp=mp, cp=cp, error=e_new, waypoint=s.wp, newton=st.newton, solve_status=st.solve_status)
+        h = {k: s.hist[k].at[at].set(v.astype(s.hist[k].dtype), mode="drop") for k, v in row.items()}
+        status = jnp.where(~ok, TrackStatus.SOLVE_FAILED,
+                           jnp.where(s.it_wp + 1 >= max_iter, TrackStatus.ITERATION_CAP,
+                                     jnp.where(since >= window, TrackStatus.NO_PROGRESS,
+                                               jnp.where(k >= max_steps, TrackStatus.HISTORY_FULL, -1))))
+        # a waypoint hit moves on to the next one: no solve ran, the states and history stay
+        at_wp = jnp.where(hit, s.wp, n_wp)
+        return s._replace(
+            k=k, wp=s.wp + hit, it_wp=jnp.where(hit, 0, s.it_wp + 1), best=jnp.where(hit, jnp.inf, best),
+            since_best=jnp.where(hit, 0, since), mp=mp, c=c, p=p, cp=cp, hist=h,
+            reached=s.reached.at[at_wp].set(s.k.astype(s.reached.dtype), mode="drop"),
+            achieved=s.achieved.at[at_wp].set(s.cp, mode="drop"), status=jnp.where(hit, s.status, status),
+            c_state=c_state, p_state=p_state, du=new.du, last_move=jnp.where(ok & moved, st.mp - s.mp, 0.0),
+            du_next=jnp.where(ok & moved, new.du + new.trend, new.du))
+
+    def first_state(side, sol):   # the factorisation kept from the start (a placeholder if none is)
+        if side.keeps:
+            return side.problem.factorise(sol.u, sol.g)
+        return side.problem.config.linear.empty(side.problem.ops, sol.u.dtype)
+
+    c_state0 = first_state(ctrl, c0)
+    p_state0 = c_state0 if same else first_state(plant, p0)
+    s0 = S(jnp.array(0), jnp.array(0), jnp.array(0), jnp.array(jnp.inf), jnp.array(0), jnp.zeros(dim_mp),
+           c0, p0, cp0, hist, -jnp.ones(n_wp, jnp.int32), jnp.zeros((n_wp, n_cp)), jnp.array(-1),
+           c_state0, p_state0, jnp.zeros((dim_mp,) + c0.u.shape, c0.u.dtype), jnp.zeros(dim_mp),
+           jnp.zeros((dim_mp,) + c0.u.shape, c0.u.dtype))
+    s = jax.lax.while_loop(cond, body, s0)
+    status = jnp.where(s.status < 0, TrackStatus.DONE, s.status)
+    return s.k, status, s.hist, s.reached, s.achieved, s.c, s.p
+
+
+def _kept(model: Model, reuse: float | None) -> float:
+    """``track``'s reuse for ``model``: KEPT_REUSE on the dense path where none is given."""
+    if reuse is not None:
+        return reuse
+    return KEPT_REUSE if isinstance(model.linear, DenseSolver) else 0.0
+
+
+def track(model: Model, path, driven: str, control_points, *, plant: Model | None = None,
+          plant_driven: str | None = None, gain: float = 0.05, clamp: float = 0.01,
+          tol: float = 1e-4, damping: float = 0.0, max_iter: int = 2000, max_steps: int = 20000,
+          window: int = 300, initial: Solution | None = None, plant_initial: Solution | None = None,
+          params=None, plant_params=None, reuse: float | None = None) -> TrackResult:
+    """Track a path of control point displacements (W, C*d) by moving the rigidly driven set
+    ``driven`` (Algorithm 3). ``plant``: a second model that is actually moved and measured
+    (its driven set ``plant_driven``, default the same name); the controller's Jacobian
+    drives it. Stops with a status (never raises on an unreachable waypoint) and keeps the
+    whole history. ``reuse`` in (0, 1): keep factorisations across iterations, refactorised
+    only where a chord correction cuts the residual by less than this factor (see
+    ``ControlledModel.of``; same residual tolerance; the Jacobian then comes from the kept
+    factorisation of a nearby earlier state, refined to this state's: ``ControlledModel.jacobian``);
+    0: one factorisation per iteration; None (default): KEPT_REUSE for a model on the dense
+    path, 0 on the sparse and Krylov paths."""
+    path = np.atleast_2d(np.asarray(path, float))
+    cps = np.atleast_2d(np.asarray(control_points, float))
+    if path.ndim != 2 or path.shape[1] != cps.size or len(path) == 0:
+        raise ValueError(f"path must have {cps.size} columns (control points x dimensions), got {path.shape}")
+    if not np.all(np.isfinite(path)):
+        raise ValueError(f"path has non-finite waypoints (rows {np.flatnonzero(~np.isfinite(path).all(1)).tolist()})")
+    for name, v in (("gain", gain), ("clamp", clamp), ("tol", tol)):
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be positive, got {v}")
+    if not (np.isfinite(damping) and damping >= 0):
+        raise ValueError(f"damping must be a finite number >= 0, got {damping}")
+    for name, v in (("max_iter", max_iter), ("max_steps", max_steps), ("window", window)):
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 1:
+            raise ValueError(f"{name} must be an int >= 1, got {v!r}")
+    if not (reuse is None or (isinstance(reuse, (int, float)) and 0 <= reuse < 1)):
+        raise ValueError(f"reuse must be None or a number in [0, 1) (0: factorise at every iteration), "
+                         f"got {reuse!r}")
+    ctrl = ControlledModel.of(model, driven, cps, params, _kept(model, reuse))
+    same = plant is None
+    plant_model = model if same else plant
+    pside = ctrl if same else ControlledModel.of(plant_model, plant_driven or driven, cps, plant_params,
+                                                 _kept(plant_model, reuse))
+    if pside.G.shape[0] != ctrl.G.shape[0]:
+        raise ValueError("controller and plant must drive the same number of coordinates")
+    c0 = model.initial() if initial is None else initial
+    p0 = c0 if same else (plant_model.initial() if plant_initial is None else plant_initial)
+    k, status, hist, reached, achieved, c, p = track_loop(
+        ctrl, pside, same, Limits.of(steps=1), c0, p0, jnp.asarray(path),
+        gain, clamp, tol, damping, int(max_iter), int(max_steps), int(window))
+    n = int(k) + 1
+    h = {key: np.asarray(v)[:n] for key, v in hist.items()}
+    return TrackResult(h["mp"], h["cp"], h["error"], h["waypoint"], h["newton"], h["solve_status"],
+                       np.asarray(reached), np.asarray(achieved), path, TrackStatus.of(status), c, p)
+
+
+# ----------------------------------------------------------------- analysis of a TrackResult
+def waypoint_table(res: TrackResult) -> list[dict]:
+    """Per waypoint: desired, achieved, error, the iterations spent on it, and when."""
+    rows, prev = [], 0
+    for i, (des, ach, k) in enumerate(zip(res.desired, res.achieved, res.reached)):
+        k = int(k)
+        if k >= 0:
+            rows.append({"index": i, "desired": des.tolist(), "achieved": ach.tolist(),
+                         "error": float(np.linalg.norm(ach - des)), "iterations": k - prev,
+                         "reached_at": k})
+            prev = k
+        else:
+            spent = int(np.sum(res.waypoint[1:] == i))
+            last = res.cp[-1]
+            rows.append({"index": i, "desired": des.tolist(), "achieved": None,
+                         "error": None, "iterations": spent, "reached_at": None,
+                         "closest": float(np.min(res.error[1:][res.waypoint[1:] == i]))
+                         if spent else float(np.linalg.norm(last - des))})
+    return rows
+
+
+def path_deviation(res: TrackResult) -> np.ndarray:
+    """Distance of the control point, at every iteration, from the desired segment it is
+    travelling along (previous waypoint -> current waypoint): (n+1,)."""
+    w = np.asarray(res.waypoint).astype(int)
+    return distance_to_segment(np.asarray(res.cp, float), res.desired[np.maximum(w - 1, 0)],
+                               res.desired[w])

@@ -1,0 +1,784 @@
+"""Meshes for bodies: read (meshio), validate, tetrahedralise surfaces and build shapes (gmsh).
+
+NumPy, outside jit, run once per body. The pieces:
+
+- ``read_mesh(source)``: any format meshio reads (VTU/VTK, Gmsh .msh, Abaqus .inp, Medit .mesh,
+  ...) or a ``meshio.Mesh`` as it is.
+- ``volume_mesh(source, dim)``: the tetrahedra (3D) or triangles (2D) of a mesh, checked
+  (zero-volume, inverted, coincident vertices, faces shared by more than two cells), with
+  its named vertex sets (tags) from cell sets, point sets and Gmsh physical groups.
+- ``refine_mesh(source, times)``: every cell split uniformly by Gmsh, named groups carried.
+- ``tetrahedralise(points, triangles, spacing)``: a closed, manifold, non-self-intersecting
+  triangle surface (checked here) meshed into tetrahedra by Gmsh at the requested spacing.
+- ``half_ellipsoid``, ``lobe``, ``cylinder``: shapes built with Gmsh's OpenCASCADE kernel at
+  run time, as ``meshio.Mesh`` with named physical groups (write them with ``meshio.write``);
+  each can conform to given segments (``embed_segments``: e.g. a needle track, vertices along
+  it) and be made mirror-symmetric (``symmetric``: half meshed, then ``mirrored``).
+- simplex helpers the body and the integration share: ``simplex_volumes``,
+  ``vertex_volumes``, ``boundary_faces``, ``mean_edge_length``, ``Locator`` (point in mesh).
+
+Gmsh keeps global state: every use goes through ``gmsh_session()`` (one at a time, any
+thread).
+"""
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+import threading
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+if TYPE_CHECKING:
+    import meshio   # imported where used: it costs a second of every ``import jaxrkpm``
+
+SIMPLEX = {2: "triangle", 3: "tetra"}          # body dimension -> meshio cell type
+# second-order simplices are used through their corner nodes (straight-sided cells)
+CORNERS = {"triangle": 3, "triangle6": 3, "triangle7": 3, "tetra": 4, "tetra10": 4}
+VOLUME_TOLERANCE = 0.05   # a mesh that misses more of its shape's volume: spacing too coarse
+_GMSH_LOCK = threading.RLock()
+
+
+# ======================================================================== gmsh state
+@contextmanager
+def gmsh_session(name: str = "jaxrkpm"):
+    """Gmsh initialised for one job, quiet, and cleaned up after (finalised if it was not
+    running before; else only the model added here is removed). Safe outside the main
+    thread (no SIGINT handler) and serialised by a lock: gmsh has one global state."""
+    import gmsh
+
+    with _GMSH_LOCK:
+        owner = not gmsh.isInitialized()
+        if owner:
+            gmsh.initialize(readConfigFiles=False, interruptible=False)
+        try:
+            gmsh.option.setNumber("General.Terminal", 0)
+            gmsh.model.add(name)
+            yield gmsh
+        finally:
+            if owner:
+                gmsh.finalize()
+            else:
+                gmsh.model.remove()
+
+
+def _gmsh_to_meshio(gmsh) -> meshio.Mesh:
+    """The current gmsh mesh through a temporary .msh file, read by meshio (cell sets and
+    ``gmsh:physical`` data carry the physical group names)."""
+    import meshio
+
+    fd, path = tempfile.mkstemp(suffix=".msh")
+    os.close(fd)
+    try:
+        gmsh.write(path)
+        mesh = meshio.read(path)
+    finally:
+        os.unlink(path)
+    mesh.cell_sets.pop("gmsh:bounding_entities", None)   # gmsh bookkeeping, not a tag
+    return mesh
+
+
+# ======================================================================== reading
+def read_mesh(source) -> meshio.Mesh:
+    """A ``meshio.Mesh`` from a path (any format meshio reads) or the mesh itself."""
+    import meshio
+
+    if isinstance(source, meshio.Mesh):
+        return source
+    if not isinstance(source, (str, os.PathLike)):
+        raise ValueError(f"a mesh must be a file path or a meshio.Mesh, got {type(source).__name__}")
+    path = Path(source)
+    if not path.is_file():
+        raise ValueError(f"mesh file {str(path)!r} does not exist")
+    try:
+        return meshio.read(path)
+    except Exception as err:   # meshio raises ReadError, KeyError, ValueError by format
+        raise ValueError(f"meshio cannot read {str(path)!r}: {err}") from err
+
+
+@dataclass(frozen=True)
+class VolumeMesh:
+    """points (V, d); cells (C, d+1) simplices, positively oriented; tags name -> vertex
+    indices (sorted)."""
+
+    points: np.ndarray
+    cells: np.ndarray
+    tags: dict
+
+    @property
+    def dim(self) -> int:
+        return self.points.shape[1]
+
+
+def volume_mesh(source, dim: int | None = None) -> VolumeMesh:
+    """The simplices of a mesh (tetrahedra for ``dim`` 3, triangles for 2; default: 3 if
+    the mesh has tetrahedra), validated, unused vertices dropped, with its tags."""
+    mesh = read_mesh(source)
+    kinds = {b.type for b in mesh.cells}
+    if dim is None:
+        dim = 3 if kinds & {"tetra", "tetra10"} else 2
+    if dim not in SIMPLEX:
+        raise ValueError(f"dim must be 2 or 3, got {dim}")
+    wanted = [t for t in CORNERS if CORNERS[t] == dim + 1]
+    blocks = [i for i, b in enumerate(mesh.cells) if b.type in wanted]
+    if not blocks:
+        what = ("is a 2D or surface mesh (triangles, no tetrahedra)" if dim == 3 and "triangle" in kinds
+                else f"has {', '.join(sorted(kinds)) or 'no'} cells")
+        raise ValueError(f"a {dim}D body needs {SIMPLEX[dim]} cells, but the mesh {what}")
+    cells = np.concatenate([np.asarray(mesh.cells[i].data)[:, :dim + 1] for i in blocks]).astype(np.int64)
+    points = _coordinates(np.asarray(mesh.points, float), dim)
+    used, cells = np.unique(cells, return_inverse=True)
+    cells = cells.reshape(-1, dim + 1)
+    points = points[used]
+    cells = _checked_cells(points, cells)
+    renumber = -np.ones(len(mesh.points), np.int64)
+    renumber[used] = np.arange(len(used))
+    tags = {}
+    for name, vertices in _vertex_tags(mesh).items():
+        kept = renumber[vertices]
+        kept = np.unique(kept[kept >= 0])
+        if kept.size:
+            tags[name] = kept
+    return VolumeMesh(points, cells, tags)
+
+
+def _coordinates(points: np.ndarray, dim: int) -> np.ndarray:
+    """Mesh points as (V, dim): a 2D mesh may come with a constant third coordinate."""
+    if points.shape[1] == dim:
+        return points
+    if dim == 3:
+        raise ValueError(f"a 3D body needs 3D points, the mesh has {points.shape[1]} coordinates")
+    extent = np.ptp(points[:, :2], axis=0).max()
+    if np.ptp(points[:, 2:], axis=0).max() > 1e-12 * extent:
+        raise ValueError("the triangles do not lie in a plane z = const: a surface mesh, not a "
+                         "2D body (use Body.from_surface for a closed surface)")
+    return points[:, :2]
+
+
+def simplex_volumes(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """(C,) signed measures of the simplices (positive for a positive vertex order)."""
+    V = points[cells]
+    E = V[:, 1:] - V[:, :1]                       # (C, d, d) edge vectors from vertex 0
+    return np.linalg.det(E) / math.factorial(points.shape[1])
+
+
+def _checked_cells(points, cells):
+    """Cells with positive volumes: a mesh whose cells all have the opposite vertex order is
+    reordered (a convention, not a defect); zero-volume or inverted cells, coincident
+    vertices and faces of more than two cells are errors."""
+    d = points.shape[1]
+    extent = np.ptp(points, axis=0).max()
+    pairs = cKDTree(points).query_pairs(1e-12 * extent, output_type="ndarray")
+    if len(pairs):
+        i, j = pairs[0]
+        raise ValueError(f"mesh vertices {i} and {j} coincide at {points[i].tolist()} ({len(pairs)} "
+                         "such pairs): the cells do not share them, so the mesh is not conforming; "
+                         "merge duplicate nodes first")
+    vol = simplex_volumes(points, cells)
+    name = SIMPLEX[d]
+    flat = np.abs(vol) <= 1e-10 * np.abs(vol).mean()
+    if flat.any():
+        c = int(np.flatnonzero(flat)[0])
+        raise ValueError(f"{int(flat.sum())} zero-volume {name} cells, e.g. cell {c} with vertices "
+                         f"{cells[c].tolist()} (volume {vol[c]:.3g})")
+    if np.all(vol < 0):
+        cells = cells[:, [1, 0, *range(2, d + 1)]]
+    elif np.any(vol < 0):
+        bad = np.flatnonzero(vol < 0)
+        raise ValueError(f"{len(bad)} of {len(vol)} {name} cells are inverted (negative volume, "
+                         f"vertex order opposite to the rest), e.g. cell {int(bad[0])} with vertices "
+                         f"{cells[bad[0]].tolist()}")
+    face_counts(cells)            # raises on a face of more than two cells
+    return cells
+
+
+# ------------------------------------------------------------------------ tags
+def _cell_groups(mesh: meshio.Mesh) -> dict:
+    """name -> {block: cell ids} of every named cell group: cell sets, Gmsh physical groups
+    (names in field_data), cell data written by meshio from cell sets (key "a-b-c", values
+    0, 1, 2); if the mesh has no names at all, integer cell labels (Medit refs, unnamed
+    physical ids) as "<label><value>", e.g. "ref3"."""
+    groups = {}
+
+    def add(name, block, ids):
+        ids = np.asarray(ids, np.int64).ravel()
+        if ids.size:
+            per_block = groups.setdefault(name, {})
+            per_block[block] = np.union1d(per_block.get(block, ids[:0]), ids)
+
+    for name, per_block in mesh.cell_sets.items():
+        if not name.startswith("gmsh:"):
+            for b, ids in enumerate(per_block):
+                if ids is not None:
+                    add(name, b, ids)
+    physical = mesh.cell_data.get("gmsh:physical")
+    if physical is not None and mesh.field_data:
+        for name, (tag, dim) in ((k, np.asarray(v).ravel()[:2]) for k, v in mesh.field_data.items()):
+            for b, data in enumerate(physical):
+                if mesh.cells[b].dim == dim:
+                    add(name, b, np.flatnonzero(np.asarray(data) == tag))
+    labels = {k: [np.asarray(x).ravel() for x in v] for k, v in mesh.cell_data.items()
+              if k != "gmsh:geometrical" and all(np.asarray(x).dtype.kind in "iu" for x in v)}
+    for key, data in labels.items():
+        names = list(dict.fromkeys(key.split("-")))
+        values = np.unique(np.concatenate(data))
+        values = values[values >= 0]
+        if ":" not in key and len(names) == len(values):           # meshio's cell_sets_to_data
+            for name, value in zip(names, values):
+                for b, x in enumerate(data):
+                    add(name, b, np.flatnonzero(x == value))
+    if not groups and not mesh.point_sets:
+        for key, data in labels.items():
+            for b, x in enumerate(data):
+                for value in np.unique(x[x >= 0]):
+                    add(f"{key.split(':')[-1]}{value}", b, np.flatnonzero(x == value))
+    return groups
+
+
+def _vertex_tags(mesh: meshio.Mesh) -> dict:
+    """name -> vertex indices of the named cell groups (``_cell_groups``) and point sets."""
+    tags = {name: np.unique(np.concatenate([np.asarray(mesh.cells[b].data)[ids].ravel()
+                                            for b, ids in per_block.items()]))
+            for name, per_block in _cell_groups(mesh).items()}
+    for name, ids in mesh.point_sets.items():
+        tags[name] = np.union1d(tags.get(name, np.zeros(0, np.int64)), np.asarray(ids, np.int64))
+    return {k: v.astype(np.int64) for k, v in tags.items()}
+
+
+def refine_mesh(source, times: int = 1) -> meshio.Mesh:
+    """The mesh with every simplex split uniformly ``times`` times by Gmsh (tetrahedra into
+    8, triangles into 4; new vertices at the edge midpoints, so a curved surface keeps its
+    chords), its named cell groups carried along as physical groups. Point sets cannot be
+    carried (a new vertex belongs to no listed point): such a mesh is refused."""
+    if not (isinstance(times, (int, np.integer)) and times >= 0):
+        raise ValueError(f"refine must be a whole number of refinements >= 0, got {times!r}")
+    mesh = read_mesh(source)
+    if times == 0:
+        return mesh
+    if mesh.point_sets:
+        raise ValueError(f"refine cannot carry the point sets {sorted(mesh.point_sets)} to the new "
+                         "vertices: tag cells instead (cell sets / physical groups)")
+    dim = 3 if {b.type for b in mesh.cells} & {"tetra", "tetra10"} else 2
+    blocks = [b for b, blk in enumerate(mesh.cells) if CORNERS.get(blk.type) == dim + 1]
+    sizes = [len(mesh.cells[b].data) for b in blocks]
+    first = dict(zip(blocks, np.cumsum([0] + sizes[:-1])))
+    simplices = np.concatenate([np.asarray(mesh.cells[b].data)[:, :dim + 1] for b in blocks])
+    groups = _cell_groups(mesh)
+    owner = np.full(len(simplices), -1)              # gmsh: one entity per simplex
+    for g, per_block in enumerate(groups.values()):
+        for b, ids in per_block.items():
+            if b in first:
+                mine = first[b] + ids
+                owner[mine[owner[mine] < 0]] = g
+    gmsh_type = {1: 1, 2: 2, 3: 4}                   # line, triangle, tetrahedron
+    with gmsh_session("refine") as gmsh:
+        def entity(d, cells):
+            tag = gmsh.model.addDiscreteEntity(d)
+            gmsh.model.mesh.addElementsByType(tag, gmsh_type[d], [], (cells[:, :d + 1] + 1).ravel())
+            return tag
+
+        holder = gmsh.model.addDiscreteEntity(dim)  # every node; the simplices of no group
+        xyz = np.zeros((len(mesh.points), 3))
+        xyz[:, :mesh.points.shape[1]] = mesh.points
+        gmsh.model.mesh.addNodes(dim, holder, np.arange(1, len(xyz) + 1), xyz.ravel())
+        if np.any(owner < 0):
+            gmsh.model.mesh.addElementsByType(holder, gmsh_type[dim], [], (simplices[owner < 0] + 1).ravel())
+        for g, (name, per_block) in enumerate(groups.items()):
+            entities = {dim: [entity(dim, simplices[owner == g])]} if np.any(owner == g) else {}
+            for b, ids in per_block.items():
+                d = mesh.cells[b].dim
+                if b not in first and d in gmsh_type and d < dim:
+                    entities.setdefault(d, []).append(entity(d, np.asarray(mesh.cells[b].data)[ids]))
+            for d, tags in entities.items():
+                gmsh.model.addPhysicalGroup(d, tags, name=name)
+        gmsh.option.setNumber("Mesh.SaveAll", 1)     # also the simplices in no group
+        for _ in range(times):
+            gmsh.model.mesh.refine()
+        return _gmsh_to_meshio(gmsh)
+
+
+# ======================================================================== topology
+def _faces(cells: np.ndarray) -> np.ndarray:
+    """(C, d+1, d): the face of every cell opposite each of its vertices."""
+    n = cells.shape[1]
+    return cells[:, [[j for j in range(n) if j != k] for k in range(n)]]
+
+
+def face_counts(cells: np.ndarray):
+    """Unique faces (F, d) (sorted vertex indices), for each (cell, local face) its face
+    id (C, d+1), and how many cells hold each face (F,). Raises on a face of > 2 cells."""
+    F = np.sort(_faces(cells), axis=2)
+    d = cells.shape[1] - 1
+    uniq, inv, counts = np.unique(F.reshape(-1, d), axis=0, return_inverse=True, return_counts=True)
+    if counts.max() > 2:
+        f = int(np.argmax(counts))
+        raise ValueError(f"the face with vertices {uniq[f].tolist()} belongs to {counts[f]} cells "
+                         "(overlapping cells or a non-manifold mesh)")
+    return uniq, inv.reshape(cells.shape), counts
+
+
+def boundary_faces(points: np.ndarray, cells: np.ndarray):
+    """Faces on the mesh surface: vertex indices (M, d) ordered so that the normal points
+    out (3D: (b - a) x (c - a); 2D: the tangent b - a rotated by -90 deg), the cell (M,) and
+    local face (M,) (the face opposite that local vertex) each comes from."""
+    _, face_id, counts = face_counts(cells)
+    cell, local = np.nonzero(counts[face_id] == 1)
+    F = _faces(cells)[cell, local]
+    opposite = points[cells[cell, local]]
+    a = points[F[:, 0]]
+    if points.shape[1] == 3:
+        n = np.cross(points[F[:, 1]] - a, points[F[:, 2]] - a)
+    else:
+        t = points[F[:, 1]] - a
+        n = np.stack([t[:, 1], -t[:, 0]], 1)
+    inward = np.sum(n * (opposite - a), 1) > 0
+    F[inward] = F[inward][:, ::-1] if points.shape[1] == 2 else F[inward][:, [0, 2, 1]]
+    return F, cell, local
+
+
+def facet_normals(V: np.ndarray):
+    """Unit normals (M, d) and measures (M,) (areas in 3D, lengths in 2D) of facets given by
+    their vertex coordinates V (M, d, d), normals by the vertex order (``boundary_faces``)."""
+    t = V[:, 1] - V[:, 0]
+    if V.shape[2] == 3:
+        n = np.cross(t, V[:, 2] - V[:, 0])
+        size = np.linalg.norm(n, axis=1)
+        return n / size[:, None], size / 2
+    size = np.linalg.norm(t, axis=1)
+    return np.stack([t[:, 1], -t[:, 0]], 1) / size[:, None], size
+
+
+def vertex_volumes(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """(V,) each vertex's share of its cells: 1/(d+1) of each adjacent simplex (its median
+    dual cell); they sum to the mesh volume."""
+    vol = np.abs(simplex_volumes(points, cells))
+    out = np.zeros(len(points))
+    np.add.at(out, cells, np.repeat(vol[:, None] / cells.shape[1], cells.shape[1], 1))
+    return out
+
+
+def mean_edge_length(points: np.ndarray, cells: np.ndarray) -> float:
+    """Mean length of the mesh's (unique) edges: a body's nominal particle spacing."""
+    n = cells.shape[1]
+    E = np.sort(cells[:, [[i, j] for i in range(n) for j in range(i + 1, n)]].reshape(-1, 2), 1)
+    E = np.unique(E, axis=0)
+    return float(np.linalg.norm(points[E[:, 1]] - points[E[:, 0]], axis=1).mean())
+
+
+class Locator:
+    """Point location in a simplex mesh: the cell holding each point (KD-tree of cell
+    centroids, then barycentric coordinates of the nearby cells)."""
+
+    def __init__(self, points: np.ndarray, cells: np.ndarray):
+        V = points[cells]
+        self.cells = cells
+        self.origin = V[:, 0]
+        self.inverse = np.linalg.inv(np.swapaxes(V[:, 1:] - V[:, :1], 1, 2))   # (C, d, d)
+        centroid = V.mean(1)
+        self.radius = float(np.linalg.norm(V - centroid[:, None], axis=2).max())
+        self.tree = cKDTree(centroid)
+
+    def barycentric(self, cell: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """(P, d+1) barycentric coordinates of the points P in the cells ``cell``."""
+        lam = np.einsum("pij,pj->pi", self.inverse[cell], P - self.origin[cell])
+        return np.concatenate([1 - lam.sum(1, keepdims=True), lam], 1)
+
+    def locate(self, P: np.ndarray, tol: float = 1e-10) -> np.ndarray:
+        """(P,) index of a cell holding each point (barycentric coordinates >= -tol), -1 if
+        none."""
+        P = np.atleast_2d(np.asarray(P, float))
+        lists = self.tree.query_ball_point(P, self.radius * (1 + 1e-9))
+        counts = np.array([len(l) for l in lists])
+        point = np.repeat(np.arange(len(P)), counts)
+        cell = np.fromiter((c for l in lists for c in l), np.int64, counts.sum())
+        out = -np.ones(len(P), np.int64)
+        if len(cell):
+            inside = self.barycentric(cell, P[point]).min(1) >= -tol
+            out[point[inside]] = cell[inside]
+        return out
+
+
+# ======================================================================== surfaces
+def read_surface(source):
+    """A closed triangle surface (STL, OBJ, PLY, or any meshio format; or a meshio.Mesh) as
+    points (V, 3) and triangles (T, 3), duplicate points merged (STL repeats them)."""
+    mesh = read_mesh(source)
+    tris = [np.asarray(b.data) for b in mesh.cells if b.type == "triangle"]
+    if not tris:
+        raise ValueError(f"the surface {source_name(source)} has no triangles (cell types: "
+                         f"{sorted({b.type for b in mesh.cells})})")
+    P = np.asarray(mesh.points, float)
+    if P.shape[1] != 3:
+        raise ValueError(f"the surface {source_name(source)} must have 3D points, got {P.shape[1]} coordinates")
+    T = np.concatenate(tris).astype(np.int64)
+    used, T = np.unique(T, return_inverse=True)
+    P, T = P[used], T.reshape(-1, 3)
+    P, merged = np.unique(P, axis=0, return_inverse=True)
+    return P, merged.ravel()[T]
+
+
+def source_name(source) -> str:
+    """How errors name a mesh source: its path, or "mesh" for a meshio.Mesh."""
+    return repr(str(source)) if isinstance(source, (str, os.PathLike)) else "mesh"
+
+
+def check_surface(points: np.ndarray, triangles: np.ndarray, name: str = "surface"):
+    """Raise a ValueError naming the defect unless the triangles form a closed, manifold,
+    consistently oriented surface without degenerate or self-intersecting triangles."""
+    P, T = points, triangles
+    area = np.linalg.norm(np.cross(P[T[:, 1]] - P[T[:, 0]], P[T[:, 2]] - P[T[:, 0]]), axis=1) / 2
+    if np.any(area <= 1e-14 * area.max()):
+        t = int(np.argmin(area))
+        raise ValueError(f"the surface {name} has degenerate (zero-area) triangles, e.g. triangle {t}")
+    directed = T[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2)
+    edges, counts = np.unique(np.sort(directed, 1), axis=0, return_counts=True)
+    if np.any(counts == 1):
+        e = edges[counts == 1]
+        raise ValueError(f"the surface {name} is not closed: {len(e)} edges belong to one triangle "
+                         f"only, e.g. the edge {P[e[0, 0]].tolist()} - {P[e[0, 1]].tolist()}")
+    if np.any(counts > 2):
+        e = edges[np.argmax(counts)]
+        raise ValueError(f"the surface {name} is not manifold: the edge {P[e[0]].tolist()} - "
+                         f"{P[e[1]].tolist()} belongs to {counts.max()} triangles")
+    _, dcounts = np.unique(directed, axis=0, return_counts=True)
+    if np.any(dcounts > 1):
+        raise ValueError(f"the surface {name} is not consistently oriented: neighbouring "
+                         "triangles run through a shared edge in the same direction")
+    hits = self_intersections(P, T)
+    if len(hits):
+        i, j = hits[0]
+        raise ValueError(f"the surface {name} intersects itself: {len(hits)} pairs of triangles "
+                         f"cross, e.g. triangles {i} and {j} near {P[T[i]].mean(0).tolist()}")
+
+
+def self_intersections(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(K, 2) pairs of triangles that share no vertex and cross (an edge of one pierces the
+    other; candidates from a KD-tree of centroids). Coplanar overlaps are not detected."""
+    P, T = points, triangles
+    V = P[T]                                                    # (T, 3, 3)
+    centroid = V.mean(1)
+    reach = 2 * np.linalg.norm(V - centroid[:, None], axis=2).max()
+    pairs = cKDTree(centroid).query_pairs(reach, output_type="ndarray")
+    if not len(pairs):
+        return pairs
+    i, j = pairs[:, 0], pairs[:, 1]
+    apart = ~np.any(T[i][:, :, None] == T[j][:, None, :], axis=(1, 2))
+    lo, hi = V.min(1), V.max(1)
+    overlap = np.all((lo[i] <= hi[j]) & (lo[j] <= hi[i]), axis=1)
+    pairs = pairs[apart & overlap]
+    if not len(pairs):
+        return pairs
+    hit = _edges_pierce(V[pairs[:, 0]], V[pairs[:, 1]]) | _edges_pierce(V[pairs[:, 1]], V[pairs[:, 0]])
+    return pairs[hit]
+
+
+def _edges_pierce(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """(K,) whether an edge of triangle A (K, 3, 3) crosses triangle B (K, 3, 3)
+    (Moller-Trumbore on the three edge segments)."""
+    out = np.zeros(len(A), bool)
+    e1, e2 = B[:, 1] - B[:, 0], B[:, 2] - B[:, 0]
+    scale = np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
+    for k in range(3):
+        p, q = A[:, k], A[:, (k + 1) % 3]
+        dirn = q - p
+        h = np.cross(dirn, e2)
+        det = np.sum(e1 * h, 1)
+        ok = np.abs(det) > 1e-12 * scale * np.linalg.norm(dirn, axis=1)   # not parallel
+        f = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        s = p - B[:, 0]
+        u = f * np.sum(s * h, 1)
+        qv = np.cross(s, e1)
+        v = f * np.sum(dirn * qv, 1)
+        t = f * np.sum(e2 * qv, 1)
+        out |= ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
+    return out
+
+
+def enclosed_volume(points: np.ndarray, triangles: np.ndarray) -> float:
+    """Volume inside a closed, consistently oriented triangle surface (divergence theorem)."""
+    V = points[triangles]
+    return abs(float(np.einsum("ti,ti->t", V[:, 0], np.cross(V[:, 1], V[:, 2])).sum() / 6))
+
+
+def _check_spacing(spacing: float, extent: np.ndarray, name: str):
+    if not (np.isfinite(spacing) and spacing > 0):
+        raise ValueError(f"spacing must be positive and finite, got {spacing}")
+    if spacing > extent.min() / 2:
+        raise ValueError(f"spacing {spacing:g} is too coarse for {name}: it is only "
+                         f"{extent.min():.3g} thick; use a spacing below {extent.min() / 4:.3g}")
+
+
+def _check_volume(mesh: meshio.Mesh, expected: float, spacing: float, name: str):
+    vm = volume_mesh(mesh, 3)
+    got = float(simplex_volumes(vm.points, vm.cells).sum())
+    if abs(got - expected) > VOLUME_TOLERANCE * expected:
+        raise ValueError(f"spacing {spacing:g} is too coarse for {name}: its tetrahedra hold "
+                         f"{got:.4g} of the volume {expected:.4g} ({100 * abs(got / expected - 1):.0f}% "
+                         f"off); use a smaller spacing")
+
+
+def _generate(gmsh, spacing: float, name: str, finest: float | None = None) -> meshio.Mesh:
+    """Tetrahedralise the current model at ``spacing`` (``finest``: the smallest size a
+    background field may ask for, default ``spacing``)."""
+    gmsh.option.setNumber("Mesh.MeshSizeMin", spacing if finest is None else min(finest, spacing))
+    gmsh.option.setNumber("Mesh.MeshSizeMax", spacing)
+    gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+    try:
+        gmsh.model.mesh.generate(3)
+    except Exception as err:
+        raise ValueError(f"gmsh could not tetrahedralise {name} at spacing {spacing:g}: {err}") from err
+    return _gmsh_to_meshio(gmsh)
+
+
+def tetrahedralise(points, triangles, spacing: float, name: str = "surface") -> meshio.Mesh:
+    """Tetrahedra filling a closed triangle surface (points (V, 3), triangles (T, 3)) at the
+    given spacing, by Gmsh: the triangles become a discrete surface, re-parametrised
+    (classifySurfaces / createGeometry), remeshed at ``spacing`` and filled. Physical
+    groups: "volume" (the tetrahedra) and "surface"."""
+    P = np.asarray(points, float)
+    T = np.asarray(triangles, np.int64)
+    check_surface(P, T, name)
+    _check_spacing(spacing, np.ptp(P, axis=0), name)
+    with gmsh_session("surface") as gmsh:
+        s = gmsh.model.addDiscreteEntity(2)
+        gmsh.model.mesh.addNodes(2, s, np.arange(1, len(P) + 1), P.ravel())
+        gmsh.model.mesh.addElementsByType(s, 2, [], (T + 1).ravel())
+        try:   # patches split at 40 deg creases; each patch re-parametrised for remeshing
+            gmsh.model.mesh.classifySurfaces(math.radians(40), True, True, math.pi)
+            gmsh.model.mesh.createGeometry()
+        except Exception as err:
+            raise ValueError(f"gmsh could not re-parametrise the surface {name}: {err}") from err
+        surfaces = [t for _, t in gmsh.model.getEntities(2)]
+        loop = gmsh.model.geo.addSurfaceLoop(surfaces)
+        volume = gmsh.model.geo.addVolume([loop])
+        gmsh.model.geo.synchronize()
+        gmsh.model.addPhysicalGroup(3, [volume], name="volume")
+        gmsh.model.addPhysicalGroup(2, surfaces, name="surface")
+        mesh = _generate(gmsh, spacing, name)
+    _check_volume(mesh, enclosed_volume(P, T), spacing, name)
+    return mesh
+
+
+# ======================================================================== shapes
+AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def _occ_shape(build, spacing: float, name: str, embed_segments=(), segment_spacing=None,
+               symmetric: str | None = None) -> meshio.Mesh:
+    """Mesh an OpenCASCADE solid: ``build(occ)`` makes it and returns (volume tag,
+    classify, centre), ``classify(centre of mass)`` names each boundary surface's physical
+    group. ``embed_segments``: segments the mesh conforms to (``_embed_segments``).
+    ``symmetric`` ("x", "y" or "z"): only the half on the positive side of the plane through
+    ``centre`` normal to that axis is meshed, then mirrored (``mirrored``), so the mesh has
+    the solid's mirror symmetry exactly (a symmetric load gives a symmetric answer)."""
+    segments = _segments(embed_segments)
+    if symmetric is not None and symmetric not in AXES:
+        raise ValueError(f"symmetric must be one of {list(AXES)} or None, got {symmetric!r}")
+    with gmsh_session(name) as gmsh:
+        occ = gmsh.model.occ
+        volume, classify, centre = build(occ)
+        occ.synchronize()
+        xmin, ymin, zmin, xmax, ymax, zmax = gmsh.model.getBoundingBox(3, volume)
+        extent = np.array([xmax - xmin, ymax - ymin, zmax - zmin])
+        _check_spacing(spacing, extent, name)
+        expected = occ.getMass(3, volume)
+        plane = None if symmetric is None else (AXES[symmetric], float(centre[AXES[symmetric]]))
+        _check_inside(gmsh, volume, segments, name, plane)
+        if plane is not None:
+            corner = np.array([xmin, ymin, zmin]) - extent
+            size = 3 * extent
+            size[plane[0]] = plane[1] - corner[plane[0]]
+            out, _ = occ.cut([(3, volume)], [(3, occ.addBox(*corner, *size))])
+            occ.synchronize()
+            volume = out[0][1]
+        finest = None
+        if len(segments):
+            finest = spacing if segment_spacing is None else _positive([segment_spacing], 1, "segment_spacing")[0]
+            volume = _embed_segments(gmsh, volume, segments, spacing, finest, name)
+        gmsh.model.addPhysicalGroup(3, [volume], name="volume")
+        surfaces = [t for _, t in gmsh.model.getBoundary([(3, volume)], oriented=False)]
+        groups = {}
+        for s in surfaces:
+            if plane is not None:
+                box = np.reshape(gmsh.model.getBoundingBox(2, s), (2, 3))[:, plane[0]]   # padded by OCC
+                centre_of_mass = occ.getCenterOfMass(2, s)[plane[0]]
+                if np.ptp(box) < 1e-4 * extent.max() and abs(centre_of_mass - plane[1]) < 1e-9 * extent.max():
+                    continue                          # the cut face: inside the mirrored solid
+            groups.setdefault(classify(np.array(occ.getCenterOfMass(2, s))), []).append(s)
+        for group, tags in groups.items():
+            gmsh.model.addPhysicalGroup(2, tags, name=group)
+        mesh = _generate(gmsh, spacing, name, finest)
+    if plane is not None:
+        mesh = mirrored(mesh, *plane)
+    _check_volume(mesh, expected, spacing, name)
+    return mesh
+
+
+def mirrored(source, axis: int, offset: float = 0.0) -> meshio.Mesh:
+    """A mesh lying on one side of the plane x[axis] = offset joined with its mirror image:
+    the vertices on the plane shared, the mirrored cells' orientation restored, every named
+    group (cell sets, Gmsh physical and geometrical data, point sets) holding both halves."""
+    import meshio
+
+    mesh = read_mesh(source)
+    P = np.asarray(mesh.points, float)
+    side = P[:, axis] - offset
+    scale = np.ptp(P, axis=0).max()
+    if np.any(side > 1e-9 * scale) and np.any(side < -1e-9 * scale):
+        raise ValueError(f"the mesh lies on both sides of the plane x[{axis}] = {offset}: nothing to mirror")
+    on_plane = np.abs(side) <= 1e-9 * scale
+    image = np.arange(len(P))
+    image[~on_plane] = len(P) + np.arange(int((~on_plane).sum()))
+    Q = P[~on_plane].copy()
+    Q[:, axis] = 2 * offset - Q[:, axis]
+    cells = []
+    for block in mesh.cells:
+        data = np.asarray(block.data)
+        flip = image[data]
+        if data.shape[1] > 1 and block.dim > 0:
+            flip = flip[:, [1, 0, *range(2, data.shape[1])]]   # mirrored: swap two vertices back
+        cells.append(meshio.CellBlock(block.type, np.concatenate([data, flip])))
+    sizes = [len(b.data) for b in mesh.cells]
+    cell_data = {k: [np.concatenate([x, x]) for x in v] for k, v in mesh.cell_data.items()}
+    cell_sets = {k: [None if ids is None else np.concatenate([ids, np.asarray(ids) + n]) for ids, n in zip(v, sizes)]
+                 for k, v in mesh.cell_sets.items()}
+    point_data = {k: np.concatenate([v, np.asarray(v)[~on_plane]]) for k, v in mesh.point_data.items()}
+    point_sets = {k: np.union1d(v, image[np.asarray(v)]) for k, v in mesh.point_sets.items()}
+    return meshio.Mesh(np.concatenate([P, Q]), cells, point_data=point_data, cell_data=cell_data,
+                       field_data=dict(mesh.field_data), cell_sets=cell_sets, point_sets=point_sets)
+
+
+def _segments(embed_segments) -> np.ndarray:
+    """(S, 2, 3) segment end points from a sequence of (a, b) pairs, checked."""
+    seg = np.asarray(embed_segments if embed_segments is not None else (), float)
+    if seg.size == 0:
+        return np.zeros((0, 2, 3))
+    if seg.ndim == 2 and seg.shape == (2, 3):
+        seg = seg[None]
+    if seg.ndim != 3 or seg.shape[1:] != (2, 3) or not np.isfinite(seg).all():
+        raise ValueError(f"embed_segments must be a list of (a, b) pairs of 3D points, got shape {seg.shape}")
+    if np.any(np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1) == 0):
+        raise ValueError("embed_segments holds a segment of zero length (a == b)")
+    return seg
+
+
+def _check_inside(gmsh, volume: int, segments: np.ndarray, name: str, plane=None):
+    """Raise unless every segment lies in the solid (its ends may touch the surface) and, for
+    a mirrored mesh, on the meshed side of the mirror plane (axis, offset) or in it."""
+    for k, (a, b) in enumerate(segments):
+        inside = [gmsh.model.isInside(3, volume, list(a + t * (b - a))) for t in np.linspace(0.02, 0.98, 25)]
+        if not all(inside):
+            raise ValueError(f"embed_segments[{k}] {a.tolist()} -> {b.tolist()} leaves {name}: every "
+                             "segment must lie inside the solid (its ends may touch the surface)")
+        if plane is not None and min(a[plane[0]], b[plane[0]]) < plane[1] - 1e-12:
+            raise ValueError(f"embed_segments[{k}] {a.tolist()} -> {b.tolist()} crosses to the mirrored "
+                             f"half of {name}: give segments on the side x[{plane[0]}] >= {plane[1]} "
+                             "(their mirror images are not embedded)")
+
+
+def _embed_segments(gmsh, volume: int, segments: np.ndarray, spacing: float, finest: float, name: str) -> int:
+    """Make the mesh of ``volume`` conform to the segments (mesh vertices along each, at
+    ``finest`` spacing; the size grows back to ``spacing`` within one ``spacing`` of them):
+    the segments fragment the solid (OpenCASCADE), which embeds them in it. Returns the
+    volume's tag after the fragment. Each segment must lie in the solid (its ends may touch
+    the surface)."""
+    occ = gmsh.model.occ
+    lines = [(1, occ.addLine(occ.addPoint(*a), occ.addPoint(*b))) for a, b in segments]
+    out, _ = occ.fragment([(3, volume)], lines)
+    occ.synchronize()
+    volumes = [t for d, t in out if d == 3]
+    curves = [t for d, t in out if d == 1]
+    if len(volumes) != 1:
+        raise ValueError(f"embedding the segments split {name} into {len(volumes)} pieces")
+    field = gmsh.model.mesh.field
+    distance = field.add("Distance")
+    field.setNumbers(distance, "CurvesList", curves)
+    field.setNumber(distance, "Sampling", 200)
+    threshold = field.add("Threshold")
+    field.setNumber(threshold, "InField", distance)
+    field.setNumber(threshold, "SizeMin", finest)
+    field.setNumber(threshold, "SizeMax", spacing)
+    field.setNumber(threshold, "DistMin", 0.5 * finest)
+    field.setNumber(threshold, "DistMax", spacing)
+    field.setAsBackgroundMesh(threshold)
+    return volumes[0]
+
+
+def half_ellipsoid(radii, spacing: float, center=(0.0, 0.0, 0.0), embed_segments=(),
+                   segment_spacing: float | None = None, symmetric: str | None = None) -> meshio.Mesh:
+    """The upper half (z >= center z) of the ellipsoid with semi-axes ``radii`` (3,): a
+    breast-like phantom on a flat base. Physical groups "volume", "base" (the flat face at
+    z = center z) and "skin" (the curved surface).
+
+    Every shape builder takes ``embed_segments`` (a list of (a, b) 3D point pairs inside the
+    solid, e.g. a needle track): the mesh conforms to them, with vertices along each at
+    ``segment_spacing`` (default ``spacing``), its size growing back to ``spacing`` within one
+    ``spacing`` of them; and ``symmetric`` ("x", "y" or "z", for the cylinder "x" or "y",
+    for the lobe "z"): the mesh mirror-symmetric about the shape's symmetry plane normal to
+    that axis (half meshed, then mirrored; a segment lying in the mirror plane must not touch
+    the surface: gmsh cannot mesh that face then, so start it just inside)."""
+    r = _positive(radii, 3, "radii")
+    c = np.asarray(center, float)
+
+    def build(occ):
+        ball = occ.addSphere(*c, 1.0)
+        occ.dilate([(3, ball)], *c, *r)
+        below = occ.addBox(*(c - 2 * r), *(4 * r[0], 4 * r[1], 2 * r[2]))
+        out, _ = occ.cut([(3, ball)], [(3, below)])
+        return out[0][1], lambda cm: "base" if abs(cm[2] - c[2]) < 1e-9 * r[2] else "skin", c
+
+    if symmetric == "z":
+        raise ValueError("the half-ellipsoid has no mirror plane normal to z: symmetric must be 'x' or 'y'")
+    return _occ_shape(build, spacing, "the half-ellipsoid", embed_segments, segment_spacing, symmetric)
+
+
+def cylinder(radius: float, height: float, spacing: float, center=(0.0, 0.0, 0.0), embed_segments=(),
+             segment_spacing: float | None = None, symmetric: str | None = None) -> meshio.Mesh:
+    """The cylinder of ``radius`` along z from the base ``center`` up to ``height``.
+    Physical groups "volume", "bottom", "top" and "side". ``embed_segments``,
+    ``segment_spacing``, ``symmetric``: as ``half_ellipsoid``."""
+    radius, height = _positive([radius, height], 2, "radius and height")
+    c = np.asarray(center, float)
+
+    def classify(cm):
+        if abs(cm[2] - c[2]) < 1e-9 * height:
+            return "bottom"
+        return "top" if abs(cm[2] - c[2] - height) < 1e-9 * height else "side"
+
+    if symmetric == "z":
+        raise ValueError("mirroring the cylinder about a plane normal to z is not offered: symmetric must be 'x' or 'y'")
+    return _occ_shape(lambda occ: (occ.addCylinder(*c, 0, 0, height, radius), classify, c),
+                      spacing, "the cylinder", embed_segments, segment_spacing, symmetric)
+
+
+def lobe(length: float, width: float, thickness: float, spacing: float, embed_segments=(),
+         segment_spacing: float | None = None, symmetric: str | None = None) -> meshio.Mesh:
+    """A lobe-shaped organ: two flattened ellipsoids fused along x (a large lobe of
+    ``length`` x ``width`` x ``thickness`` and a smaller one overlapping its right end),
+    centred at the origin. Physical groups "volume" and "surface". ``embed_segments``,
+    ``segment_spacing``, ``symmetric``: as ``half_ellipsoid``."""
+    L, W, H = _positive([length, width, thickness], 3, "length, width and thickness")
+
+    def build(occ):
+        big = occ.addSphere(-0.15 * L, 0, 0, 1.0)
+        occ.dilate([(3, big)], -0.15 * L, 0, 0, 0.35 * L, 0.5 * W, 0.5 * H)
+        small = occ.addSphere(0.25 * L, 0.1 * W, 0, 1.0)
+        occ.dilate([(3, small)], 0.25 * L, 0.1 * W, 0, 0.25 * L, 0.35 * W, 0.35 * H)
+        out, _ = occ.fuse([(3, big)], [(3, small)])
+        return out[0][1], lambda cm: "surface", np.zeros(3)
+
+    if symmetric in ("x", "y"):
+        raise ValueError(f"the lobe has no mirror plane normal to {symmetric}: symmetric must be 'z' or None")
+    return _occ_shape(build, spacing, "the lobe", embed_segments, segment_spacing, symmetric)
+
+
+def _positive(values, n, what) -> np.ndarray:
+    v = np.asarray(values, float).ravel()
+    if v.shape != (n,) or not np.all(np.isfinite(v) & (v > 0)):
+        raise ValueError(f"{what} must be {n} positive numbers, got {values}")
+    return v

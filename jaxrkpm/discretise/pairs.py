@@ -1,0 +1,81 @@
+"""The particle-pair pattern of the tangent and the groups of integration points that share a
+neighbour list (built once, NumPy).
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+
+def pair_keys(lists, N):
+    """Sorted unique keys i * N + j of the particle pairs (i, j) that share a row of
+    ``lists`` (R, K): the pattern of S^T S for the row-particle incidence S (a sparse
+    product; sorting all R K^2 pairs took most of the set-up of large 3D models). Float
+    ones: the counts must never wrap to 0, which the sparse product would drop."""
+    R, K = lists.shape
+    S = sp.csr_matrix((np.ones(R * K), (np.repeat(np.arange(R), K), lists.ravel())),
+                      shape=(R, N))
+    P = (S.T @ S).tocoo()
+    return np.unique(P.row.astype(np.int64) * N + P.col)
+
+
+KEY_CHUNK = 2**22   # pair keys looked up at once (int64 temporaries of 32 MB each)
+
+
+def pair_ids(uniq, lists, N):
+    """Positions in ``uniq`` of the keys lists[r, k] * N + lists[r, m]: (R, K, K) int32.
+
+    Looked up a few rows at a time straight into the int32 table: the int64 keys of all
+    rows at once are R K^2 x 8 bytes (1.3 GB per temporary for a 2,000-particle tetrahedral
+    body with K ~ 133), and they set the peak memory of a 3D model build."""
+    R, K = lists.shape
+    out = np.empty((R, K, K), np.int32)
+    rows = max(1, KEY_CHUNK // max(K * K, 1))
+    for a in range(0, R, rows):
+        blk = lists[a:a + rows].astype(np.int64)
+        out[a:a + rows] = np.searchsorted(uniq, blk[:, :, None] * N + blk[:, None, :])
+    return out
+
+
+def split_groups(grp_of, counts, size):
+    """Group ids (Q,) and counts with every group cut into consecutive pieces of at most
+    ``size`` points."""
+    srt = np.argsort(grp_of, kind="stable")
+    rank = np.empty(len(grp_of), np.int64)
+    rank[srt] = np.arange(len(grp_of)) - np.repeat(np.r_[0, np.cumsum(counts)[:-1]], counts)
+    _, grp_of, counts = np.unique(np.stack([grp_of, rank // size], 1), axis=0,
+                                  return_inverse=True, return_counts=True)
+    return grp_of.ravel(), counts
+
+
+def point_groups(idx: np.ndarray) -> np.ndarray:
+    """The integration points (Q,) with identical neighbour lists (the Gauss points of one
+    cell) as groups (G, S) of point indices, padded with Q: their tangent contributions are
+    summed before the scatter (``jaxrkpm.mechanics.assembly.pair_blocks``). Where padding
+    would cost more than a quarter of the points, one point a group."""
+    Q = idx.shape[0]
+    _, grp_of, counts = np.unique(idx, axis=0, return_inverse=True, return_counts=True)
+    grp_of = grp_of.ravel()
+    if counts.max() > np.median(counts):
+        # lists shared beyond one cell (neighbouring mesh cells with the same union list):
+        # split such groups into pieces of the typical size, so groups need little padding
+        grp_of, counts = split_groups(grp_of, counts, int(np.median(counts)))
+    if len(counts) * counts.max() > 1.25 * Q:
+        return np.arange(Q)[:, None]
+    srt = np.argsort(grp_of, kind="stable")
+    groups = np.full((len(counts), counts.max()), Q, np.int64)
+    start = np.r_[0, np.cumsum(counts)[:-1]]
+    slot = np.arange(Q) - np.repeat(start, counts)
+    groups[grp_of[srt], slot] = srt
+    return groups
+
+
+def pair_pattern(lists: np.ndarray, extra: np.ndarray, N: int):
+    """The tangent's pattern: the particle pairs that share a neighbour list (one per group,
+    ``lists`` (G, K): per point it would be Q K^2 keys, GBs in 3D) or a row of ``extra``
+    (S, Ks: spring points). Returns (pair_i, pair_j, pair_t (P,): the index of each pair's
+    transpose (the pattern is symmetric), pair_id (G, K, K), extra_id (S, Ks, Ks))."""
+    uniq = pair_keys(lists, N) if len(extra) == 0 else np.union1d(pair_keys(lists, N), pair_keys(extra, N))
+    pair_i, pair_j = uniq // N, uniq % N
+    pair_t = np.searchsorted(uniq, pair_j * N + pair_i)
+    return pair_i, pair_j, pair_t, pair_ids(uniq, lists, N), pair_ids(uniq, extra, N)

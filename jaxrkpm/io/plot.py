@@ -1,0 +1,106 @@
+"""Figures in the manner of the thesis: deformed particles coloured by displacement magnitude
+(2D, or a projection of 3D), and a 3D body's deformed surface coloured by von Mises stress."""
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.colors  # noqa: E402
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection  # noqa: E402
+
+from . import output  # noqa: E402
+
+# the thesis' objects are dimensionless: lengths in units of the square's side (the cube's
+# edge), forces per unit thickness in units of the material constants times a length
+UNITS = "model units"
+
+
+def deformed_particles(ax, X, u, title=None, vmax=None, cmap="viridis", size=30, show_reference=True):
+    """Scatter the deformed particles x = X + u (2D, or the x-z projection in 3D),
+    coloured by |u|. Returns the scatter artist (for a colour bar)."""
+    X, u = np.asarray(X), np.asarray(u)
+    x = X + u
+    mag = np.linalg.norm(u, axis=1)
+    i, j = (0, 1) if X.shape[1] == 2 else (0, 2)
+    if show_reference:
+        ax.scatter(X[:, i], X[:, j], s=size / 3, facecolors="none", edgecolors="0.75", lw=0.6,
+                   label="reference")
+    sc = ax.scatter(x[:, i], x[:, j], c=mag, s=size, cmap=cmap, vmin=0, vmax=vmax,
+                    edgecolors="k", linewidths=0.3, label="deformed")
+    ax.set_aspect("equal")
+    ax.set_xlabel(f"x ({UNITS})")
+    ax.set_ylabel(f"{'xyz'[j]} ({UNITS})")
+    if title:
+        ax.set_title(title)
+    return sc
+
+
+def save(fig, path):
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def deformed_surface(ax, model, sol, *, norm=None, cmap="viridis", show_reference=True):
+    """Draw a solved 3D body on the mplot3d axes ``ax``: the surface of its viewing cells
+    (:func:`jaxrkpm.io.output.body_cells`) at the deformed particles X + u, each face coloured by
+    the mean von Mises (Cauchy) stress of its vertices, and the reference surface's edges
+    faint. Sets equal aspect over both. Returns the face collection (a colour bar mappable)."""
+    if model.dim != 3:
+        raise ValueError(f"deformed_surface draws 3D bodies, this model is {model.dim}D: "
+                         "use deformed_particles for 2D")
+    X = np.asarray(model.body.X, float)
+    fields = output.point_fields(model, sol)
+    x = X + fields["displacement"]
+    faces = output.surface_faces(*output.body_cells(model.body))
+    value = fields["von_mises"][faces].mean(axis=1)
+    norm = norm or matplotlib.colors.Normalize(0.0, max(float(value.max()), 1e-300))
+    polys = Poly3DCollection(x[faces], cmap=cmap, norm=norm, edgecolors=(0, 0, 0, 0.35), linewidths=0.3)
+    polys.set_array(value)
+    ax.add_collection3d(polys)
+    if show_reference:   # drawn after (over) the body: a faint wireframe of where it was
+        ax.add_collection3d(Line3DCollection(X[feature_edges(X, faces)], colors=(0, 0, 0, 0.3),
+                                             linewidths=0.8, linestyles="--", zorder=polys.get_zorder() + 1))
+    both = np.concatenate([X, x])
+    lo, hi = both.min(axis=0), both.max(axis=0)
+    pad = 0.02 * float((hi - lo).max())
+    ax.set(xlim=(lo[0] - pad, hi[0] + pad), ylim=(lo[1] - pad, hi[1] + pad),
+           zlim=(lo[2] - pad, hi[2] + pad), xlabel="x", ylabel="y", zlabel="z")
+    ax.set_box_aspect(hi - lo + 2 * pad)
+    return polys
+
+
+def feature_edges(X, faces, angle: float = 30.0) -> np.ndarray:
+    """(E, 2) vertex pairs of the surface edges where the faces meet at more than ``angle``
+    degrees (a box's 12 edges; the outline of a body), and of open edges."""
+    nrm = np.cross(X[faces[:, 1]] - X[faces[:, 0]], X[faces[:, 2]] - X[faces[:, 0]])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    edges = np.stack([faces, np.roll(faces, -1, axis=1)], axis=-1).reshape(-1, 2)
+    owner = np.repeat(np.arange(len(faces)), faces.shape[1])
+    key = np.sort(edges, axis=1)
+    order = np.lexsort(key.T[::-1])
+    key, owner = key[order], owner[order]
+    same = np.all(key[1:] == key[:-1], axis=1)                  # consecutive pairs: shared edges
+    shared = np.flatnonzero(same)
+    bent = np.einsum("ij,ij->i", nrm[owner[shared]], nrm[owner[shared + 1]]) < np.cos(np.radians(angle))
+    counts = np.diff(np.flatnonzero(np.r_[True, ~same, True]))  # run length of each distinct edge
+    first = np.flatnonzero(np.r_[True, ~same])
+    return np.concatenate([key[shared[bent]], key[first[counts == 1]]])
+
+
+def deformed_body_png(path, model, sol, *, title=None, stress_unit=None, view=(24, -55)) -> str:
+    """PNG of a solved 3D body (:func:`deformed_surface`) with a von Mises colour bar labelled
+    in ``stress_unit`` (default: the units of the material constants, in which the model's
+    stresses come). ``view`` = (elevation, azimuth) in degrees. Returns the path."""
+    fig = plt.figure(figsize=(7.0, 5.6))
+    ax = fig.add_subplot(projection="3d", computed_zorder=False)   # the reference wireframe on top
+    polys = deformed_surface(ax, model, sol)
+    ax.view_init(*view)
+    unit = stress_unit or "units of the material constants"
+    fig.colorbar(polys, ax=ax, shrink=0.7, pad=0.1, label=f"von Mises (Cauchy) stress [{unit}]")
+    if title:
+        ax.set_title(title, fontsize=10)
+    save(fig, path)
+    return str(path)

@@ -1,0 +1,631 @@
+"""The user-facing model: builds every table once, then solves and post-processes.
+"""
+from __future__ import annotations
+
+from typing import Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+
+from ..discretise import quadrature as integ
+from ..discretise import scni
+from ..discretise.body import Body
+from ..discretise.constraints import EssentialSets, Transformation, elimination_layout
+from ..discretise.pairs import pair_pattern, point_groups
+from ..discretise.rk import psi_jax
+from ..mechanics.assembly import Ops, Params, coefficients, deformation_gradients, energy_full, point_values
+from ..mechanics.loads import Springs, nodal_forces
+from ..mechanics.materials import Material, det, green_lagrange, pk2
+from ..solvers.config import Config
+from ..solvers.implicit import implicit_jacobian, solve_path_jit
+from ..solvers.branch import switches_branch
+from ..solvers.linalg.dense import DenseSolver
+from ..solvers.linalg.factorisations import SaddlePointSystem, factoriser
+from ..solvers.linalg.krylov import KrylovSolver
+from ..solvers.linalg.multigrid import KrylovSystem
+from ..solvers.linalg.sparse import SparseSolver
+from ..solvers.problem import Problem
+from ..solvers.results import Critical, Limits, Solution, Status, joined
+
+
+_point_values_jit = jax.jit(point_values)   # FD evaluates it per re-solve: one dispatch, not ~10 eager ops
+
+MAX_SUPPORT_DIAMETERS = 2.0   # kernel support (support x spacing) allowed, in body diameters
+
+# free DOFs up to which solver="auto" takes the dense factorisation, by dimension. 3D: where one
+# Newton iteration's linear work (assemble, factorise, solve) costs the same dense and sparse
+# (PARDISO), measured on the neo-Hookean cubes (experiments/bench_cube3d.py --only-crossover,
+# same run, load ~5; dense / sparse: 6^3 0.34, 8^3 0.65, 10^3 0.60, 12^3 (4,320 DOF) 0.97,
+# 14^3 (7,056 DOF) 1.73). 2D stays at 2500: there sparse wins from ~1,000 DOF (24^2 .. 40^2
+# squares: 1.7-7.7x), but the stable-branch and modified-Newton options are dense-only, so
+# moving 2D models to the sparse path changes what they can do (left for its own change)
+DENSE_LIMIT = {2: 2500, 3: 4400}
+
+SOLVERS = ("auto", "dense", "sparse", "krylov")   # Model(solver=...)
+
+PRECISIONS = ("auto", "double", "mixed")          # Model(precision=...): dense and PARDISO factorisations
+
+# free DOFs from which precision="auto" factorises dense K_ff in single precision and refines
+# its solves in double (DenseSolver(mixed=True)): where the Cholesky factorisation's n^3 is
+# most of a Newton iteration (see MIXED_MIN's measurement in experiments/bench_cube3d.py
+# --precision); below it the 2D models and their stability studies stay in double throughout
+MIXED_MIN = 1000
+
+# On an accelerator the sparse paths are host callbacks (the factorisation or AMG runs on the
+# CPU) and the dense one runs on the device: one H100 solved the 20^3 cube (21,600 DOF) dense
+# in 4.0 s against 268 s for PARDISO on this 2-core CPU. So "auto" goes dense there while the
+# dense matrices fit: K_ff, its factor and their workspace, about DENSE_COPIES n^2 doubles
+DENSE_COPIES = 4
+
+ACCELERATOR_DENSE_LIMIT = 20_000   # where the device does not report its memory
+
+# Config.reuse of an eager ``Model.solve`` on the dense path (``reuse=None``): modified Newton,
+# a kept factorisation while each step cuts |r| by 10x (same residual tolerance). Measured
+# (30% compression in 10 steps, same run, quiet; full / modified Newton): 9^2 0.03 / 0.02 s,
+# 20^2 0.31 / 0.18, 35^2 3.5 / 1.76, 6^3 0.75 / 0.37, 8^3 2.34 / 1.14 (30 -> 40 iterations,
+# 10 factorisations instead of 30). Not under jit/vmap: a vmapped lax.cond evaluates both
+# branches, so lock-step members would assemble at every iteration and iterate more
+NEWTON_REUSE = 0.1
+
+
+def dense_limit(dim: int, device=None) -> int:
+    """Free DOFs up to which ``solver="auto"`` takes the dense path on ``device`` (default:
+    JAX's first device): DENSE_LIMIT[dim] on a CPU; on a GPU/TPU as many as DENSE_COPIES
+    dense n x n float64 matrices fit in its memory."""
+    device = jax.devices()[0] if device is None else device
+    if device.platform == "cpu":
+        return DENSE_LIMIT[dim]
+    try:
+        memory = (device.memory_stats() or {}).get("bytes_limit")
+    except (AttributeError, NotImplementedError, RuntimeError):   # no memory statistics there
+        memory = None
+    if not memory:
+        return max(ACCELERATOR_DENSE_LIMIT, DENSE_LIMIT[dim])
+    return max(int((memory / (8 * DENSE_COPIES)) ** 0.5), DENSE_LIMIT[dim])
+
+
+class SolveError(RuntimeError):
+    """A solve did not converge; ``.solution`` holds the last converged state."""
+
+    def __init__(self, solution: Solution):
+        super().__init__(solution.message)
+        self.solution = solution
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _concrete(x):
+    """x as a NumPy array, or None where its value is not known (inside jit or vmap). Under
+    jax.jacfwd / jax.grad outside jit the value is known: the tracer carries it."""
+    while isinstance(x, jax.core.Tracer):
+        value = getattr(x, "to_concrete_value", lambda: None)()
+        if value is None:
+            return None
+        x = value
+    return np.asarray(x)
+
+
+class Model:
+    """Total-Lagrangian RKPM hyperelastic model.
+
+    body        the reference Body
+    material    a Material (strain energy W(E, p))
+    integration "gauss" (background cells, ``order`` points per direction) | "scni" (stabilized
+                conforming nodal integration, ``order`` points per cell facet) | "mscni"
+                (SCNI + sub-cell stabilisation); see jaxrkpm.discretise.scni
+    essential   name -> particle indices (or boolean mask) of each essential set
+    support     kernel dilation a = support x spacing (eq 3.20)
+    body_force  (d,) or X -> (Q, d): dead load per unit reference volume
+    tractions   [(predicate, h0), ...]: dead load per unit reference area on the boundary
+                points where predicate(X) holds
+    springs     Springs(points, stiffness, region): zero-length springs holding material
+                points (elastic supports, penalty paddles; movable, see ``springs_at``)
+    solver      "auto" (dense up to ``dense_limit(dim)`` free DOFs: DENSE_LIMIT[dim] on a CPU,
+                as many as the device memory holds on a GPU; else sparse) | "dense" | "sparse"
+                | "krylov" (CG preconditioned by algebraic multigrid, no factorisation: large 3D
+                models; see jaxrkpm.solvers.linalg.multigrid)
+    factorisation  of the sparse path: "auto" (PARDISO where Intel MKL is installed, else
+                SuperLU) | "pardiso" | "superlu"; see jaxrkpm.solvers.linalg.factorisations
+    precision   of the factorisation: "auto" (dense: mixed from MIXED_MIN free DOFs, else
+                double; PARDISO: mixed) | "double" | "mixed" (single-precision factorisation,
+                solves refined to double accuracy: about half the factorisation time; see
+                jaxrkpm.solvers.linalg.dense.DenseSolver and jaxrkpm.solvers.linalg.factorisations.SaddlePointSystem; SuperLU is
+                double only)
+    """
+
+    def __init__(self, body: Body, material: Material, integration: str = "gauss",
+                 essential: Mapping | None = None, support: float = 2.01, order: int = 2,
+                 cell_size: float | None = None, body_force=None, tractions=(),
+                 springs: Springs | None = None, solver: str = "auto",
+                 factorisation: str = "auto", precision: str = "auto"):
+        if not isinstance(body, Body):
+            raise ValueError(f"body must be a jaxrkpm Body, got {type(body).__name__}")
+        if not isinstance(material, Material):
+            raise ValueError(f"material must be a jaxrkpm Material, got {type(material).__name__}")
+        if essential is not None and not isinstance(essential, Mapping):
+            raise TypeError(f"essential must be a dict name -> particle indices (e.g. "
+                            f"{{'wall': body.select(...)}}), got {type(essential).__name__}")
+        if not (np.isfinite(support) and support > 0):
+            raise ValueError(f"support must be a positive number (x spacing), got {support}")
+        diameter = float(np.linalg.norm(body.upper - body.lower))
+        if support * body.spacing > MAX_SUPPORT_DIAMETERS * diameter:
+            # every window covers the whole body many times over: the shape functions
+            # degenerate towards the global linear basis and K_ff towards singular (the
+            # solve then fails with MAX_ITERATIONS or LINE_SEARCH at 0%, naming neither)
+            raise ValueError(f"support {support:g} x spacing {body.spacing:g} = {support * body.spacing:g} "
+                             f"exceeds {MAX_SUPPORT_DIAMETERS:g} x the body's diameter {diameter:.3g}: "
+                             "every shape function would cover the whole body; use a support of a "
+                             "few spacings (e.g. 2.01 .. 4)")
+        if integration not in ("gauss", *scni.SCHEMES):
+            raise ValueError(f"unknown integration {integration!r}: choose 'gauss', "
+                             + ", ".join(repr(k) for k in scni.SCHEMES))
+        if solver not in SOLVERS:
+            raise ValueError(f"unknown solver {solver!r}: choose " + ", ".join(repr(k) for k in SOLVERS))
+        factoriser(factorisation)   # a clear error now, even where the dense path is chosen
+        if precision not in PRECISIONS:
+            raise ValueError(f"unknown precision {precision!r}: choose "
+                             + ", ".join(repr(k) for k in PRECISIONS))
+        self.body, self.material, self.integration = body, material, integration
+        self.support = float(support)
+        self.a = self.support * body.spacing
+        d = body.dim
+
+        if integration == "gauss":
+            self.volume = integ.gauss_table(body, self.a, order, cell_size, support_factor=self.support)
+        else:
+            self.volume = scni.table(body, self.a, integration, order, support_factor=self.support)
+        wts = self.volume.weights
+        bp, bw, bn = integ.boundary_points(body, order)
+        self.surface = integ.table(body, bp, bw, self.a, normals=bn, support_factor=self.support)
+
+        self.sets = EssentialSets.build(body, dict(essential or {}))
+        trans = Transformation.build(body, self.sets, self.a, self.support) if len(self.sets.bnd) else None
+        f_ext = nodal_forces(body, self.volume, self.surface, body_force, tractions)
+
+        sp_idx, sp_params = self._springs(springs)
+        N = body.n
+        idx = self.volume.idx.astype(np.int64)
+        Q, K = idx.shape
+        groups = point_groups(idx)
+        pair_i, pair_j, pair_t, pair_id, sp_pair = pair_pattern(idx[groups[:, 0]], sp_idx, N)
+
+        Nf = len(self.sets.free)
+        if trans is not None:
+            A = trans.coupling(self.sets, N)
+            Dbinv, nb_idx, nb_psi = trans.Dbinv, trans.nb_idx, trans.nb_psi
+        else:
+            A = np.zeros((0, Nf))
+            Dbinv, nb_idx, nb_psi = np.zeros((0, 0)), np.zeros((0, 1), np.int64), np.zeros((0, 1))
+        self.ops = Ops(
+            idx=jnp.asarray(idx, jnp.int32), dpsi=jnp.asarray(self.volume.dpsi),
+            w=jnp.asarray(wts), free=jnp.asarray(self.sets.free, jnp.int32),
+            bnd=jnp.asarray(self.sets.bnd, jnp.int32), Dbinv=jnp.asarray(Dbinv),
+            nb_idx=jnp.asarray(nb_idx, jnp.int32), nb_psi=jnp.asarray(nb_psi),
+            f_ext=jnp.asarray(f_ext), pair_id=jnp.asarray(pair_id, jnp.int32),
+            pair_i=jnp.asarray(pair_i, jnp.int32), pair_j=jnp.asarray(pair_j, jnp.int32),
+            pair_t=jnp.asarray(pair_t, jnp.int32),
+            elim=jax.tree.map(jnp.asarray, elimination_layout(A, pair_i, pair_j, self.sets.free, self.sets.bnd)),
+            spacing=jnp.asarray(body.spacing), groups=jnp.asarray(groups, jnp.int32),
+            sp_idx=jnp.asarray(sp_idx, jnp.int32), sp_pair=jnp.asarray(sp_pair, jnp.int32))
+
+        n_free = Nf * d
+        use_dense = solver == "dense" or (solver == "auto" and n_free <= dense_limit(d))
+        if use_dense:
+            self.linear = DenseSolver(mixed=precision == "mixed" or (precision == "auto" and n_free >= MIXED_MIN))
+        elif solver == "krylov":
+            self.linear = KrylovSolver(KrylovSystem(body.X, pair_i, pair_j, self._constraints(trans),
+                                                    self.sets.free, self.sets.bnd))
+        else:
+            self.linear = self._sparse_solver(trans, pair_i, pair_j, factorisation, precision)
+        self.params = Params(
+            {k: jnp.asarray(v) for k, v in material.point_params(self.volume.points).items()},
+            {k: jnp.asarray(v) for k, v in material.global_params(d).items()}, sp_params)
+        material.check_energy(d, {k: v[0] for k, v in self.params.point.items()})
+        # no essential set and no springs: the body may translate and rotate freely. Such a
+        # model is fine for its tangent (its rigid-body modes) and energy; a solve is refused
+        self.unconstrained = len(self.sets.bnd) == 0 and not np.any(np.asarray(sp_params["k"]) > 0)
+
+    # ----------------------------------------------------------------------- internals
+    def _springs(self, springs):
+        """(sp_idx (S, Ks), params.springs) for the spring points: every point's candidate
+        list is the whole region (a moved point must find its neighbours there)."""
+        if springs is None:
+            return np.zeros((0, 1), np.int64), {"psi": jnp.zeros((0, 1)), "k": jnp.zeros((0,))}
+        if not isinstance(springs, Springs):
+            raise ValueError(f"springs must be a jaxrkpm Springs, got {type(springs).__name__}")
+        P = self.body.check_inside(springs.points, "spring point")
+        k = springs.stiffnesses()
+        if springs.region is None:
+            nb = self.body.neighbours(P, self.a)
+            region = np.unique(nb.idx[nb.mask]).astype(np.int64)
+        else:
+            region = np.unique(np.asarray(springs.region, np.int64))
+            if region.size == 0 or region.min() < 0 or region.max() >= self.body.n:
+                raise ValueError(f"spring region must be particle indices in 0..{self.body.n - 1}")
+        sp_idx = np.tile(region, (len(P), 1))
+        return sp_idx, {"psi": self._spring_psi(P, sp_idx), "k": jnp.asarray(k)}
+
+    def _spring_psi(self, points, sp_idx):
+        return psi_jax(self.body.X, self.body.volumes, sp_idx, jnp.asarray(points, jnp.float64), self.a)
+
+    def springs_at(self, points, stiffness=None) -> dict:
+        """``params={"springs": ...}`` for the model's springs moved to ``points`` (S, d)
+        (and, optionally, new stiffnesses): JAX, so a solve is differentiable in both. The
+        points must stay where the particles of the spring region cover them."""
+        S = self.ops.sp_idx.shape[0]
+        if S == 0:
+            raise ValueError("this model has no springs (Model(..., springs=Springs(...)))")
+        points = jnp.asarray(points, jnp.float64)
+        if points.shape != (S, self.dim):
+            raise ValueError(f"spring points must have shape ({S}, {self.dim}), got {points.shape}")
+        psi = self._spring_psi(points, np.asarray(self.ops.sp_idx))
+        if _is_concrete(psi) and not np.allclose(np.asarray(psi).sum(1), 1.0, atol=1e-8):
+            raise ValueError("a spring point left its region (its shape functions no longer sum "
+                             "to 1): widen Springs(region=...)")
+        k = self.params.springs["k"] if stiffness is None else jnp.broadcast_to(
+            jnp.asarray(stiffness, jnp.float64), (S,))
+        return {"psi": psi, "k": k}
+
+    def _sparse_solver(self, trans, pair_i, pair_j, factorisation, precision) -> SparseSolver:
+        d = self.body.dim
+        a, b = np.meshgrid(np.arange(d), np.arange(d), indexing="ij")
+        rows = (pair_i[:, None, None] * d + a[None]).ravel()
+        cols = (pair_j[:, None, None] * d + b[None]).ravel()
+        free_dofs = (self.sets.free[:, None] * d + np.arange(d)[None]).ravel()
+        return SparseSolver(SaddlePointSystem(self.body.X, rows, cols, self._constraints(trans), free_dofs,
+                                              self.sets.bnd, d, factorisation, precision))
+
+    def _constraints(self, trans) -> sp.csr_matrix:
+        """C = [D^nb D^b] (x) I (Nb d, N d): C d = 0 where the essential particles hold (the
+        sparse form of the transformation)."""
+        d, N = self.body.dim, self.body.n
+        Nb = len(self.sets.bnd)
+        if trans is not None:
+            Kb = trans.nb_idx.shape[1]
+            r = (np.arange(Nb)[:, None, None] * d + np.arange(d)[None, None, :]).repeat(Kb, 1)
+            c = trans.nb_idx[:, :, None] * d + np.arange(d)[None, None, :]
+            v = np.repeat(trans.rows_psi[:, :, None], d, axis=2)
+            return sp.csr_matrix((v.ravel(), (r.ravel(), c.ravel())), shape=(Nb * d, N * d))
+        return sp.csr_matrix((0, N * d))
+
+    def config(self, **settings) -> Config:
+        """The static solver settings of this model (``Config`` fields may be overridden)."""
+        unknown = set(settings) - set(Config.__dataclass_fields__) - {"W", "linear"}
+        if unknown:
+            raise ValueError(f"unknown solver setting(s) {sorted(unknown)}; Config has "
+                             f"{sorted(set(Config.__dataclass_fields__) - {'W', 'linear'})}")
+        return Config(W=self.material.W, linear=self.linear, **settings)
+
+    def problem(self, params=None, **settings) -> Problem:
+        """The discrete problem with parameter overrides ``params`` (see ``params_with``)
+        and solver settings: a jit-friendly pytree (see jaxrkpm.solvers.problem)."""
+        return Problem(self.ops, self.params_with(params), self.config(**settings))
+
+    @property
+    def dim(self) -> int:
+        return self.body.dim
+
+    @property
+    def set_names(self) -> tuple:
+        return self.sets.names
+
+    def set_indices(self, name: str) -> np.ndarray:
+        self._check_set(name)
+        return self.sets.bnd[self.sets.slices[name]]
+
+    def _check_set(self, name):
+        if name not in self.sets.slices:
+            raise ValueError(f"unknown essential set {name!r}; this model has {list(self.sets.names)}")
+
+    def _check_g(self, g, what: str = "g"):
+        """All prescribed values (Nb, d) as a float array: the right shape for THIS model
+        (a g of another model is named, not a broadcasting error) and finite."""
+        shape = (len(self.sets.bnd), self.dim)
+        try:
+            g = jnp.asarray(g, jnp.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{what} must be a {shape} array of prescribed values") from None
+        if g.shape != shape:
+            raise ValueError(f"{what} has shape {g.shape}, but this model has {shape[0]} essential "
+                             f"particles in {shape[1]}D: shape {shape} (from model.prescribed(...) of "
+                             "this model)")
+        if _is_concrete(g) and not np.all(np.isfinite(np.asarray(g))):
+            raise ValueError(f"{what} has non-finite prescribed values (NaN/inf) at essential "
+                             f"particles {np.flatnonzero(~np.isfinite(np.asarray(g)).all(1))[:5].tolist()}")
+        return g
+
+    def check_solution(self, sol, what: str = "solution") -> Solution:
+        """``sol`` if it is a Solution of this model's shapes (u (Nf, d), g (Nb, d)); a
+        ValueError naming the mismatch for one of another model (or not a Solution)."""
+        if not isinstance(sol, Solution):
+            raise TypeError(f"{what} must be a jaxrkpm Solution (from model.solve), got {type(sol).__name__}")
+        want_u, want_g = (len(self.sets.free), self.dim), (len(self.sets.bnd), self.dim)
+        if jnp.shape(sol.u) != want_u or jnp.shape(sol.g) != want_g:
+            raise ValueError(f"{what} does not belong to this model: its u, g have shapes "
+                             f"{jnp.shape(sol.u)}, {jnp.shape(sol.g)}; this model's are {want_u}, "
+                             f"{want_g} (a Solution of another model, or a batched one: index it)")
+        return sol
+
+    def prescribed(self, values: Mapping | None = None, base=None):
+        """(Nb, d) prescribed displacements from name -> (d,) rigid translation or (n_set, d);
+        sets not named keep ``base`` (default: zero)."""
+        d = self.dim
+        g = jnp.zeros((len(self.sets.bnd), d)) if base is None else self._check_g(base, "base")
+        if values is not None and not isinstance(values, Mapping):
+            raise TypeError(f"prescribed values must be a dict set name -> value, got {type(values).__name__}")
+        for name, v in (values or {}).items():
+            self._check_set(name)
+            sl = self.sets.slices[name]
+            n = sl.stop - sl.start
+            try:
+                v = jnp.asarray(v, dtype=jnp.float64)
+            except (TypeError, ValueError):
+                raise ValueError(f"prescribed value for {name!r} must be numbers of shape ({d},) (rigid) "
+                                 f"or ({n}, {d}) (per particle), got {v!r}") from None
+            if v.shape == (d,):
+                v = jnp.broadcast_to(v, (n, d))
+            elif v.shape != (n, d):
+                raise ValueError(f"prescribed value for {name!r} must have shape ({d},) (rigid) "
+                                 f"or ({n}, {d}) (per particle), got {v.shape}")
+            if _is_concrete(v) and not np.all(np.isfinite(np.asarray(v))):
+                raise ValueError(f"prescribed value for {name!r} is not finite")
+            g = g.at[sl].set(v)
+        return g
+
+    def params_with(self, overrides: Mapping | None = None) -> Params:
+        """Model parameters with overrides: name -> scalar, (Q,) array, or field X -> (Q,)."""
+        if not overrides:
+            return self.params
+        point, tensors = dict(self.params.point), dict(self.params.tensors)
+        springs = self.params.springs
+        Q = self.ops.w.shape[0]
+        for k, v in overrides.items():
+            if k == "springs":
+                ref = self.params.springs
+                if not (isinstance(v, dict) and set(v) == {"psi", "k"}
+                        and all(jnp.shape(v[n]) == jnp.shape(ref[n]) for n in ref)):
+                    raise ValueError('params["springs"] must come from model.springs_at(points, stiffness)')
+                springs = v
+            elif k in point:
+                if callable(v):
+                    v = np.asarray(v(self.volume.points), float)
+                v = jnp.asarray(v, jnp.float64)
+                if v.ndim == 0:
+                    v = jnp.broadcast_to(v, (Q,))
+                if v.shape != (Q,):
+                    raise ValueError(f"parameter {k!r} must be a scalar or ({Q},) values, got {v.shape}")
+                if _is_concrete(v):
+                    arr = np.asarray(v)
+                    if not np.all(np.isfinite(arr)):
+                        raise ValueError(f"parameter {k!r} is not finite")
+                    self.material._check_sign(k, arr)
+                point[k] = v
+            elif k in tensors:
+                tensors[k] = jnp.asarray(v, jnp.float64)
+            else:
+                raise ValueError(f"unknown material parameter {k!r}; {self.material.name} has "
+                                 f"{sorted(point) + sorted(tensors)}")
+        return Params(point, tensors, springs)
+
+    # -------------------------------------------------------------------------- solve
+    def initial(self) -> Solution:
+        """The undeformed, unloaded equilibrium."""
+        z = jnp.zeros((), jnp.int32)
+        f = jnp.zeros((), jnp.float64)  # not weak-typed: the same jit signature as a solve's output
+        u = jnp.zeros((len(self.sets.free), self.dim))
+        return Solution(u, jnp.zeros((len(self.sets.bnd), self.dim)), f, z, f + 1.0, z, z, z, f, z,
+                        Critical.empty(u))
+
+    def solve(self, prescribed: Mapping | None = None, *, loads: float = 1.0, params=None,
+              steps: int = 1, initial: Solution | None = None, throw: bool = True,
+              max_iter: int = 25, **options) -> Solution:
+        """Equilibrium under the prescribed displacements and load scale ``loads``.
+
+        ``prescribed``: set name -> (d,) rigid translation or (n_set, d) values; sets not
+        named keep the values of ``initial`` (default: zero).
+        ``initial`` warm-starts from a previous Solution (the path starts at its prescribed
+        values and load). ``steps`` is the initial number of load steps (halved on failure,
+        grown when easy; at most jaxrkpm.solvers.results.MAX_STEPS). With ``throw`` a failed solve raises
+        SolveError (carrying the last converged state), also under jax.jacfwd / jax.grad;
+        under jit/vmap the status is returned instead.
+
+        ``options``: ``Config`` settings. ``stable_branch`` None (default): where the solve
+        stops at a critical point (UNSTABLE_TANGENT, dense solver), the rest of the path is
+        solved with ``stable_branch=True`` from the last stable state (on to a stable state
+        of a bifurcated branch; ``Solution.critical`` records the point); its compile is paid
+        only then, and only in eager calls. False: stop there; True: always (also under jit).
+        ``reuse`` None (default): ``newton_reuse`` in eager calls (modified Newton on the dense
+        path: ~2x faster, the same residual tolerance), 0 (full Newton) under jit/vmap; a
+        number sets Config.reuse.
+
+        Differentiable (jax.jacfwd / jax.grad) in the prescribed values, ``loads`` and
+        ``params`` by implicit differentiation of the converged equilibrium. The derivative
+        of a FAILED solve (``throw=False``, or inside jit) is NaN: the kept state is not the
+        equilibrium asked for, so it has no derivative to give."""
+        start = self.initial() if initial is None else self.check_solution(initial, "initial")
+        return self.solve_g(self.prescribed(prescribed, base=start.g), loads=loads, params=params,
+                            steps=steps, initial=start, throw=throw, max_iter=max_iter, **options)
+
+    def solve_g(self, g, *, loads: float = 1.0, params=None, steps: int = 1,
+                initial: Solution | None = None, throw: bool = True, max_iter: int = 25,
+                max_cuts: int = 10, **options) -> Solution:
+        """``solve`` with all prescribed values as one (Nb, d) array (see ``prescribed``)."""
+        if self.unconstrained:
+            raise ValueError("unconstrained: rigid-body modes. The model has no essential set and no "
+                             "springs, so it can translate and rotate freely and no solve has a unique "
+                             "equilibrium; hold part of it (essential={'wall': body.select(...)}) or "
+                             "add Springs")
+        start = self.initial() if initial is None else self.check_solution(initial, "initial")
+        g = self._check_g(g)
+        if _is_concrete(loads) and not np.isfinite(loads):
+            raise ValueError(f"loads must be finite, got {loads}")
+        # stable_branch None (default): the plain solve, and only where it stops at a critical
+        # point does the rest of the path run with the stable-branch solve, so its longer
+        # compile is paid on first need (eager calls only: under jit the status is a tracer)
+        auto = options.get("stable_branch") is None
+        params, lim = self.params_with(params), Limits.of(steps, max_iter, max_cuts)
+        loads = jnp.asarray(loads, jnp.float64)
+        if options.get("reuse") is None:
+            eager = all(map(_is_concrete, jax.tree.leaves((g, loads, params, start))))
+            options["reuse"] = self.newton_reuse if eager else 0.0
+        options = {k: v for k, v in options.items() if not (k == "stable_branch" and v is None)}
+        sol = solve_path_jit(self.ops, params, self.config(**options), lim, start.u, start.g, g,
+                             jnp.asarray(start.load, jnp.float64), loads)
+        status = _concrete(sol.status)
+        if auto and status == Status.UNSTABLE_TANGENT and switches_branch(
+                branching := self.config(**options, stable_branch=True)):
+            rest = solve_path_jit(self.ops, params, branching, lim, sol.u, sol.g, g, sol.load, loads)
+            sol = joined(sol, rest)
+            status = _concrete(sol.status)
+        if throw and status is not None and not Status.of(status).equilibrium:
+            # under jax.jacfwd / jax.grad the fields are tracers: the error carries their values
+            raise SolveError(Solution(*jax.tree.map(_concrete, tuple(sol))))
+        return sol
+
+    @property
+    def newton_reuse(self) -> float:
+        """Config.reuse of an eager ``solve`` where none is given: NEWTON_REUSE (modified
+        Newton) on the dense path; 0 (full Newton) on the sparse and Krylov paths, which
+        already keep their factorisation or hierarchy as a preconditioner."""
+        return NEWTON_REUSE if isinstance(self.linear, DenseSolver) else 0.0
+
+    def directions(self, name: str, rigid: bool = True):
+        """Unit prescribed-value directions (m, Nb, d) that drive set ``name``: d rigid
+        translations, or one per particle and component (m = n_set * d)."""
+        self._check_set(name)
+        sl = self.sets.slices[name]
+        Nb, d = len(self.sets.bnd), self.dim
+        if rigid:
+            G = np.zeros((d, Nb, d))
+            for a in range(d):
+                G[a, sl, a] = 1.0
+            return jnp.asarray(G)
+        n = sl.stop - sl.start
+        G = np.zeros((n * d, Nb, d))
+        for i in range(n):
+            for a in range(d):
+                G[i * d + a, sl.start + i, a] = 1.0
+        return jnp.asarray(G)
+
+    def _point_tables(self, points):
+        """Device arrays (idx, psi) of the shape functions at ``points``, cached per point
+        set: a repeated ``displacement`` or ``jacobian`` at the same points would otherwise
+        re-evaluate the RK shape functions (a KD-tree query and moment matrices in NumPy)
+        each call (measured: 3.6 ms of a needle-loop increment's ~30 ms)."""
+        X = np.asarray(points, np.float64)
+        key = (X.shape, X.tobytes())
+        cache = self.__dict__.setdefault("_point_cache", {})
+        if key not in cache:
+            sf = self.shape_functions(X, gradients=False)
+            if len(cache) >= 64:
+                cache.clear()
+            cache[key] = (jnp.asarray(sf.idx), jnp.asarray(sf.psi))
+        return cache[key]
+
+    def _jacobian_tables(self, points, driven: str, rigid: bool):
+        """Device arrays (idx, psi, G) for ``jacobian`` (shape functions cached per point
+        set, ``_point_tables``)."""
+        return (*self._point_tables(points), self.directions(driven, rigid))
+
+    def jacobian(self, sol: Solution, driven: str, points, method: str = "implicit",
+                 eps: float = 1e-6, scheme: str = "central", rigid: bool = True, params=None):
+        """J = d(displacement at points)/d(displacement of the driven set): (P*d, m), m = d for
+        a rigidly driven set (else n_set*d, per particle and component).
+
+        "implicit": one factorisation of K_ff at the converged state and m solves
+        K_ff du_f = -K_fg dg (no re-solve). "fd": the thesis' Algorithm 4: perturb each
+        direction by eps, re-solve from the converged state, restore (``scheme`` "forward"
+        or "central")."""
+        if method not in ("implicit", "fd"):
+            raise ValueError(f"unknown Jacobian method {method!r}: choose 'implicit' or 'fd'")
+        if scheme not in ("forward", "central"):
+            raise ValueError(f"unknown difference scheme {scheme!r}: choose 'forward' or 'central'")
+        self.check_solution(sol)
+        idx, psi, G = self._jacobian_tables(points, driven, rigid)
+        P = idx.shape[0]
+        if method == "implicit":
+            J = implicit_jacobian(self.ops, self.params_with(params), self.config(), sol.u, sol.g,
+                                  sol.load, G, idx, psi)
+            return J.reshape(P * self.dim, -1)
+        if not (np.isfinite(eps) and eps > 0):
+            raise ValueError(f"eps must be positive, got {eps}")
+
+        def at(g):  # Algorithm 4: solve from the saved state; ``sol`` itself is never modified
+            s = self.solve_g(g, initial=sol, params=params, loads=sol.load)
+            return _point_values_jit(self.ops, idx, psi, s.u, s.g).ravel()
+
+        base = _point_values_jit(self.ops, idx, psi, sol.u, sol.g).ravel()
+        cols = []
+        for dg in G:
+            if scheme == "forward":
+                cols.append((at(sol.g + eps * dg) - base) / eps)
+            else:
+                cols.append((at(sol.g + eps * dg) - at(sol.g - eps * dg)) / (2 * eps))
+        return jnp.stack(cols, axis=1)
+
+    # ------------------------------------------------------------------ post-processing
+    def coefficients(self, sol: Solution):
+        """(N, d) RK coefficients of a solution (essential ones by eq 3.22)."""
+        self.check_solution(sol)
+        return coefficients(self.ops, sol.u, sol.g)
+
+    def shape_functions(self, points, gradients=True):
+        P = self.body.check_inside(points)
+        return self.body.shape_functions(P, self.a, gradients=gradients, support_factor=self.support)
+
+    def displacement(self, sol: Solution, points):
+        """u(X) at reference points (P, d)."""
+        self.check_solution(sol)
+        idx, psi = self._point_tables(points)
+        return _point_values_jit(self.ops, idx, psi, sol.u, sol.g)
+
+    def particle_displacements(self, sol: Solution):
+        """u at every particle (N, d) (RK coefficients are not displacements)."""
+        return self.displacement(sol, self.body.X)
+
+    def deformation_gradient(self, sol: Solution, points):
+        sf = self.shape_functions(points)
+        return deformation_gradients(sf.idx, jnp.asarray(sf.dpsi), self.coefficients(sol))
+
+    def stress(self, sol: Solution, points, kind: str = "cauchy", params=None):
+        """Stress at points (P, d, d): 'pk2' (S), 'pk1' (P = F S) or 'cauchy' (eq 3.5)."""
+        if kind not in ("pk2", "pk1", "cauchy"):
+            raise ValueError(f"unknown stress kind {kind!r}: choose 'pk2', 'pk1' or 'cauchy'")
+        P_ = self.body.check_inside(points)
+        F = self.deformation_gradient(sol, P_)
+        prm = self.material.point_params(P_)
+        base = self.params_with(params)
+        prm = {k: jnp.asarray(v) for k, v in prm.items()}
+        if params:
+            prm.update({k: jnp.broadcast_to(jnp.asarray(v), (len(P_),)) for k, v in params.items()
+                        if k in prm and not callable(v) and jnp.ndim(v) == 0})
+        axes = {**{k: 0 for k in prm}, **{k: None for k in base.tensors}}
+        S = jax.vmap(lambda E, p: pk2(self.material.W, E, p), in_axes=(0, axes))(
+            green_lagrange(F), {**prm, **base.tensors})
+        if kind == "pk2":
+            return S
+        if kind == "pk1":
+            return F @ S
+        J = det(F)
+        return F @ S @ jnp.swapaxes(F, -1, -2) / J[:, None, None]
+
+    def reactions(self, sol: Solution, params=None):
+        """(Nb, d) generalized reaction at each essential particle: dPi/dg, the force the
+        constraint exerts on the body (exact discrete reaction from the residual)."""
+        d = self.coefficients(sol)
+        prm = self.params_with(params)
+        r_d = jax.grad(lambda c: energy_full(self.ops, prm, self.material.W, c, sol.load)[0])(d)
+        return self.ops.Dbinv.T @ r_d[self.ops.bnd]
+
+    def reaction(self, sol: Solution, name: str, params=None):
+        """(d,) resultant force exerted on the body by the essential set ``name``."""
+        self._check_set(name)
+        return jnp.sum(self.reactions(sol, params)[self.sets.slices[name]], axis=0)
+
+    def energy(self, sol: Solution, params=None):
+        return energy_full(self.ops, self.params_with(params), self.material.W,
+                           self.coefficients(sol), sol.load)[0]

@@ -1,0 +1,188 @@
+"""What a solve returns: its ``Status``, the ``Solution`` (a pytree; batched solves stack
+every field), the critical points it passed, and the dynamic ``Limits`` it ran under.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..base.outcome import Outcome
+
+
+class Status(Outcome):
+    """Outcome of a solve (an int code inside jit; ``Status.of(sol.status)`` outside)."""
+
+    CONVERGED = 0, "converged"
+    MAX_ITERATIONS = 1, ("Newton reached its iteration cap on the smallest load step allowed "
+                         "(or once the failed attempts had spent their work budget)")
+    NONFINITE = 2, ("non-finite residual or energy (NaN/inf) on the smallest load step allowed "
+                    "(or once the failed attempts had spent their work budget)")
+    INVERTED = 3, ("a step would invert the material (det F <= 0 at an integration point) "
+                   "even on the smallest load step allowed (or once the failed attempts had "
+                   "spent their work budget)")
+    LINE_SEARCH = 4, ("the line search found no decrease of energy or residual "
+                      "on the smallest load step allowed (or once the failed attempts had "
+                      "spent their work budget)")
+    UNSTABLE_TANGENT = 5, ("the tangent K_ff is not positive definite at the equilibrium "
+                           "reached (loss of stability: a limit or bifurcation point, buckling "
+                           "or loss of ellipticity passed), even on the smallest load step "
+                           "allowed (or once the failed attempts had spent their work budget); "
+                           "the path is stopped at the last stable state (solve with "
+                           "check_stability=False to follow the unstable branch)")
+    STABILITY_UNKNOWN = 6, ("converged, but the factorisation could not tell whether K_ff is "
+                            "positive definite (perturbed or permuted pivots): the state may lie "
+                            "past a critical point")
+    LINEAR_SOLVE = 7, ("the iterative linear solver (solver='krylov') did not converge on the "
+                       "smallest load step allowed (or once the failed attempts had spent their "
+                       "work budget)")
+
+    @property
+    def equilibrium(self) -> bool:
+        """An equilibrium was reached (converged, whatever the stability check said)."""
+        return self in (Status.CONVERGED, Status.STABILITY_UNKNOWN)
+
+
+def reached_equilibrium(status):
+    """Inside jit: the status code(s) of an equilibrium (CONVERGED or STABILITY_UNKNOWN)."""
+    return (status == Status.CONVERGED) | (status == Status.STABILITY_UNKNOWN)
+
+
+MAX_STEPS = 1000   # initial load steps of one solve (Limits.of)
+
+MAX_ITER = 1000    # Newton iterations per load step
+
+MAX_CUTS = 50      # halvings of the load step (2**-50 of the increment: below round-off)
+
+
+class Limits(NamedTuple):
+    """Dynamic solver limits (arrays, so changing them does not recompile)."""
+
+    steps: jax.Array      # initial (and largest) number of load steps
+    max_iter: jax.Array   # Newton iterations per load step
+    max_cuts: jax.Array   # halvings of the initial load step before giving up
+
+    @staticmethod
+    def of(steps=1, max_iter=25, max_cuts=10) -> "Limits":
+        """Validated limits: 1 <= steps <= MAX_STEPS, 1 <= max_iter <= MAX_ITER,
+        0 <= max_cuts <= MAX_CUTS (each step costs an assembly and a factorisation, so a
+        bigger count only buys minutes of run time; the adaptive stepping refines where
+        needed)."""
+        for name, v, lo, hi in (("steps", steps, 1, MAX_STEPS), ("max_iter", max_iter, 1, MAX_ITER),
+                                ("max_cuts", max_cuts, 0, MAX_CUTS)):
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
+                raise TypeError(f"{name} must be an int, got {v!r}")
+            if not lo <= int(v) <= hi:
+                raise ValueError(f"{name} must lie in {lo}..{hi}, got {v}")
+        return Limits(jnp.asarray(int(steps)), jnp.asarray(int(max_iter)), jnp.asarray(int(max_cuts)))
+
+
+MAX_CRITICAL = 8    # critical points one solve records (more are counted in Solution.branch)
+
+CRITICAL_EIGS = 3   # lowest eigenvalues of K_ff recorded at each
+
+
+class Critical(NamedTuple):
+    """Critical points a solve passed (the first ``MAX_CRITICAL``; NaN where unfilled).
+
+    The tangent K_ff lost positive definiteness between the load fractions ``t_stable`` (the
+    last stable equilibrium) and ``t_unstable`` (the first equilibrium on the path with a
+    negative eigenvalue; ``t_unstable - t_stable`` <= dt0 / 2**Config.locate); ``eigenvalues``
+    (K, CRITICAL_EIGS) the lowest eigenvalues of K_ff there, ``mode`` (K, Nf, d) the critical
+    mode (unit norm) along which the solve left the unstable branch."""
+
+    t_stable: jax.Array      # (K,)
+    t_unstable: jax.Array    # (K,)
+    eigenvalues: jax.Array   # (K, CRITICAL_EIGS)
+    mode: jax.Array          # (K, Nf, d)
+
+    @staticmethod
+    def empty(u) -> "Critical":
+        nan = jnp.full((MAX_CRITICAL,), jnp.nan, u.dtype)
+        return Critical(nan, nan, jnp.full((MAX_CRITICAL, CRITICAL_EIGS), jnp.nan, u.dtype),
+                        jnp.full((MAX_CRITICAL,) + u.shape, jnp.nan, u.dtype))
+
+    def record(self, k, when, t_stable, t_unstable, eigenvalues, mode) -> "Critical":
+        """With entry k set where ``when`` (k >= MAX_CRITICAL: dropped)."""
+        def put(a, v):
+            return jnp.where(when, a.at[k].set(v, mode="drop"), a)
+        return Critical(put(self.t_stable, t_stable), put(self.t_unstable, t_unstable),
+                        put(self.eigenvalues, eigenvalues), put(self.mode, mode))
+
+
+class Solution(NamedTuple):
+    """A solve's result (a pytree: batched solves stack every field).
+
+    u (Nf, d) free coefficients at the last converged load; g (Nb, d) prescribed values and
+    ``load`` the load scale there; ``t`` the fraction of the requested increment reached;
+    ``status`` a Status code. ``branch`` counts the critical points this solve passed by
+    switching to a stable branch (0: the state lies on the branch the solve started on;
+    CONVERGED with branch > 0: a stable state of a secondary, bifurcated branch) and
+    ``critical`` records them (see ``Critical``)."""
+
+    u: jax.Array
+    g: jax.Array
+    load: jax.Array
+    status: jax.Array
+    t: jax.Array
+    iterations: jax.Array
+    steps: jax.Array
+    cuts: jax.Array
+    residual_norm: jax.Array
+    branch: jax.Array     # () critical points passed by switching to a stable branch (0: primary)
+    critical: "Critical"  # the critical points this solve passed (fixed size, NaN where unfilled)
+
+    @property
+    def converged(self) -> bool:
+        """Every solve reached an equilibrium (CONVERGED, or STABILITY_UNKNOWN)."""
+        st = np.asarray(self.status)
+        return bool(np.all((st == Status.CONVERGED) | (st == Status.STABILITY_UNKNOWN)))
+
+    @property
+    def outcome(self) -> Status:
+        """The status as a Status member (prints as its name); one solve only."""
+        return Status.of(self.status)
+
+    @property
+    def message(self) -> str:
+        st = np.asarray(self.status)
+        if st.ndim:
+            bad = np.flatnonzero(st != 0)
+            if not len(bad):
+                return f"all {st.size} solves converged"
+            return (f"{len(bad)} of {st.size} solves did not converge; first (#{bad[0]}): "
+                    + Status.of(st.flat[bad[0]]).message)
+        s = Status.of(st)
+        if s == Status.CONVERGED:
+            where = ""
+            if int(self.branch):
+                t = np.asarray(self.critical.t_unstable)
+                where = (f" on a stable secondary branch, past {int(self.branch)} critical point(s) "
+                         f"(first at {100 * t[0]:.2f}% of the increment)")
+            return (f"converged{where} in {int(self.steps)} load steps, {int(self.iterations)} Newton "
+                    f"iterations (|r| = {float(self.residual_norm):.2e})")
+        if s == Status.STABILITY_UNKNOWN:
+            return (f"{s.name}: {s.message} (after {int(self.steps)} load steps, "
+                    f"{int(self.iterations)} Newton iterations)")
+        return (f"{s.name}: {s.message}; stopped at {100 * float(self.t):.1f}% of the increment "
+                f"after {int(self.steps)} steps and {int(self.cuts)} step cuts; the last converged "
+                f"state is kept")
+
+
+def joined(first: Solution, rest: Solution) -> Solution:
+    """One Solution of a path solved in two parts: ``first`` stopped at the fraction t1 of
+    the increment, ``rest`` went on from its state to the same end. Fractions of the rest
+    (its t, its critical points) become fractions of the whole path, t1 + (1 - t1) t; the
+    counters add up; the state is the rest's."""
+    t1 = first.t
+
+    def whole(t):
+        return t1 + (1 - t1) * t
+
+    crit = rest.critical._replace(t_stable=whole(rest.critical.t_stable),
+                                  t_unstable=whole(rest.critical.t_unstable))
+    return rest._replace(t=whole(rest.t), iterations=first.iterations + rest.iterations,
+                         steps=first.steps + rest.steps, cuts=first.cuts + rest.cuts,
+                         branch=first.branch + rest.branch, critical=crit)

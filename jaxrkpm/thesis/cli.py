@@ -1,0 +1,76 @@
+"""Command line: ``jaxrkpm COMMAND [options]``; each command runs a study of
+:mod:`jaxrkpm.thesis.studies`. The options are parsed (and ``--help`` answered) by
+:mod:`jaxrkpm.thesis.studies.interface`, which imports no JAX; the study itself, and JAX with it,
+is imported only once its options are good."""
+from __future__ import annotations
+
+import difflib
+import importlib
+import sys
+
+from jaxrkpm import __version__
+from jaxrkpm.thesis.studies import interface
+
+# command -> (module with main(argv) and result(summary), what it does in a line)
+COMMANDS = {
+    "demo": ("jaxrkpm.thesis.studies.demo", "the thesis' box path tracked on the 9x9 Fung square (Table 5.3)"),
+    "track": ("jaxrkpm.thesis.studies.track", "chapter-5 Jacobian path tracking: 2D paths, the 3D cube of Table 5.1"),
+    "compress": ("jaxrkpm.thesis.studies.compress", "compression to failure, Gauss vs nodal integration (Figs 5.10-5.18)"),
+    "needle": ("jaxrkpm.thesis.studies.needle", "chapter 6: needle insertion, static/dynamic/optimised paddle"),
+    "needle3d": ("jaxrkpm.thesis.studies.needle3d", "chapter 6 lifted to 3D: a half-ellipsoid phantom from a mesh, "
+                                            "paddle patches on its skin"),
+    "rig-sim": ("jaxrkpm.thesis.studies.rig_sim", "the simulated rig of section 5.3.2: vision, robot link, "
+                                           "an object the model does not know"),
+    "cantilever": ("jaxrkpm.thesis.studies.cantilever", "Timoshenko cantilever: error and convergence rate (verification)"),
+    "reproduce": ("jaxrkpm.thesis.studies.reproduce", "every experiment above; report.md with a verdict per row"),
+}
+
+
+def help_text() -> str:
+    width = max(map(len, COMMANDS))
+    cmds = "\n".join(f"  {name:<{width}}  {what}" for name, (_, what) in COMMANDS.items())
+    codes = "\n".join(f"  {code}  {what}" for code, what in interface.EXIT_CODES.items())
+    return (f"usage: jaxrkpm [-h] [--version] COMMAND [options]\n\n"
+            f"jaxrkpm {__version__}: a differentiable meshfree (RKPM) solver in JAX and the thesis studies "
+            f"built on it.\nEach command writes summary.json and figures to its --out folder and ends "
+            f"with one line: wrote DIR/: files; the result.\n\n"
+            f"commands:\n{cmds}\n\n"
+            f"jaxrkpm COMMAND --help lists a command's options.\n\n"
+            f"exit codes:\n{codes}\n")
+
+
+def unknown(command: str) -> str:
+    near = difflib.get_close_matches(command, COMMANDS, n=1)
+    return (f"jaxrkpm: error: unknown command {command!r}"
+            + (f" (did you mean {near[0]!r}?)" if near else "")
+            + f"; commands: {', '.join(COMMANDS)} (jaxrkpm --help)")
+
+
+def main(argv=None) -> int:
+    """Run ``jaxrkpm`` with ``argv``; returns the exit code (see ``jaxrkpm --help``)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(help_text(), end="", file=sys.stdout if argv else sys.stderr)
+        return interface.EXIT_OK if argv else interface.EXIT_USAGE
+    if argv[0] == "--version":
+        print(f"jaxrkpm {__version__}")
+        return interface.EXIT_OK
+    command, rest = argv[0], argv[1:]
+    if command not in COMMANDS:
+        print(unknown(command), file=sys.stderr)
+        return interface.EXIT_USAGE
+    try:
+        interface.parse(command, rest)   # --help and bad options end here, before JAX loads
+        study = importlib.import_module(COMMANDS[command][0])
+        summary = study.main(rest)
+    except SystemExit as e:              # argparse: --help (0) or a bad option (2)
+        return e.code if isinstance(e.code, int) else interface.EXIT_USAGE
+    except interface.OutputError as e:
+        print(f"jaxrkpm {command}: error: {e}", file=sys.stderr)
+        return interface.EXIT_OUTPUT
+    reached, _ = study.result(summary)
+    return interface.EXIT_OK if reached else interface.EXIT_GOAL
+
+
+if __name__ == "__main__":
+    sys.exit(main())

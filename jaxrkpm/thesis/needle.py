@@ -1,0 +1,697 @@
+"""Needle-insertion target stabilisation (thesis chapter 6).
+
+A needle pushed along x = 0.5 into the phantom of Figure 6.1 drags the target at (0.5, 0.4)
+off the insertion line; a paddle holding a piece of the accessible boundary (static) or
+moved by the robot (dynamic) keeps it there.
+
+The phantom is configuration (``Phantom``): geometry, immobile edge, needle line and depth,
+target, the paddle positions of Table 6.2, inclusions as stiffness fields. Each paddle
+position is its own essential set, so each is its own ``Model``; the models share the
+particle layout and integration table, so their ``Ops`` differ only in the essential
+partition and stack (zero-padded) into one batch: every paddle position x every insertion
+increment runs in one compiled call (``lax.map`` or ``vmap`` over configurations of a
+``scan`` over increments), optionally sharded over the visible devices.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import partial
+from typing import NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..base.outcome import Outcome
+from ..control.batching import BATCHING, batch_axes, default_batching, map_batch, run_batched, stack_models
+from ..discretise.body import Body
+from ..mechanics.assembly import point_values
+from ..mechanics.loads import Springs
+from ..mechanics.materials import Fung
+from ..model.model import Model
+from ..solvers.problem import Problem
+from ..solvers.results import Limits, Status
+from .data import INCLUSIONS, PHANTOM_OUTLINE, TABLE_6_2
+from .data import NEEDLE as THESIS  # noqa: F401  (re-exported: needle.THESIS, the reference values)
+
+
+IMMOBILE = ("bottom", "top")
+
+
+def lateral_deviation(e):
+    """(..., L) lateral components -> (...): the signed component when there is one lateral
+    direction (2D: the thesis' x deviation), else their length (3D)."""
+    if e.shape[-1] == 1:
+        return e[..., 0]
+    return jnp.sqrt(jnp.sum(e * e, axis=-1)) if isinstance(e, jax.Array) else np.linalg.norm(e, axis=-1)
+
+
+class NeedleTrack:
+    """What the generic needle functions need of a phantom besides its models: the needle
+    direction (d,) (a unit vector), the lateral basis (L, d) (orthonormal rows perpendicular
+    to the needle), the target (d,) and the insertion depth. Mixed into the phantoms, which
+    define ``needle_direction``, ``lateral``, ``target`` and ``insertion``."""
+
+    def needle_at(self, depth) -> np.ndarray:
+        """(d,) the needle particles' prescribed translation at insertion ``depth``."""
+        return float(depth) * np.asarray(self.needle_direction, float)
+
+    def lateral_components(self, u):
+        """(..., d) target displacements -> (..., L) their components across the needle."""
+        return u @ jnp.asarray(self.lateral, jnp.float64).T if isinstance(u, jax.Array) \
+            else np.asarray(u) @ np.asarray(self.lateral, float).T
+
+    def deviation_of(self, u):
+        """(..., d) target displacements -> (...) lateral deviation (``lateral_deviation``)."""
+        return lateral_deviation(self.lateral_components(u))
+
+    def depths(self, increments: int) -> np.ndarray:
+        """Needle depth after each of ``increments`` equal increments: (increments,)."""
+        if increments < 1:
+            raise ValueError(f"increments must be >= 1, got {increments}")
+        return self.insertion * np.arange(1, increments + 1) / increments
+
+
+@dataclass(frozen=True)
+class Phantom(NeedleTrack):
+    """The Figure 6.1 phantom: unit square with the corner x + y < 0.5 cut away, lattice
+    particles at ``spacing``, the ``needle_particles`` particles on the needle line nearest
+    the entry (0.5, 0) pushed along +y by ``insertion`` (15%), target (0.5, 0.4), Fung
+    material of chapter 5 (Table 6.1 tensors), inclusions x ``stiffness_ratio``.
+
+    ``immobile``: "bottom" (default) holds the bottom edge right of the needle entry;
+    "top" holds the edge y = 1 (another reading of the figure; the text does not say which
+    edge is held). Only "bottom" reproduces the thesis in kind: with "top" the unsupported
+    deviation is 0.0007 (thesis 0.0307) and four of the five paddles increase it."""
+
+    vertices: tuple = PHANTOM_OUTLINE
+    spacing: float = 0.1
+    immobile: str = "bottom"
+    needle_x: float = 0.5
+    needle_particles: int = 3
+    insertion: float = 0.15
+    target: tuple = (0.5, 0.4)
+    paddles: tuple = TABLE_6_2
+    stiffness_ratio: float = 100.0
+    alpha: float = 1.0
+    beta: float = 1.0
+    support: float = 2.5
+    integration: str = "gauss"
+    _cache: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def __post_init__(self):
+        if not (np.isfinite(self.insertion) and self.insertion > 0):
+            raise ValueError(f"insertion must be a positive depth, got {self.insertion}")
+        if self.immobile not in IMMOBILE:
+            raise ValueError(f"unknown immobile edge {self.immobile!r}: choose {list(IMMOBILE)}")
+        if self.needle_particles < 1:
+            raise ValueError(f"needle_particles must be >= 1, got {self.needle_particles}")
+
+    @property
+    def body(self) -> Body:
+        """Lattice particles in the closed phantom (the thesis' nodes lie on the cut edge)."""
+        if "body" not in self._cache:
+            V = np.asarray(self.vertices, float)
+            h = self.spacing
+            lo, hi = V.min(0), V.max(0)
+            n = np.round((hi - lo) / h).astype(int) + 1
+            L = np.stack(np.meshgrid(lo[0] + h * np.arange(n[0]), lo[1] + h * np.arange(n[1]),
+                                     indexing="ij"), -1).reshape(-1, 2)
+            from ..discretise import polygons
+            keep = polygons.contains(V, L) | (polygons.distance_to_boundary(V, L) <= 1e-9 * h)
+            self._cache["body"] = Body.points(L[keep], V, h)
+        return self._cache["body"]
+
+    @property
+    def needle_direction(self) -> np.ndarray:
+        """The needle advances along +y (Figure 6.1)."""
+        return np.array([0.0, 1.0])
+
+    @property
+    def lateral(self) -> np.ndarray:
+        """(1, 2): the lateral deviation is the target's x displacement (section 6.3)."""
+        return np.array([[1.0, 0.0]])
+
+    @property
+    def paddle_bounds(self):
+        """(lower, upper) of the continuous paddle position q: the Table 6.2 chain, 1..P."""
+        return 1.0, float(len(self.paddles))
+
+    def material(self, inclusion: str = "none"):
+        """Fung (eq 6.1); inside the inclusion square alpha and beta are x stiffness_ratio."""
+        if inclusion not in INCLUSIONS:
+            raise ValueError(f"unknown inclusion {inclusion!r}: choose {list(INCLUSIONS)}")
+        box = INCLUSIONS[inclusion]
+        if box is None:
+            return Fung(alpha=self.alpha, beta=self.beta)
+        h = 0.5 * self.spacing
+        (x0, x1), (y0, y1) = box
+        factor = inclusion_field(((x0 - h, x1 + h), (y0 - h, y1 + h)), self.stiffness_ratio)
+        return Fung(alpha=lambda X: self.alpha * factor(X), beta=lambda X: self.beta * factor(X))
+
+    def particle(self, point) -> int:
+        """The particle at ``point`` (a lattice node of the phantom)."""
+        X = self.body.X
+        dist = np.linalg.norm(X - np.asarray(point, float), axis=1)
+        i = int(np.argmin(dist))
+        if dist[i] > 0.25 * self.spacing:
+            raise ValueError(f"no particle at {tuple(point)} (nearest {X[i].tolist()}); "
+                             f"paddle coordinates must be nodes of the phantom's lattice")
+        return i
+
+    def sets(self, paddle: int | None) -> dict:
+        """Essential sets: "wall" (immobile edge), "needle", and "paddle" (1-based index into
+        ``paddles``; None for no paddle)."""
+        X = self.body.X
+        eps = 1e-9
+        if self.immobile == "top":
+            wall = np.flatnonzero(X[:, 1] > X[:, 1].max() - eps)
+        else:
+            wall = np.flatnonzero((X[:, 1] < X[:, 1].min() + eps) & (X[:, 0] > self.needle_x + eps))
+        line = np.flatnonzero(np.abs(X[:, 0] - self.needle_x) < 1e-9)
+        if len(line) < self.needle_particles:
+            raise ValueError(f"only {len(line)} particles on the needle line x = {self.needle_x}")
+        needle = np.sort(line[np.argsort(X[line, 1], kind="stable")[:self.needle_particles]])
+        out = {"wall": wall, "needle": needle}
+        if paddle is not None:
+            if isinstance(paddle, (bool, np.bool_)) or not isinstance(paddle, (int, np.integer)):
+                raise TypeError(f"paddle must be a 1-based int index into the {len(self.paddles)} "
+                                f"paddle positions (or None), got {paddle!r}")
+            if not 1 <= paddle <= len(self.paddles):
+                raise ValueError(f"paddle index {paddle} out of range 1..{len(self.paddles)}")
+            out["paddle"] = np.array(sorted(self.particle(p) for p in self.paddles[paddle - 1]))
+        return out
+
+    def model(self, inclusion: str = "none", paddle: int | None = None) -> Model:
+        key = ("model", inclusion, paddle)
+        if key not in self._cache:
+            self._cache[key] = Model(self.body, self.material(inclusion), self.integration,
+                                     essential=self.sets(paddle), support=self.support)
+        return self._cache[key]
+
+    # ------------------------------------------------ continuous paddle (beyond the thesis)
+    @property
+    def paddle_chain(self) -> np.ndarray:
+        """(P+1, 2) the boundary particles the Table 6.2 paddles span, in order: paddle p
+        covers chain[p-1] and chain[p]."""
+        chain = [self.paddles[0][0]] + [pair[1] for pair in self.paddles]
+        for p, (a, b) in enumerate(self.paddles):
+            if not (np.allclose(a, chain[p]) and np.allclose(b, chain[p + 1])):
+                raise ValueError("the paddle positions must form a chain along the boundary "
+                                 "(each starts where the previous ends) for a continuous paddle")
+        return np.asarray(chain, float)
+
+    def paddle_points(self, q):
+        """(2, 2) the ends of a paddle at continuous position q in [1, P]: at an integer q
+        the two particles of Table 6.2's paddle q; in between it slides along the boundary
+        (its ends at chain coordinates q - 1 and q, linear between chain particles)."""
+        chain = jnp.asarray(self.paddle_chain)
+        n = chain.shape[0] - 1
+
+        def at(x):
+            i = jnp.clip(jnp.floor(x), 0, n - 1).astype(int)
+            return chain[i] + (x - i) * (chain[i + 1] - chain[i])
+        q = jnp.asarray(q, jnp.float64)
+        return jnp.stack([at(q - 1.0), at(q)])
+
+    def arc_length(self, q) -> float:
+        """Distance along the boundary from the chain's first particle to the paddle centre."""
+        chain = self.paddle_chain
+        seg = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(chain, axis=0), axis=1))]
+        return float(np.interp(q - 0.5, np.arange(len(chain)), seg))
+
+    def spring_model(self, inclusion: str = "none", stiffness: float = 1e6) -> Model:
+        """Wall and needle as essential sets; the paddle as two stiff zero-length springs at
+        its ends (``paddle_points``), movable through ``model.springs_at``. With stiffness
+        1e6 a paddle at an integer position holds its particles to ~1e-5 of the essential
+        paddle's result (penalty error O(1/k))."""
+        key = ("spring_model", inclusion, float(stiffness))
+        if key not in self._cache:
+            chain = self.paddle_chain
+            t = np.linspace(0.0, 1.0, 41)[:, None]
+            path = np.concatenate([a + t * (b - a) for a, b in zip(chain[:-1], chain[1:])])
+            nb = self.body.neighbours(path, self.support * self.spacing)
+            region = np.unique(nb.idx[nb.mask])
+            springs = Springs(np.asarray(self.paddle_points(1.0)), stiffness, region)
+            self._cache[key] = Model(self.body, self.material(inclusion), self.integration,
+                                     essential=self.sets(None), support=self.support, springs=springs)
+        return self._cache[key]
+
+
+def inclusion_field(box, ratio: float):
+    """X (Q, 2) -> (Q,): ``ratio`` inside the square box ((x0, x1), (y0, y1)), 1 outside."""
+    (x0, x1), (y0, y1) = box
+
+    def factor(X):
+        X = np.asarray(X)
+        inside = (X[:, 0] >= x0) & (X[:, 0] <= x1) & (X[:, 1] >= y0) & (X[:, 1] <= y1)
+        return np.where(inside, ratio, 1.0)
+    return factor
+
+
+class Insertion(NamedTuple):
+    """Per configuration and increment: target displacement (B, n, 2), solve status (B, n),
+    Newton iterations (B, n), paddle Jacobian d(target)/d(paddle translation) (B, n, 2, 2)."""
+
+    target_u: jax.Array
+    status: jax.Array
+    iterations: jax.Array
+    jacobian: jax.Array
+
+
+@partial(jax.jit, static_argnames=("batched", "with_jacobian", "batching"))
+def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, batched, with_jacobian, batching):
+    """prob: the batched problems (``batched``: which leaves carry the batch axis, see
+    ``stack_models``); G (B, n+1, Nb, d) prescribed values per increment (G[:, 0] the
+    start); dG (B, m, Nb, d) the paddle directions for the Jacobian; idx, psi (P, K) the
+    target's shape functions.
+
+    ``batching``: "map" runs the configurations one after another (``lax.map``); "vmap"
+    advances all of them through each increment at once, their Newton while-loops in lock
+    step (each increment costs the slowest member's iterations, step cuts and line-search
+    trials; a ``lax.cond`` runs both branches). Which wins depends on the device
+    (experiments/bench_sweep.py, 80 configurations = 5 paddles x 16 stiffness ratios x 15
+    increments, inclusion "right"; 58 of the 1,200 solves fail, INVERTED, and they take 43%
+    of the Newton iterations):
+
+    - CPU: "map". XLA:CPU runs the batched forms of the assembly's contractions and
+      scatters slower per member than the unbatched ones (per member, 20 configurations:
+      the assembly ~4x the unbatched kernel with the shared table unbatched, ~7x with it
+      stacked), and lock step costs the slowest member (the increment with a failing
+      member: 90-103 iterations against 3-5), so vmap loses to map on a 2-core CPU (5 x 15
+      increments: 12.7 s against 4.8 s, loaded machine). Map: 16.6 s against 19.4 s for
+      the loop (1.17x, load 4.4 falling to 1.6); the arithmetic of the same 7,363 Newton
+      iterations and 1,142 Jacobians alone (bench_sweep's ``floor``; assembly + Cholesky
+      1.2 of an iteration's 1.4 ms) is 12.0 s, so no batching of these solves can beat
+      the loop by more than ~1.6x on this CPU. Since then "map" solves with modified
+      Newton (``Model.newton_reuse``), as the eager loop does by default: 20
+      configurations, consecutive runs, quiet, full / modified Newton: map 7.53 / 5.61 s, loop
+      8.21 / 6.16 s (the same 1.1x between them; 1,812 / 2,300 iterations, fewer of them
+      factorising). Each increment's Jacobian factorisation is carried into the next
+      increment's predictor (the loop makes that matrix twice); with the faster small
+      factorisations (``linear.triangular_pair``, ``solve.pair_blocks``'s equal windows),
+      80 configurations, one run, quiet: map 12.0 s against 15.6 s for the loop (1.30x;
+      9,446 iterations both, deviations equal to 1.4e-16, statuses equal), where it was
+      23.1 s against 24.2 s (1.05x) before both changes. The rest is arithmetic: 4,401
+      factorisations (1.3 ms each; 5,521 before the carry) and 26,912 energy evaluations,
+      68% of them in the last two increments, where the 58 failing solves cut their steps.
+    - GPU: "vmap" (one batched kernel per operation, native batched factorisations; see
+      ``linear.one_at_a_time``). H100: 5.78 s against 31.2 s for the Python loop of the
+      same solves (5.4x), equal to 1e-16.
+
+    (Vmapped solves deadlocked XLA:CPU in jax 0.10 until the factorisations and triangular
+    solves ran one member at a time: ``jaxrkpm.solvers.linalg.dense.one_at_a_time``.)"""
+
+    def one(prob, G, dG):
+        def step(carry, g1):
+            u, g0, state = carry
+            # ``state``: the Jacobian's factorisation at the equilibrium this increment starts
+            # from, the predictor's matrix too (the eager loop, model.solve then
+            # model.jacobian, makes it twice: same matrix, same results)
+            sol = prob.solve(lim, u, g0, g1, jnp.float64(1.0), jnp.float64(1.0), state)
+            tu = prob.point_values(idx, psi, sol.u, sol.g)[0]
+            if with_jacobian:
+                state = prob.factorise(sol.u, sol.g)
+                J = prob.jacobian(sol, dG, idx, psi, state)[0]             # (d, m)
+            else:
+                J = jnp.zeros((tu.shape[0], dG.shape[0]))
+            return (sol.u, sol.g, state), (tu, sol.status, sol.iterations, J)
+
+        u0 = jnp.zeros((prob.ops.free.shape[-1], G.shape[-1]))
+        start = (u0, G[0], prob.config.linear.empty(prob.ops, u0.dtype))
+        _, out = jax.lax.scan(step, start, G[1:])
+        return out
+
+    if batching == "vmap":
+        return Insertion(*jax.vmap(one, in_axes=(batch_axes(prob, batched), 0, 0))(prob, G, dG))
+    return Insertion(*map_batch(one, prob, batched, G, dG))
+
+
+def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None = "paddle",
+           n_devices: int | None = 1, max_iter: int = 25, steps: int = 1, direction=None,
+           batching: str | None = None) -> Insertion:
+    """Insert the needle of every model through ``depths`` (n,) in one compiled, batched call
+    and record the displacement of ``point`` (d,) at every increment; with ``jacobian_set``,
+    also the implicit Jacobian of the point w.r.t. a rigid translation of that set.
+    ``direction`` (d,): the needle's unit direction (default: the last coordinate axis, +y
+    in 2D as in Figure 6.1; pass ``phantom.needle_direction``).
+    ``batching``: "map" runs the configurations one after another on each device, "vmap"
+    all at once in lock step; None (default): "map" on CPU, "vmap" elsewhere (GPU), as
+    measured (see ``_insert_batch``);
+    ``n_devices``: shard them over that many devices.
+
+    Each model keeps its other sets fixed (zero). Failed solves do not raise: their status
+    is recorded and the next increment starts from the last converged state."""
+    if len(models) == 0:
+        raise ValueError("insert needs at least one model")
+    batching = default_batching() if batching is None else batching
+    if batching not in BATCHING:
+        raise ValueError(f"unknown batching {batching!r}: choose one of {list(BATCHING)}")
+    depths = np.asarray(depths, float)
+    if depths.ndim != 1 or len(depths) == 0 or not np.all(np.isfinite(depths)):
+        raise ValueError(f"depths must be a non-empty 1D array of finite needle depths, got {depths!r}")
+    ref = models[0]
+    prob, batched = stack_models(models)
+    if batching == "map":
+        # one member at a time: modified Newton's branch is a branch (as in an eager solve);
+        # in lock step (vmap) it would run both sides, so full Newton stays there
+        prob = prob.with_config(reuse=ref.newton_reuse)
+    d = ref.dim
+    direction = np.eye(d)[-1] if direction is None else np.asarray(direction, float)
+    if direction.shape != (d,) or not np.isclose(np.linalg.norm(direction), 1.0):
+        raise ValueError(f"direction must be a unit vector of shape ({d},), got {np.asarray(direction).tolist()}")
+    G, dG = [], []
+    for m in models:
+        rows = [m.prescribed({"needle": np.zeros(d)})]
+        rows += [m.prescribed({"needle": float(t) * direction}) for t in depths]
+        G.append(jnp.stack(rows))
+        dG.append(m.directions(jacobian_set) if jacobian_set else jnp.zeros((1,) + rows[0].shape))
+    sf = ref.shape_functions(np.atleast_2d(point), gradients=False)
+    fn = partial(_insert_batch, batched=batched, with_jacobian=jacobian_set is not None, batching=batching)
+    lim = Limits.of(steps, max_iter)
+    idx, psi = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
+    return run_batched(lambda pr, g, dg: fn(pr, g, dg, lim, idx, psi),
+                       (prob, jnp.stack(G), jnp.stack(dG)), n_devices, (batch_axes(prob, batched), 0, 0))
+
+
+def controllability(J, lateral=((1.0, 0.0),)) -> np.ndarray:
+    """delta x_min: the paddle travel per unit lateral target correction (section 6.3.2),
+    J = d target / d paddle translation (..., d, d), ``lateral`` (L, d) the orthonormal rows
+    across the needle -> (...).
+
+    The paddle move that shifts the target by a lateral e (and not along the needle) is
+    J^-1 e; delta x_min is its largest length over unit lateral e, the largest singular value
+    of J^-1 lateral^T. With one lateral direction (2D) that is the thesis' ||J^-1 [1 0]^T||
+    (the same quantity; equal to round-off)."""
+    J = np.asarray(J)
+    B = np.asarray(lateral, float).T                                  # (d, L)
+    M = np.linalg.solve(J, np.broadcast_to(B, J.shape[:-1] + B.shape[-1:]))
+    return np.linalg.svd(M, compute_uv=False)[..., 0]
+
+
+# ---------------------------------------------------------------------- sweeps
+@dataclass
+class StaticSweep:
+    """The OPTIMAL STATIC PADDLE POSITION procedure for one inclusion case."""
+
+    inclusion: str
+    depths: np.ndarray            # (n,)
+    deviation: np.ndarray         # (P, n) lateral target deviation per paddle and increment
+    no_paddle: np.ndarray         # (n,)   (NeedleTrack.deviation_of: signed x in 2D, a length in 3D)
+    status: np.ndarray            # (P, n)
+    no_paddle_status: np.ndarray  # (n,)
+    jacobian: np.ndarray          # (P, n, d, d) d target / d paddle translation
+    target_u: np.ndarray          # (P, n, d) target displacement
+    no_paddle_u: np.ndarray       # (n, d)
+    lateral: np.ndarray           # (L, d) the phantom's lateral basis
+
+    @property
+    def final(self) -> np.ndarray:
+        return self.deviation[:, -1]
+
+    @property
+    def converged_paddles(self) -> np.ndarray:
+        """(P,) True where every increment of that paddle's insertion converged."""
+        return np.all(self.status == Status.CONVERGED, axis=1)
+
+    @property
+    def best(self) -> int:
+        """1-based paddle index with the smallest |final deviation| among the paddles whose
+        insertion converged at every increment (a failed one stopped short of full depth)."""
+        dev = np.where(self.converged_paddles, np.abs(self.final), np.inf)
+        if not np.isfinite(dev).any():
+            raise RuntimeError("no paddle position converged at every increment")
+        return int(np.argmin(dev)) + 1
+
+    @property
+    def controllability(self) -> np.ndarray:
+        """(P, n) delta x_min at every increment (the thesis computes it after the first)."""
+        return controllability(self.jacobian, self.lateral)
+
+    @property
+    def converged(self) -> bool:
+        return bool(np.all(self.status == Status.CONVERGED) and np.all(self.no_paddle_status == Status.CONVERGED))
+
+
+def static_sweep(phantom: Phantom, inclusion: str = "none", increments: int = 15,
+                 paddles: Sequence[int] | None = None, n_devices: int | None = 1) -> StaticSweep:
+    """Every paddle position x every increment in one batched call, plus the no-paddle run.
+    ``phantom``: a :class:`Phantom` or any phantom with the same interface (``NeedleTrack``,
+    ``model(inclusion, paddle)``, ``paddles``), e.g. the 3D :class:`jaxrkpm.thesis.phantom3d.Phantom3D`."""
+    paddles = list(range(1, len(phantom.paddles) + 1)) if paddles is None else list(paddles)
+    if not paddles:
+        raise ValueError(f"paddles is empty: give 1-based paddle indices in 1..{len(phantom.paddles)} "
+                         "(or None for all)")
+    for p in paddles:   # a clear error before anything is built (Phantom.sets checks each)
+        phantom.sets(p)
+    depths = phantom.depths(increments)
+    direction = phantom.needle_direction
+    runs = insert([phantom.model(inclusion, p) for p in paddles], depths, phantom.target,
+                  n_devices=n_devices, direction=direction)
+    free = insert([phantom.model(inclusion, None)], depths, phantom.target, jacobian_set=None,
+                  direction=direction)
+    tu, fu = np.asarray(runs.target_u), np.asarray(free.target_u[0])
+    return StaticSweep(inclusion, depths, phantom.deviation_of(tu), phantom.deviation_of(fu),
+                       np.asarray(runs.status), np.asarray(free.status[0]), np.asarray(runs.jacobian),
+                       tu, fu, np.asarray(phantom.lateral, float))
+
+
+class HoldStatus(Outcome):
+    """Outcome of the closed-loop paddle (``dynamic_paddle``)."""
+
+    CONVERGED = 0, "target held on the needle line at every increment"
+    NOT_HELD = 1, "the corrections did not bring the lateral deviation below tol"
+    SOLVE_FAILED = 2, "a solve failed (see solve_status); the increments before it are kept"
+
+
+class OptimizeStatus(Outcome):
+    """Outcome of the paddle optimisation (``optimize_paddle``)."""
+
+    CONVERGED = 0, "the deviation or the step fell below its tolerance"
+    MAX_ITERATIONS = 1, "the iteration budget ran out; the best iterate is returned"
+    START_FAILED = 2, "the insertion fails at the start position (see solve_status)"
+
+
+@dataclass
+class DynamicRun:
+    """Closed loop: the paddle moves during insertion to hold the target on the needle line."""
+
+    paddle: int
+    depths: np.ndarray        # (n,)
+    deviation: np.ndarray     # (n,) lateral target deviation after the correction
+    uncorrected: np.ndarray   # (n,) lateral target deviation after the feed-forward move only
+    paddle_u: np.ndarray      # (n, d) paddle translation
+    iterations: np.ndarray    # (n,) correction solves per increment
+    status: HoldStatus
+    message: str
+    solution: object = None   # the last converged Solution (for plots and post-processing)
+    solve_status: Status = Status.CONVERGED   # of the solve that stopped the loop, if one did
+
+    @property
+    def travel(self) -> float:
+        """Path length of the paddle from rest."""
+        p = np.vstack([np.zeros(self.paddle_u.shape[1]), self.paddle_u])
+        return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)))
+
+
+def cancelling_move(Jp, lateral, e) -> np.ndarray:
+    """The minimum-norm paddle translation (d,) that moves the target by -e across the needle
+    (e (L,) lateral components), from J = d target / d paddle translation (d, d): the
+    lateral rows A = lateral J, dp = -A^T (A A^T)^-1 e (2D: the x-row of J)."""
+    A = np.asarray(lateral, float) @ np.asarray(Jp)
+    return -A.T @ np.linalg.solve(A @ A.T, np.asarray(e, float))
+
+
+def dynamic_paddle(phantom: Phantom, paddle: int, inclusion: str = "none", increments: int = 15,
+                   tol: float = 1e-6, max_corrections: int = 10) -> DynamicRun:
+    """Move the paddle during insertion so the target stays on the needle line.
+
+    Each increment: a feed-forward paddle move cancels the lateral target motion the implicit
+    Jacobians predict for the needle increment (``cancelling_move``: minimum norm, from the
+    lateral rows of d target/d paddle); then corrections with the Jacobian at the new
+    equilibrium until |lateral deviation| < tol. A failed solve stops the loop with its
+    status; what was computed is kept. Any phantom with the ``NeedleTrack`` interface."""
+    model = phantom.model(inclusion, paddle)
+    target = np.atleast_2d(phantom.target)
+    depths = phantom.depths(increments)
+    B, direction = np.asarray(phantom.lateral, float), np.asarray(phantom.needle_direction, float)
+    d = model.dim
+    sol = model.initial()
+    p = np.zeros(d)
+    dev, pre, pu, its = [], [], [], []
+    status, message, solve_status = HoldStatus.CONVERGED, HoldStatus.CONVERGED.message, Status.CONVERGED
+    depth_prev = 0.0
+
+    def solve_at(depth, p, start):
+        return model.solve({"needle": phantom.needle_at(depth), "paddle": p}, initial=start, throw=False)
+
+    def lateral_error(s):
+        return B @ np.asarray(model.displacement(s, target)[0])          # (L,)
+
+    for depth in depths:
+        Jp = np.asarray(model.jacobian(sol, "paddle", target))           # (d, d)
+        Jn = np.asarray(model.jacobian(sol, "needle", target)) @ direction   # (d,)
+        p = p + cancelling_move(Jp, B, B @ Jn * (depth - depth_prev))
+        new = solve_at(depth, p, sol)
+        k = 0
+        if int(new.status) == Status.CONVERGED:
+            e = lateral_error(new)
+            pre.append(float(lateral_deviation(e)))
+            while np.linalg.norm(e) >= tol and k < max_corrections:
+                p = p + cancelling_move(model.jacobian(new, "paddle", target), B, e)
+                new = solve_at(depth, p, new)
+                k += 1
+                if int(new.status) != Status.CONVERGED:
+                    break
+                e = lateral_error(new)
+        if int(new.status) != Status.CONVERGED:
+            status, message, solve_status = HoldStatus.SOLVE_FAILED, new.message, new.outcome
+            break
+        sol, depth_prev = new, depth
+        dev.append(float(lateral_deviation(e)))
+        pu.append(p.copy())
+        its.append(k)
+        if np.linalg.norm(e) >= tol:
+            status = HoldStatus.NOT_HELD
+            message = (f"|lateral deviation| {np.linalg.norm(e):.2e} >= {tol:g} after {k} corrections "
+                       f"at depth {depth:.4f}")
+            break
+    n = len(dev)
+    return DynamicRun(paddle, depths[:n], np.array(dev), np.array(pre[:n]),
+                      np.array(pu).reshape(n, d), np.array(its, int), status, message, sol, solve_status)
+
+
+def static_state(phantom: Phantom, inclusion: str = "none", paddle: int | None = None,
+                 increments: int = 15):
+    """The equilibrium of one static configuration at full insertion, reached through the
+    same increments as the sweep (each warm-started from the last): (model, Solution).
+    A failed increment stops there; the last converged state is returned."""
+    model = phantom.model(inclusion, paddle)
+    sol = model.initial()
+    for depth in phantom.depths(increments):
+        new = model.solve({"needle": phantom.needle_at(depth)}, initial=sol, throw=False)
+        if int(new.status) != Status.CONVERGED:
+            break
+        sol = new
+    return model, sol
+
+
+# ------------------------------------------------- optimised placement (beyond the thesis)
+@dataclass
+class PaddleOptimum:
+    """The continuous paddle position q minimising the squared final lateral target
+    deviation, found by optax (Adam) through the solve. q: the phantom's paddle coordinates
+    (``paddle_points``): a scalar 1..P along the Table 6.2 chain in 2D, two surface
+    coordinates in 3D."""
+
+    inclusion: str
+    q: float | np.ndarray       # optimum
+    deviation: float            # final lateral deviation there
+    history: np.ndarray         # (iterations, 2k + 1): q (k), deviation, d(deviation^2)/dq (k)
+    rejected: int               # steps whose insertion failed (det F <= 0 ...), undone and shortened
+    status: OptimizeStatus
+    message: str
+    solve_status: Status = Status.CONVERGED   # of the start position's insertion
+
+    @property
+    def start_deviation(self) -> float:
+        """The final lateral deviation at the start position (the first iterate)."""
+        return float(self.history[0, (self.history.shape[1] - 1) // 2]) if len(self.history) else np.nan
+
+
+def spring_insertion(model: Model, phantom: Phantom, q, depths):
+    """Insert the needle through ``depths`` with the spring paddle at position q, each
+    increment warm-started from the last: (last Solution, lateral target deviation per
+    increment, status). A failed increment stops there (the last converged state is returned)."""
+    springs = {"springs": model.springs_at(phantom.paddle_points(q))}
+    target = np.atleast_2d(phantom.target)
+    sol, dev = model.initial(), []
+    for depth in depths:
+        new = model.solve({"needle": phantom.needle_at(depth)}, params=springs, initial=sol, throw=False)
+        if int(new.status) != Status.CONVERGED:
+            return sol, np.array(dev), new.outcome
+        sol = new
+        dev.append(float(phantom.deviation_of(model.displacement(sol, target)[0])))
+    return sol, np.array(dev), Status.CONVERGED
+
+
+def final_deviation_and_gradient(model: Model, phantom: Phantom, q, depths):
+    """(lateral deviation at full insertion, d(deviation)/dq (the shape of q), status): the
+    insertion path selects the equilibrium; the derivative is the implicit one at the final
+    state (the solve is differentiable in the spring points)."""
+    sol, dev, status = spring_insertion(model, phantom, q, depths[:-1])
+    if status != Status.CONVERGED:
+        return np.nan, np.full(np.shape(q), np.nan) if np.ndim(q) else np.nan, status
+    sf = model.shape_functions(np.atleast_2d(phantom.target), gradients=False)
+    idx, psi = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
+
+    def final(q):
+        s = model.solve({"needle": phantom.needle_at(depths[-1])}, initial=sol, throw=False,
+                        params={"springs": model.springs_at(phantom.paddle_points(q))})
+        return phantom.deviation_of(point_values(model.ops, idx, psi, s.u, s.g)[0]), s.status
+
+    (d, st), g = jax.value_and_grad(final, has_aux=True)(jnp.asarray(q, jnp.float64))
+    return float(d), (np.asarray(g) if np.ndim(q) else float(g)), Status.of(st)
+
+
+def optimize_paddle(phantom: Phantom, inclusion: str = "none", start=None,
+                    increments: int = 15, iterations: int = 30, learning_rate: float = 0.1,
+                    decay: float = 0.9, stiffness: float = 1e6, tol: float = 1e-7,
+                    step_tol: float = 1e-4) -> PaddleOptimum:
+    """Adam on the paddle coordinates q within ``phantom.paddle_bounds`` for min
+    deviation(q)^2 at full insertion, from ``start`` (default: the middle of the bounds),
+    the learning rate decaying by ``decay`` per iteration (plain Adam circles a minimum at a
+    fixed step). A step into a position whose insertion fails (the material inverts near the
+    needle tip) is undone and the steps halved: the optimum may sit on that feasibility
+    edge. Stops when |deviation| < tol, a step is below ``step_tol`` (largest coordinate),
+    or after ``iterations``; returns the best iterate."""
+    import optax
+    lo, hi = (np.asarray(b, float) for b in phantom.paddle_bounds)
+    q = 0.5 * (lo + hi) if start is None else np.asarray(start, float)
+    if q.shape != lo.shape or not np.all(np.isfinite(q)):
+        raise ValueError(f"start must be {lo.size} finite paddle coordinate(s) of shape {lo.shape}, "
+                         f"got {np.asarray(start).tolist()}")
+    model = phantom.spring_model(inclusion, stiffness)
+    depths = phantom.depths(increments)
+    opt = optax.adam(optax.exponential_decay(learning_rate, transition_steps=1, decay_rate=decay))
+    state = opt.init(jnp.asarray(q))
+    d, g, st = final_deviation_and_gradient(model, phantom, q, depths)
+    k = q.size
+    if st != Status.CONVERGED:
+        return PaddleOptimum(inclusion, _coordinates(q), np.nan, np.zeros((0, 2 * k + 1)),
+                             0, OptimizeStatus.START_FAILED,
+                             f"the insertion fails at the start position q = {q.tolist()} ({st.name})", st)
+
+    def row(q, d, g):
+        return [*np.ravel(q), d, *np.ravel(2 * d * np.asarray(g))]
+
+    hist, rejected, scale = [row(q, d, g)], 0, 1.0
+    status, message = OptimizeStatus.MAX_ITERATIONS, f"{iterations} iterations"
+    for _ in range(iterations):
+        if abs(d) < tol:
+            status, message = OptimizeStatus.CONVERGED, f"|deviation| < {tol:g}"
+            break
+        upd, new_state = opt.update(jnp.asarray(2 * d * np.asarray(g)), state)
+        q_new = np.clip(q + scale * np.asarray(upd), lo, hi)
+        if np.max(np.abs(q_new - q)) < step_tol:
+            status, message = OptimizeStatus.CONVERGED, f"step below {step_tol:g}"
+            break
+        d_new, g_new, st = final_deviation_and_gradient(model, phantom, q_new, depths)
+        if st != Status.CONVERGED:
+            rejected += 1
+            scale *= 0.5          # stay on the feasible side: undo, shorten the steps
+            continue
+        q, d, g, state = q_new, d_new, g_new, new_state
+        hist.append(row(q, d, g))
+    hist = np.array(hist)
+    best = int(np.argmin(np.abs(hist[:, k])))
+    if rejected:
+        message += f"; {rejected} steps into infeasible positions (insertion fails) undone"
+    return PaddleOptimum(inclusion, _coordinates(hist[best, :k].reshape(lo.shape)), float(hist[best, k]),
+                         hist, rejected, status, message)
+
+
+def _coordinates(q):
+    """A scalar paddle coordinate as a float, several as an array."""
+    q = np.asarray(q, float)
+    return float(q) if q.ndim == 0 else q

@@ -1,0 +1,396 @@
+"""Compression to failure (thesis section 5.2, "Comparison of Gauss Quadrature and Collocated
+Integration Rules", Figs 5.10-5.18).
+
+Unit-square Fung object (thesis Table 5.2 tensors, alpha = beta = 1), n x n particles, left
+edge x = 0 immobile; the paddle is the right-edge particles with |y - 0.5| <= 0.125 (the three
+nearest (1, 0.5) at 9x9, the same physical segment under refinement). The paddle moves
+rigidly in 1% steps: "straight" = (-c, 0); "shear" = (-c, -c) (our reading of "in the X and
+Y axis using equivalent intervals": equal x and y increments; by the mirror symmetry of the
+problem about y = 0.5 the sign of the y motion does not matter). Each step is a warm-started
+solve from the previous equilibrium.
+
+Each solve follows the stable branch (``jaxrkpm.solvers.branch``): where the
+free tangent K_ff loses positive definiteness (a bifurcation or limit point of the discrete
+system: the smallest eigenvalue crosses zero), the critical point is recorded (compression,
+the eigenvalues there, the critical mode, drawn in a figure) and the solve goes on to a
+stable equilibrium of the same compression (the buckled shape). Every state kept is stable
+(the study checks the smallest eigenvalue itself). The run stops at the first of: a solve
+that fails (its status), det F <= 0 at an integration point, or the requested maximum.
+After a failed step, ``end_of_stable_path`` minimises the energy by exact trust-region Newton
+from the last converged sub-step towards the step's target: it tells a Newton failure
+(stable states go on) from the end of the stable path (measured: the minimisation runs
+into det F = 0 at a paddle corner: the Fung energy stays bounded as det F -> 0, so a corner
+folds flat; no solver can pass it).
+``--through`` instead follows the primary (possibly unstable) branch with the stability check
+off, as before the stable-branch solve, until the solve fails.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxrkpm as jr
+from jaxrkpm.io import plot
+from jaxrkpm.solvers import newton as jsolve
+from jaxrkpm.solvers.minimise import stable_beyond
+from jaxrkpm.mechanics.assembly import coefficients, deformation_gradients
+from jaxrkpm.thesis.studies import interface
+from jaxrkpm.thesis.data import PADDLE_HALF_WIDTH
+from jaxrkpm.thesis.scenarios import planar_square
+
+# 2D: a force per unit thickness, in the units of the material constants times a length
+FORCE_UNITS = "model units: force per unit thickness"
+
+MODES = {"straight": (-1.0, 0.0), "shear": (-1.0, -1.0)}
+
+
+MATERIALS = {
+    # thesis eq 5.2 / Table 5.2 (the study's material)
+    "fung": lambda: jr.Fung(alpha=1.0, beta=1.0),
+    # control: a compressible neo-Hookean solid with Fung's small-strain shear and bulk
+    # moduli order (mu = 2 A_1212, lam = 2 A_1122), which stays elliptic in compression
+    "neohookean": lambda: jr.NeoHookean(lam=766.0, mu=508.0),
+}
+
+
+def setup(n: int = 9, integration: str = "gauss", material: str = "fung",
+          half_width: float = PADDLE_HALF_WIDTH):
+    """The compressed square: :func:`jaxrkpm.thesis.scenarios.planar_square` with the paddle on the
+    right-edge particles with |y - 0.5| <= ``half_width`` (the same physical segment at every n)."""
+    return planar_square(n, integration, MATERIALS[material](), paddle=half_width)
+
+
+def _diagnostics(model):
+    """Jitted state diagnostics: (smallest eigenvalue of the free tangent, smallest det F at
+    the integration points, smallest acoustic-tensor eigenvalue min_q min_|n|=1 eig A(n),
+    A_ik = dP_ij/dF_kl n_j n_l: it turns negative where the material itself loses strong
+    ellipticity, i.e. admits a localised (shear band / kink) instability)."""
+    cfg = model.config()
+    W = model.material.W
+    theta = np.linspace(0, np.pi, 90, endpoint=False)
+    normals = jnp.asarray(np.stack([np.cos(theta), np.sin(theta)], 1))   # 2D directions
+
+    def psi(F, p):
+        return W(jr.green_lagrange(F), p)
+
+    @jax.jit
+    def diag(ops, params, u, g):
+        K = jsolve.tangent(ops, params, cfg, u, g)
+        F = deformation_gradients(ops.idx, ops.dpsi, coefficients(ops, u, g))
+        axes = ({k: 0 for k in params.point}, {k: None for k in params.tensors})
+        C = jax.vmap(lambda F, p, t: jax.hessian(psi)(F, {**p, **t}), in_axes=(0, axes[0], None))(
+            F, params.point, params.tensors)                                # (Q, d, d, d, d)
+        A = jnp.einsum("qijkl,nj,nl->qnik", C, normals, normals)
+        ac = jnp.min(jnp.linalg.eigvalsh(A))
+        return jnp.linalg.eigvalsh(K)[0], jnp.min(jnp.linalg.det(F)), ac
+    return diag
+
+
+def critical_points(model, new, c_prev: float, step: float, lam0: float) -> list:
+    """The critical points a warm-started solve from compression c_prev to c_prev + step
+    passed (``Solution.critical``): compression bracket, eigenvalues relative to the rest
+    value, and the critical mode as particle displacements (N, d) (unit largest entry)."""
+    out = []
+    crit = new.critical
+    for k in range(min(int(new.branch), len(np.asarray(crit.t_stable)))):
+        mode = new._replace(u=crit.mode[k], g=jnp.zeros_like(new.g))
+        shape = np.asarray(model.particle_displacements(mode))
+        out.append({"compression": c_prev + float(crit.t_unstable[k]) * step,
+                    "compression_stable": c_prev + float(crit.t_stable[k]) * step,
+                    "eigenvalues_rel": (np.asarray(crit.eigenvalues[k]) / lam0).tolist(),
+                    "mode": shape / max(np.abs(shape).max(), 1e-300)})
+    return out
+
+
+def end_of_stable_path(model, sol, c_from: float, paddle_to, parts: int = 10) -> dict:
+    """Where a failed step's stable states end (``jaxrkpm.solvers.minimise.stable_beyond``): exact
+    trust-region energy minima at ``parts`` equal increments from the last converged sub-step
+    ``sol`` (compression ``c_from``) to the step's target paddle displacement ``paddle_to``
+    (d,). Tells a Newton failure (stable states go on) from the end of the stable path (the
+    first minimisation past it runs into det F = 0: a collapse, or ends on no stable state)."""
+    c_to = float(-np.asarray(paddle_to)[0])
+    end = stable_beyond(model, sol, model.prescribed({"paddle": jnp.asarray(paddle_to)}, base=sol.g),
+                        fraction=1.0 / parts)
+    out = {"compression": c_from + end["reached"] * (c_to - c_from), **{k: v for k, v in end.items()}}
+    if end["full"]:
+        out["words"] = (f"stable states go on to {100 * c_to:.2f}% (trust-region energy minima): a Newton "
+                        f"failure, not the end of the stable path")
+    else:
+        out["failed_compression"] = c_from + end["failed_at"] * (c_to - c_from)
+        how = (f"runs into det F = 0 (min det F {end['min_detF']:.1e}, |r| {end['residual']:.2g}: the "
+               f"material collapses)" if end["collapse"] else "ends on no stable equilibrium")
+        out["words"] = (f"stable states (trust-region energy minima) end at {100 * out['compression']:.2f}%; "
+                        f"the minimisation at {100 * out['failed_compression']:.2f}% {how}")
+    return out
+
+
+def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_compression: float = 0.9,
+        step: float = 0.01, through: bool = False, material: str = "fung", keep_states: bool = True,
+        half_width: float = PADDLE_HALF_WIDTH):
+    """Step the paddle until failure. Returns (summary dict, model, states) where states maps
+    compression -> particle displacements (N, d); the critical modes are in
+    summary["critical_points"][i]["mode"] (dropped before the summary is written)."""
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}: choose one of {list(MODES)}")
+    model = setup(n, integration, material, half_width)
+    direction = np.array(MODES[mode])
+    diag = _diagnostics(model)
+    sol = model.initial()
+    lam0, _, ac0 = (float(v) for v in diag(model.ops, model.params, sol.u, sol.g))
+    rows, states, crits = [], {0.0: np.zeros_like(model.body.X)}, []
+    reason, first_unstable, limit = "reached the requested maximum compression", None, None
+    stable_end = None
+    first_nonelliptic = None
+    k_max = int(round(max_compression / step))
+    bar = interface.progress(range(1, k_max + 1), desc=f"compress {mode} {integration}", unit="step")
+    # the stable-branch solve passes critical points itself; --through follows the primary
+    # branch with the check off (the study's own smallest eigenvalue below tells stability)
+    options = {"check_stability": False} if through else {"stable_branch": True}
+    for k in bar:
+        bar.set_postfix_str(f"{100 * k * step:.0f}%")
+        c = k * step
+        t0 = time.perf_counter()
+        new = model.solve({"paddle": jnp.asarray(c * direction)}, initial=sol, throw=False, **options)
+        new.u.block_until_ready()
+        dt = time.perf_counter() - t0
+        status = jr.Status(int(new.status))
+        if status != jr.Status.CONVERGED:
+            # the solver keeps the last converged sub-step: look at the tangent there
+            c_part = (k - 1) * step + float(new.t) * step
+            lam_p, det_p, _ = (float(v) for v in diag(model.ops, model.params, new.u, new.g))
+            crits += critical_points(model, new, (k - 1) * step, step, lam0)
+            limit = {"compression": c_part, "min_eig_rel": lam_p / lam0, "min_detF": det_p}
+            reason = (f"Newton failure in the step to {100 * c:.0f}% ({status.name}); at the last "
+                      f"converged sub-step, {100 * c_part:.2f}%, the smallest tangent eigenvalue is "
+                      f"{lam_p / lam0:.3f} x its rest value and the smallest det F {det_p:.3f}")
+            if not through:   # from the last stable state (--through keeps unstable ones)
+                stable_end = end_of_stable_path(model, new, c_part, c * direction)
+                reason += "; " + stable_end["words"]
+            rows.append({"compression": c, "status": status.name, "time_s": dt,
+                         "t_reached": float(new.t), "last_converged_compression": c_part,
+                         "min_eig_rel_there": lam_p / lam0, "min_detF_there": det_p})
+            break
+        crits += critical_points(model, new, (k - 1) * step, step, lam0)
+        sol = new
+        lam, detmin, ac = (float(v) for v in diag(model.ops, model.params, sol.u, sol.g))
+        f = np.asarray(model.reaction(sol, "paddle")).tolist()
+        rows.append({"compression": c, "status": status.name, "time_s": dt,
+                     "newton_iterations": int(sol.iterations), "load_steps": int(sol.steps),
+                     "critical_points": int(sol.branch),
+                     "reaction": f, "min_eig": lam, "min_eig_rel": lam / lam0,
+                     "min_detF": detmin, "min_acoustic_rel": ac / ac0})
+        if keep_states:
+            states[round(c, 6)] = np.asarray(model.particle_displacements(sol))
+        if ac <= 0 and first_nonelliptic is None:
+            first_nonelliptic = c
+        if detmin <= 0:
+            reason = f"det F <= 0 at an integration point at {100 * c:.0f}%"
+            break
+        if lam <= 0 and first_unstable is None:
+            first_unstable = c     # only with --through: the stable-branch solve keeps stable states
+    bar.close()
+    if crits:
+        first_unstable = crits[0]["compression"] if first_unstable is None else min(first_unstable,
+                                                                                    crits[0]["compression"])
+    ok = [r for r in rows if r["status"] == "CONVERGED"]
+    times = [r["time_s"] for r in ok]
+    stable = [r["compression"] for r in ok if r["min_eig"] > 0]
+    summary = {
+        "mode": mode, "direction_per_unit": direction.tolist(), "integration": integration,
+        "particles": [n, n], "paddle_particles": int(len(model.set_indices("paddle"))),
+        "paddle_half_width": half_width,
+        "material": model.material.describe(), "step": step,
+        "integration_points": int(model.ops.w.shape[0]),
+        "branch": "primary (check_stability=False)" if through else "stable",
+        "max_compression": ok[-1]["compression"] if ok else 0.0,
+        "max_stable_compression": max(stable) if stable else 0.0,
+        "reason": reason,
+        "limit_state": limit,
+        "stable_path_end": stable_end,
+        "first_unstable_compression": first_unstable,
+        "critical_points": crits,
+        "first_loss_of_ellipticity": first_nonelliptic,
+        "min_eig_at_rest": lam0,
+        "compression": [r["compression"] for r in ok],
+        "reaction": [r["reaction"] for r in ok],
+        "min_eig": [r["min_eig"] for r in ok],
+        "min_eig_rel": [r["min_eig_rel"] for r in ok],
+        "min_detF": [r["min_detF"] for r in ok],
+        "min_acoustic_rel": [r["min_acoustic_rel"] for r in ok],
+        "newton_iterations": [r["newton_iterations"] for r in ok],
+        "time_per_step_s": times,
+        "median_step_s_excl_first": float(np.median(times[1:])) if len(times) > 1 else None,
+        "first_step_s_incl_compile": times[0] if times else None,
+        "steps": rows,
+    }
+    return summary, model, states
+
+
+def mode_figures(out: Path, summary, model, tag: str) -> None:
+    """One PNG per critical point: the reference particles displaced along the critical mode
+    (scaled to a tenth of the width), coloured by its magnitude; the file names go into the
+    summary's critical points (their mode arrays are dropped from it)."""
+    X = model.body.X
+    for i, cp in enumerate(summary["critical_points"]):
+        mode = np.asarray(cp.pop("mode"))
+        fig, ax = plot.plt.subplots(figsize=(4.6, 4.2))
+        sc = plot.deformed_particles(ax, X, 0.1 * mode, size=18 if len(X) < 100 else 6)
+        ax.set_title(f"critical mode {i + 1}: {100 * cp['compression']:.2f}% compression\n"
+                     f"lowest eigenvalues / rest: {', '.join(f'{e:.3g}' for e in cp['eigenvalues_rel'])}",
+                     fontsize=9)
+        fig.colorbar(sc, ax=ax, label="|mode| (scaled)", shrink=0.8)
+        name = f"mode{i + 1}_{tag}.png"
+        plot.save(fig, out / name)
+        cp["mode_figure"] = name
+
+
+def uniaxial_limits(material: str = "fung", step: float = 0.005) -> dict:
+    """The material's own limits in homogeneous 2D uniaxial-stress compression (F = diag(l, m)
+    with P_22 = 0): the compression where the force P_11 peaks (a limit point of any body
+    compressed homogeneously) and where strong ellipticity is first lost (the smallest
+    acoustic-tensor eigenvalue over directions <= 0). No discretisation involved: the bound
+    no mesh or integration scheme can pass in homogeneous compression."""
+    from scipy.optimize import brentq
+    mat = MATERIALS[material]()
+    X0 = np.zeros((1, 2))
+    prm = {k: jnp.asarray(np.asarray(v).ravel()[0]) for k, v in mat.point_params(X0).items()}
+    prm.update({k: jnp.asarray(v) for k, v in mat.global_params(2).items()})
+    P = jax.jit(jax.grad(lambda F: mat.W(jr.green_lagrange(F), prm)))
+    C = jax.jit(jax.hessian(lambda F: mat.W(jr.green_lagrange(F), prm)))
+    t = np.linspace(0.0, np.pi, 181)
+    normals = jnp.stack([np.cos(t), np.sin(t)], 1)
+    peak, elliptic_loss, best = None, None, 0.0
+    for c in np.arange(step, 0.9, step):
+        lam = 1.0 - c
+        mu = brentq(lambda m: float(P(jnp.diag(jnp.array([lam, m])))[1, 1]), 0.2, 5.0)
+        F = jnp.diag(jnp.array([lam, mu]))
+        f = -float(P(F)[0, 0])
+        A = jnp.einsum("ijkl,nj,nl->nik", C(F), normals, normals)
+        if elliptic_loss is None and float(jnp.linalg.eigvalsh(A).min()) <= 0:
+            elliptic_loss = float(c)
+        if f < best and peak is None:
+            peak = float(c - step)
+        best = max(best, f)
+        if peak is not None and elliptic_loss is not None:
+            break
+    return {"force_peak": peak, "ellipticity_loss": elliptic_loss}
+
+
+def fold_estimate(summary):
+    """Compression where the smallest tangent eigenvalue reaches zero, extrapolated from the
+    last two converged states with lam^2 ~ (c* - c) (the generic behaviour near a fold)."""
+    pts = list(zip(summary["compression"], summary["min_eig_rel"]))
+    if summary.get("limit_state"):
+        ls = summary["limit_state"]
+        if not pts or ls["compression"] > pts[-1][0] + 1e-12:
+            pts.append((ls["compression"], ls["min_eig_rel"]))
+    if len(pts) < 2:
+        return None
+    (c1, l1), (c2, l2) = pts[-2], pts[-1]
+    if l2 <= 0:
+        return c1 + (c2 - c1) * l1 / (l1 - l2)
+    if l1 <= l2:
+        return None
+    return c2 + l2**2 * (c2 - c1) / (l1**2 - l2**2)
+
+
+def figures(out: Path, summary, model, states, tag: str):
+    X = model.body.X
+    n = summary["particles"][0]
+    wall, paddle = model.set_indices("wall"), model.set_indices("paddle")
+    cmax = summary["max_compression"]
+    levels = [c for c in np.round(np.arange(0, cmax + 1e-9, 0.1), 6) if c in states]
+    if cmax not in levels and cmax in states:
+        levels.append(cmax)
+    vmax = max(float(np.linalg.norm(states[c], axis=1).max()) for c in levels) or 1.0
+    ncol = min(5, len(levels))
+    nrow = int(np.ceil(len(levels) / ncol))
+    fig, axes = plot.plt.subplots(nrow, ncol, figsize=(2.9 * ncol + 1.0, 3.3 * nrow), squeeze=False,
+                                  layout="constrained")
+    sc = None
+    for ax, c in zip(axes.flat, levels):
+        u = states[c]
+        sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=18 if len(X) < 100 else 6)
+        x = X + u
+        ax.scatter(x[paddle, 0], x[paddle, 1], marker="s", s=max(12.0, 40.0 * (9.0 / n) ** 2),
+                   facecolors="none", edgecolors="r", lw=1.2, label="paddle (moved)")
+        ax.scatter(x[wall, 0], x[wall, 1], marker="|", s=60, c="b", lw=1.2, label="wall (immobile)")
+        ax.set_title(f"{100 * c:.0f}% compression", fontsize=10)
+        ax.set_xlim(-0.08, 1.08)
+        ax.set_ylim(-0.25, 1.25)
+        ax.tick_params(labelsize=7)
+    for ax in axes[:, 1:].flat:      # axis labels on the outer panels only
+        ax.set_ylabel("")
+    for ax in axes[:-1, :].flat:
+        ax.set_xlabel("")
+    for ax in list(axes.flat)[len(levels):]:
+        ax.axis("off")
+    fig.legend(*axes.flat[0].get_legend_handles_labels(), loc="outside lower center", ncol=4, fontsize=9)
+    fig.suptitle(f"{summary['mode']} compression, {summary['integration']}, {n}x{n} "
+                 f"{summary['material']['name']}: last converged step {100 * cmax:.0f}%", fontsize=11)
+    fig.colorbar(sc, ax=axes, label=f"|u| ({plot.UNITS})", shrink=0.8)
+    fig.savefig(out / f"deformed_{tag}.png", dpi=110)
+    plot.plt.close(fig)
+
+    c = 100 * np.array(summary["compression"])
+    f = np.array(summary["reaction"]).reshape(-1, 2)
+    fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(10, 4))
+    a1.plot(c, f[:, 0], "o-", ms=3, label="$f_x$")
+    a1.plot(c, f[:, 1], "s-", ms=3, label="$f_y$")
+    a1.set_xlabel("paddle displacement (% of width)")
+    a1.set_ylabel(f"force of the paddle on the body\n({FORCE_UNITS})")
+    a1.legend()
+    a1.grid(alpha=0.3)
+    a2.plot(c, summary["min_eig_rel"], "o-", ms=3, label="free tangent")
+    a2.plot(c, summary["min_acoustic_rel"], "^-", ms=3, label="acoustic tensor (material)")
+    ls = summary.get("limit_state")
+    if ls:
+        a2.plot([100 * ls["compression"]], [ls["min_eig_rel"]], "rx", ms=8, label="last converged sub-step")
+    a2.axhline(0, color="k", lw=0.8)
+    a2.set_xlabel("paddle displacement (% of width)")
+    a2.set_ylabel("smallest eigenvalue / value at rest")
+    a2.legend(fontsize=8)
+    a2.grid(alpha=0.3)
+    fig.suptitle(f"{summary['mode']}, {summary['integration']}, {n}x{n} {summary['material']['name']}",
+                 fontsize=10)
+    plot.save(fig, out / f"reaction_{tag}.png")
+
+
+def result(s: dict) -> tuple[bool, str]:
+    """(at least one step converged, the result in words) of a compression summary: the
+    study looks for where the compression fails, so stopping is its finding."""
+    cps = s.get("critical_points") or []
+    crit = ("; critical points at " + ", ".join(f"{100 * cp['compression']:.1f}%" for cp in cps)
+            if cps else "; no critical point")
+    words = (f"{s['mode']} compression ({s['integration']}, {s['particles'][0]}x{s['particles'][1]} "
+             f"{s['material']['name']}): last converged step {100 * s['max_compression']:.0f}%, largest "
+             f"compression on stable states {100 * s.get('max_stable_compression', 0.0):.0f}%{crit}; "
+             f"{s['reason']}")
+    if s.get("fold_estimate") is not None:
+        words += f"; limit point extrapolated at {100 * s['fold_estimate']:.1f}%"
+    return s["max_compression"] > 0, words
+
+
+def main(argv=None):
+    a = interface.parse("compress", argv)
+    if a.step > a.max:
+        interface.compress_parser().error(f"--step {a.step:g} is larger than --max {a.max:g}")
+    t0 = time.time()
+    out = interface.output_folder(a.out)
+    summary, model, states = run(a.mode, a.integration, a.n, a.max, a.step, a.through, a.material,
+                                 half_width=a.paddle_half_width)
+    summary["fold_estimate"] = fold_estimate(summary)
+    summary["material_uniaxial_limits"] = uniaxial_limits(a.material)
+    tag = (f"{a.mode}_{a.integration}_{a.n}" + ("" if a.material == "fung" else f"_{a.material}")
+           + ("" if a.paddle_half_width == PADDLE_HALF_WIDTH else "_edge" if a.paddle_half_width >= 0.5
+              else f"_hw{a.paddle_half_width:g}"))
+    mode_figures(out, summary, model, tag)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    figures(out, summary, model, states, tag)
+    interface.finish(out, t0, summary, result(summary)[1], a.json)
+    return summary

@@ -1,0 +1,401 @@
+"""Needle-insertion target stabilisation (thesis chapter 6, Figs 6.2-6.6, Tables 6.2-6.3).
+
+``--mode static``: the OPTIMAL STATIC PADDLE POSITION procedure. Every paddle position of
+Table 6.2 x every insertion increment in one batched, compiled call (plus the no-paddle run);
+the target's lateral (x) deviation at full insertion per paddle, the best paddle and the
+reduction against no paddle.
+
+``--mode dynamic``: controllability delta x_min = ||J^-1 [1 0]^T|| per paddle from the
+implicit Jacobian after the first increment (Table 6.3), then the closed loop that moves the
+most controllable paddle during insertion to hold the target on the needle line.
+
+``--mode optimize`` (beyond the thesis): the paddle as a continuous position q along the
+chain of Table 6.2 particles (two stiff zero-length springs at its ends), q optimised with
+Adam (optax) through the differentiable solve to minimise the squared final deviation,
+compared with the best discrete paddle; a scan of q for the figure.
+
+The phantom (jaxrkpm.thesis.needle.Phantom) holds the bottom edge right of the needle entry; see
+its docstring for why (the other reading of Figure 6.1 does not reproduce the thesis).
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from matplotlib.patches import Patch
+
+from jaxrkpm.io import plot
+from jaxrkpm.thesis import needle as nd
+from jaxrkpm.thesis.studies import interface
+from jaxrkpm.thesis.data import INCLUSIONS, NEEDLE
+
+
+def _inclusion_box(inclusion):
+    return INCLUSIONS[inclusion]
+
+
+def deformed_outline(model, sol, box, per_side: int = 12) -> np.ndarray:
+    """The inclusion's rectangle ``((x0, x1), (y0, y1))`` carried by the displacement
+    field: (4 * per_side + 1, 2) points of the deformed outline, closed."""
+    (x0, x1), (y0, y1) = box
+    t = np.linspace(0.0, 1.0, per_side, endpoint=False)
+    P = np.concatenate([np.stack([x0 + (x1 - x0) * t, np.full_like(t, y0)], 1),
+                        np.stack([np.full_like(t, x1), y0 + (y1 - y0) * t], 1),
+                        np.stack([x1 - (x1 - x0) * t, np.full_like(t, y1)], 1),
+                        np.stack([np.full_like(t, x0), y1 - (y1 - y0) * t], 1)])
+    P = np.vstack([P, P[:1]])
+    return P + np.asarray(model.displacement(sol, P))
+
+
+def extent(*points, margin: float = 0.05):
+    """(xlim, ylim) covering every (n, 2) array of ``points`` with a margin."""
+    allp = np.concatenate([np.asarray(p).reshape(-1, 2) for p in points])
+    lo, hi = allp.min(0) - margin, allp.max(0) + margin
+    return (lo[0], hi[0]), (lo[1], hi[1])
+
+
+def draw_phantom(ax, phantom: nd.Phantom, model, sol, inclusion, paddle=None, paddle_u=None,
+                 title=None, vmax=None, paddle_points=None, limits=None):
+    """Deformed particles with the needle line, needle particles, paddle, wall, target and
+    the deformed inclusion, over the reference outline. ``paddle_points``: the ends of a
+    continuous (spring) paddle instead of the essential set "paddle". ``limits``: (xlim,
+    ylim), by default the reference outline and every deformed particle. The legend is the
+    caller's (outside the axes: see :func:`legend_below`)."""
+    X = model.body.X
+    u = np.asarray(model.particle_displacements(sol))
+    sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=22)
+    x = X + u
+    V = np.vstack([phantom.vertices, phantom.vertices[0]])
+    ax.plot(V[:, 0], V[:, 1], color="0.6", lw=0.8, label="reference outline")
+    ax.axvline(phantom.needle_x, color="r", ls="--", lw=0.8, label="needle line")
+    n = model.set_indices("needle")
+    ax.plot(x[n, 0], x[n, 1], "r^", ms=6, label="needle")
+    w = model.set_indices("wall")
+    ax.plot(x[w, 0], x[w, 1], "b_", ms=9, mew=2, label="immobile")
+    if paddle_points is not None:
+        pp = np.asarray(paddle_points) + np.asarray(model.displacement(sol, paddle_points))
+        ax.plot(pp[:, 0], pp[:, 1], "g-", lw=4, alpha=0.7, label=f"paddle q = {paddle:.2f}")
+    elif paddle is not None:
+        p = model.set_indices("paddle")
+        ax.plot(x[p, 0], x[p, 1], "gs", ms=8, mfc="none", mew=2, label=f"paddle {paddle}")
+    t = np.asarray(phantom.target) + np.asarray(model.displacement(sol, np.atleast_2d(phantom.target)))[0]
+    ax.plot(*phantom.target, "k+", ms=10, label="target (rest)")
+    ax.plot(*t, "m*", ms=12, label="target")
+    box = _inclusion_box(inclusion)
+    if box is not None:
+        ax.plot(*deformed_outline(model, sol, box).T, color="orange", lw=2, label="inclusion (x100 stiffer)")
+    (x0, x1), (y0, y1) = limits or extent(V, x)
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    if title:
+        ax.set_title(title, fontsize=10)
+    return sc
+
+
+def legend_below(fig, axes, ncol: int = 6):
+    """One legend for the figure, below the axes (never over the particles): the entries of
+    every axes, each label once, in ``ncol`` columns (fewer for a narrow figure)."""
+    seen = {}
+    for ax in np.atleast_1d(axes).ravel():
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            seen.setdefault(lab, h)
+    fig.legend(seen.values(), seen.keys(), loc="outside lower center", ncol=min(len(seen), ncol), fontsize=8)
+
+
+def phantom_limits(phantom, *states):
+    """Common (xlim, ylim) of phantom panels: the outline and every state's deformed
+    particles; ``states``: (model, solution) pairs."""
+    return extent(phantom.vertices, *[m.body.X + np.asarray(m.particle_displacements(s)) for m, s in states])
+
+
+def run_static(phantom, inclusion, increments, out: Path, n_devices=1):
+    stages = interface.progress(total=2, desc=f"needle static {inclusion}", unit="stage")
+    stages.set_postfix_str("sweep (one compiled call)")
+    t0 = time.perf_counter()
+    sw = nd.static_sweep(phantom, inclusion, increments, n_devices=n_devices)
+    wall = time.perf_counter() - t0
+    stages.update()
+    stages.set_postfix_str("figures")
+    free = float(sw.no_paddle[-1])
+    summary = {
+        "mode": "static", "inclusion": inclusion, "increments": increments,
+        "insertion": phantom.insertion, "immobile": phantom.immobile, "support": phantom.support,
+        "no_paddle_deviation": free,
+        "deviation": sw.final.tolist(),
+        "best": sw.best,
+        "reduction": [abs(free) / max(abs(d), 1e-300) for d in sw.final],
+        "best_reduction": abs(free) / max(abs(sw.final[sw.best - 1]), 1e-300),
+        "deviation_per_increment": sw.deviation.tolist(),
+        "no_paddle_per_increment": sw.no_paddle.tolist(),
+        "depths": sw.depths.tolist(),
+        "status": [[nd.Status(int(s)).name.lower() for s in row] for row in sw.status],
+        "no_paddle_status": [nd.Status(int(s)).name.lower() for s in sw.no_paddle_status],
+        "converged": sw.converged,
+        "wall_s": wall,
+        "thesis": {"no_paddle_deviation": NEEDLE["no_paddle_deviation"],
+                   "best": NEEDLE["best_static"][inclusion]},
+    }
+    static_figures(phantom, sw, summary, out)
+    stages.update()
+    stages.close()
+    return summary
+
+
+def static_figures(phantom, sw, summary, out: Path):
+    P = len(sw.final)
+    fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(11, 5))
+    idx = np.arange(1, P + 1)
+    ok = [all(s == "converged" for s in row) for row in summary["status"]]
+    a1.bar(idx, np.abs(sw.final), color=["C0" if o else "0.6" for o in ok])
+    handles = [Patch(color="C0", label="reached full insertion")]
+    if not all(ok):
+        why = ", ".join(sorted({s for row in summary["status"] for s in row if s != "converged"}))
+        handles.append(Patch(color="0.6", label=f"stopped early ({why}): the deviation\n"
+                                                "at its last converged increment"))
+    handles.append(a1.axhline(abs(summary["no_paddle_deviation"]), color="r", ls="--", label="no paddle"))
+    if sw.inclusion == "none":
+        handles.append(a1.axhline(NEEDLE["no_paddle_deviation"], color="k", ls=":", label="no paddle (thesis)"))
+    a1.set_yscale("log")
+    a1.set_xticks(idx)
+    a1.set_xlabel("paddle position (Table 6.2)")
+    a1.set_ylabel(f"|target x deviation| at {100 * phantom.insertion:.0f}% insertion ({plot.UNITS})")
+    a1.set_title(f"inclusion: {sw.inclusion}; best paddle {sw.best} "
+                 f"({summary['best_reduction']:.0f}x less than no paddle)", fontsize=10)
+    a1.legend(handles=handles, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2)
+    a2.plot(100 * sw.depths, sw.no_paddle, "k--", label="no paddle")
+    for p in range(P):
+        a2.plot(100 * sw.depths, sw.deviation[p], "o-", ms=3, label=f"paddle {p + 1}"
+                + ("" if ok[p] else " (stopped early)"))
+    a2.axhline(0, color="0.5", lw=0.6)
+    a2.set_xlabel("needle insertion (% of height)")
+    a2.set_ylabel(f"target x deviation ({plot.UNITS})")
+    a2.legend(fontsize=8)
+    a2.grid(alpha=0.3)
+    plot.save(fig, out / f"deviation_{sw.inclusion}.png")
+
+    increments = len(sw.depths)
+    m0, s0 = nd.static_state(phantom, sw.inclusion, None, increments)
+    m1, s1 = nd.static_state(phantom, sw.inclusion, sw.best, increments)
+    vmax = float(max(np.linalg.norm(m.particle_displacements(s), axis=1).max() for m, s in ((m0, s0), (m1, s1))))
+    limits = phantom_limits(phantom, (m0, s0), (m1, s1))
+    fig, axes = plot.plt.subplots(1, 2, figsize=(11, 6), layout="constrained")
+    draw_phantom(axes[0], phantom, m0, s0, sw.inclusion, title="no paddle", vmax=vmax, limits=limits)
+    sc = draw_phantom(axes[1], phantom, m1, s1, sw.inclusion, paddle=sw.best,
+                      title=f"static paddle {sw.best}", vmax=vmax, limits=limits)
+    legend_below(fig, axes)
+    fig.colorbar(sc, ax=axes, label=f"|u| ({plot.UNITS})", shrink=0.8)
+    fig.savefig(out / f"phantom_static_{sw.inclusion}.png", dpi=120)
+    plot.plt.close(fig)
+
+
+def run_dynamic(phantom, inclusion, increments, out: Path, paddle=None, n_devices=1):
+    stages = interface.progress(total=3, desc=f"needle dynamic {inclusion}", unit="stage")
+    stages.set_postfix_str("sweep and controllability")
+    t0 = time.perf_counter()
+    sw = nd.static_sweep(phantom, inclusion, increments, n_devices=n_devices)
+    ctrl = sw.controllability[:, 0]   # after the first increment, as the thesis
+    best = int(np.argmin(ctrl)) + 1
+    chosen = best if paddle is None else paddle
+    stages.update()
+    stages.set_postfix_str(f"closed loop on paddle {chosen}")
+    run = nd.dynamic_paddle(phantom, chosen, inclusion, increments)
+    wall = time.perf_counter() - t0
+    stages.update()
+    stages.set_postfix_str("figures")
+    dev = np.abs(run.deviation)
+    summary = {
+        "mode": "dynamic", "inclusion": inclusion, "increments": increments,
+        "insertion": phantom.insertion, "immobile": phantom.immobile, "support": phantom.support,
+        "controllability": ctrl.tolist(),
+        "best": best, "paddle": chosen,
+        "max_deviation": float(dev.max()) if len(dev) else None,
+        "paddle_travel": run.travel,
+        "deviation": run.deviation.tolist(),
+        "feed_forward_deviation": run.uncorrected.tolist(),
+        "paddle_u": run.paddle_u.tolist(),
+        "corrections": run.iterations.tolist(),
+        "depths": run.depths.tolist(),
+        "static_deviation": sw.deviation[chosen - 1].tolist(),
+        "no_paddle_per_increment": sw.no_paddle.tolist(),
+        "status": run.status.name.lower(), "message": run.message,
+        "wall_s": wall,
+        "thesis": {"controllability": NEEDLE["controllability"].get(inclusion),
+                   "best": NEEDLE["most_controllable"]},
+    }
+    dynamic_figures(phantom, sw, run, summary, out)
+    stages.update()
+    stages.close()
+    return summary
+
+
+def dynamic_figures(phantom, sw, run, summary, out: Path):
+    fig, axes = plot.plt.subplots(1, 3, figsize=(15, 4.2))
+    P = len(summary["controllability"])
+    idx = np.arange(1, P + 1)
+    w = 0.38
+    axes[0].bar(idx - w / 2, summary["controllability"], w, label="ours")
+    th = summary["thesis"]["controllability"]
+    if th:
+        axes[0].bar(idx + w / 2, th, w, color="0.6", label="thesis Table 6.3")
+    axes[0].set_xticks(idx)
+    axes[0].set_xlabel("paddle position")
+    axes[0].set_ylabel(r"$\delta x_{min} = \|J^{-1}[1\ 0]^T\|$")
+    axes[0].set_title(f"controllability ({sw.inclusion}); most controllable: {summary['best']}", fontsize=10)
+    axes[0].legend(fontsize=8)
+    d = 100 * np.asarray(summary["depths"])
+    n = len(d)
+    axes[1].plot(100 * sw.depths, sw.no_paddle, "k--", label="no paddle")
+    axes[1].plot(100 * sw.depths, summary["static_deviation"], "s-", ms=3, label=f"static paddle {run.paddle}")
+    axes[1].plot(d, summary["feed_forward_deviation"][:n], "^-", ms=3, label="feed-forward move only")
+    axes[1].plot(d, summary["deviation"], "o-", ms=3, label="closed loop")
+    axes[1].set_yscale("symlog", linthresh=1e-6)
+    axes[1].set_xlabel("needle insertion (%)")
+    axes[1].set_ylabel(f"target x deviation ({plot.UNITS})")
+    axes[1].legend(fontsize=8)
+    axes[1].grid(alpha=0.3)
+    pu = np.vstack([np.zeros(2), np.asarray(run.paddle_u).reshape(-1, 2)])
+    axes[2].plot(pu[:, 0], pu[:, 1], "o-", ms=3)
+    axes[2].set_xlabel(f"paddle x displacement ({plot.UNITS})")
+    axes[2].set_ylabel(f"paddle y displacement ({plot.UNITS})")
+    axes[2].set_title(f"paddle {run.paddle} path, travel {run.travel:.4f}", fontsize=10)
+    axes[2].set_aspect("equal", adjustable="datalim")
+    axes[2].grid(alpha=0.3)
+    plot.save(fig, out / f"dynamic_{sw.inclusion}.png")
+
+    if run.solution is not None:
+        model = phantom.model(sw.inclusion, run.paddle)
+        fig, ax = plot.plt.subplots(figsize=(6.5, 6.5), layout="constrained")
+        sc = draw_phantom(ax, phantom, model, run.solution, sw.inclusion, paddle=run.paddle,
+                          title=f"dynamic paddle {run.paddle}, insertion {d[-1] if n else 0:.0f}%")
+        legend_below(fig, ax, ncol=3)
+        fig.colorbar(sc, ax=ax, label=f"|u| ({plot.UNITS})", shrink=0.8)
+        fig.savefig(out / f"phantom_dynamic_{sw.inclusion}.png", dpi=120)
+        plot.plt.close(fig)
+
+
+def run_optimize(phantom, inclusion, increments, out: Path, n_devices=1, start=None, iterations=30):
+    """The paddle position as a continuous variable q along the Table 6.2 chain (a stiff
+    spring paddle), optimised with Adam through the differentiable solve, against the best
+    discrete (essential) paddle of the static sweep; plus a scan of q for the figure."""
+    scan_q = np.linspace(1.0, len(phantom.paddles), 17)
+    # stages: the sweep, each scanned position, Adam, the figures
+    stages = interface.progress(total=len(scan_q) + 3, desc=f"needle optimize {inclusion}", unit="stage")
+    stages.set_postfix_str("sweep")
+    t0 = time.perf_counter()
+    sw = nd.static_sweep(phantom, inclusion, increments, n_devices=n_devices)
+    model = phantom.spring_model(inclusion)
+    depths = phantom.depths(increments)
+    stages.update()
+    scan = []
+    for q in scan_q:
+        stages.set_postfix_str(f"scan q = {q:.2f}")
+        _, dev, st = nd.spring_insertion(model, phantom, q, depths)
+        scan.append(dev[-1] if st == nd.Status.CONVERGED else None)
+        stages.update()
+    start = float(sw.best) if start is None else float(start)
+    stages.set_postfix_str(f"Adam, {iterations} iterations")
+    opt = nd.optimize_paddle(phantom, inclusion, start=start, increments=increments, iterations=iterations)
+    wall = time.perf_counter() - t0
+    stages.update()
+    stages.set_postfix_str("figures")
+    best_dev = float(sw.final[sw.best - 1])
+    summary = {
+        "mode": "optimize", "inclusion": inclusion, "increments": increments,
+        "optimum": {"q": opt.q, "arc_length": phantom.arc_length(opt.q), "deviation": opt.deviation},
+        "best_discrete": sw.best, "best_discrete_deviation": best_dev,
+        "no_paddle_deviation": float(sw.no_paddle[-1]),
+        "improvement_over_discrete": abs(best_dev) / max(abs(opt.deviation), 1e-300),
+        "start": start, "status": opt.status.name.lower(), "message": opt.message,
+        "rejected_steps": opt.rejected,
+        "history": {"q": opt.history[:, 0].tolist(), "deviation": opt.history[:, 1].tolist(),
+                    "gradient": opt.history[:, 2].tolist()},
+        "scan": {"q": scan_q.tolist(), "deviation": scan},
+        "discrete_deviation": sw.final.tolist(),
+        "discrete_converged": sw.converged_paddles.tolist(),
+        "paddle_stiffness": float(model.params.springs["k"][0]),
+        "wall_s": wall,
+    }
+    optimize_figures(phantom, model, sw, summary, out)
+    stages.update()
+    stages.close()
+    return summary
+
+
+def optimize_figures(phantom, model, sw, summary, out: Path):
+    fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(12, 4.6), layout="constrained")
+    sq = np.array(summary["scan"]["q"])
+    sd = np.array([np.nan if d is None else abs(d) for d in summary["scan"]["deviation"]])
+    a1.semilogy(sq, sd, "-", color="0.5", label="spring paddle, scan")
+    failed = np.isnan(sd)
+    if failed.any():
+        a1.plot(sq[failed], np.full(failed.sum(), np.nanmin(sd)), "rx", label="insertion fails (det F <= 0)")
+    idx = np.arange(1, len(sw.final) + 1)
+    ok = np.asarray(summary["discrete_converged"])
+    a1.plot(idx[ok], np.abs(sw.final[ok]), "s", ms=8, mfc="none", label="essential paddle (Table 6.2)")
+    h = summary["history"]
+    a1.plot(h["q"], np.abs(h["deviation"]), "o-", ms=3, color="C1", label="Adam iterates")
+    o = summary["optimum"]
+    a1.plot(o["q"], abs(o["deviation"]), "*", ms=14, color="C3", label=f"optimum q = {o['q']:.3f}")
+    a1.axhline(abs(summary["no_paddle_deviation"]), color="r", ls="--", label="no paddle")
+    a1.set_xlabel("paddle position q (Table 6.2 chain, continuous)")
+    a1.set_ylabel(f"|target x deviation| at full insertion ({plot.UNITS})")
+    a1.set_title(f"inclusion: {sw.inclusion}; optimum {summary['improvement_over_discrete']:.1f}x below "
+                 f"the best discrete paddle {summary['best_discrete']}", fontsize=10)
+    a1.legend(fontsize=7)
+    a1.grid(alpha=0.3, which="both")
+    sol, _, _ = nd.spring_insertion(model, phantom, o["q"], sw.depths)
+    pts = np.asarray(phantom.paddle_points(o["q"]))
+    sc = draw_phantom(a2, phantom, model, sol, sw.inclusion, paddle=o["q"], paddle_points=pts,
+                      title=f"optimised paddle q = {o['q']:.3f} (arc length {o['arc_length']:.3f})")
+    legend_below(fig, a2)
+    fig.colorbar(sc, ax=a2, label=f"|u| ({plot.UNITS})", shrink=0.8)
+    fig.savefig(out / f"optimize_{sw.inclusion}.png", dpi=120)
+    plot.plt.close(fig)
+
+
+def result(s: dict) -> tuple[bool, str]:
+    """(goal reached, the result in words) of a needle summary. Static: the no-paddle run
+    and the best paddle reach full insertion (other paddles stopping early is a finding, and
+    is said); dynamic: the target held at every increment; optimize: Adam converged."""
+    mode, inc = s["mode"], s["inclusion"]
+    if mode == "static":
+        failed = {i + 1: sorted({x for x in row if x != "converged"}) for i, row in enumerate(s["status"])
+                  if any(x != "converged" for x in row)}
+        words = (f"needle static ({inc}): best paddle {s['best']} (thesis: {s['thesis']['best']}), deviation "
+                 f"{abs(s['no_paddle_deviation']):.4f} -> {abs(s['deviation'][s['best'] - 1]):.4f} "
+                 f"({s['best_reduction']:.0f}x less than no paddle)")
+        if failed:
+            why = "; ".join(f"{w}: {nd.Status[w.upper()].message}"
+                            for w in sorted({w for ws in failed.values() for w in ws}))
+            words += (f"; {len(failed)} of {len(s['status'])} paddles ({', '.join(map(str, failed))}) stopped "
+                      f"before full insertion ({why})")
+        ok = s["best"] not in failed and all(x == "converged" for x in s["no_paddle_status"])
+        return ok, words
+    if mode == "dynamic":
+        words = (f"needle dynamic ({inc}): most controllable paddle {s['best']}, closed loop on paddle "
+                 f"{s['paddle']}: max |deviation| {s['max_deviation']:.1e}, paddle travel "
+                 f"{s['paddle_travel']:.4f}; {s['status']}: {s['message']}")
+        return s["status"] == "converged", words
+    o = s["optimum"]
+    words = (f"needle optimize ({inc}): paddle q = {o['q']:.3f}, deviation {abs(o['deviation']):.1e}, "
+             f"{s['improvement_over_discrete']:.1f}x below the best discrete paddle {s['best_discrete']}; "
+             f"{s['status']}: {s['message']}")
+    return s["status"] == "converged", words
+
+
+def main(argv=None):
+    a = interface.parse("needle", argv)
+    t0 = time.time()
+    out = interface.output_folder(a.out)
+    phantom = nd.Phantom()
+    if a.mode == "static":
+        summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
+    elif a.mode == "dynamic":
+        summary = run_dynamic(phantom, a.inclusion, a.increments, out, a.paddle, a.devices)
+    else:
+        summary = run_optimize(phantom, a.inclusion, a.increments, out, a.devices, a.start, a.iterations)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    interface.finish(out, t0, summary, result(summary)[1], a.json)
+    return summary

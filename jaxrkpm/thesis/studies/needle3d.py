@@ -1,0 +1,300 @@
+"""The 3D needle-insertion phantom (chapter 6 lifted to 3D; jaxrkpm.thesis.phantom3d.Phantom3D).
+
+A half-ellipsoid on a fixed chest-wall base, a horizontal needle entering from x < 0 along
++x towards an interior target at 40% of its chord; the target's lateral (y, z) deviation is
+what a paddle holding a patch of the skin must prevent.
+
+``--mode static``: every candidate paddle patch (an angle grid over the accessible skin,
+20 by default) x every insertion increment in one batched, compiled call, plus the
+no-paddle run; the final lateral deviation per patch, the best patch and its reduction
+against no paddle; the controllability delta x_min per patch (the largest paddle travel
+per unit lateral correction, 1/sigma_min of the lateral rows of J^-1) as a map over the skin.
+
+``--mode dynamic``: the closed loop moving the most controllable patch during insertion so
+the target stays on the needle line (|lateral deviation| below ``--tol`` at every
+increment; the issue's bound is 1e-4 of the object size).
+
+``--mode optimize``: the best discrete patch's contact points as stiff springs, slid over
+the skin by two surface coordinates (theta, phi) and optimised with Adam (optax) through
+the differentiable solve from that patch's centre (where the spring paddle is the held
+patch again), against that patch.
+
+Writes summary.json, PNG figures and a .vtu of the final state to --out.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxrkpm.thesis import needle as nd
+from jaxrkpm.io import output
+from jaxrkpm.io import plot
+from jaxrkpm.thesis.phantom3d import Phantom3D, ellipsoid_point
+from jaxrkpm.thesis.studies import interface
+
+
+def object_size(phantom: Phantom3D) -> float:
+    """The phantom's largest extent (its long axis, 2a): the scale of the hold bound."""
+    return float(2 * max(phantom.semi_axes[:2]))
+
+
+def draw_deformed(ax, phantom: Phantom3D, model, sol, title: str, vmax=None, patch=None):
+    """Deformed particles, the x-z view (the needle runs along x, the base is z = 0), with the
+    needle particles, the patch and the target marked."""
+    X = model.body.X
+    u = np.asarray(model.particle_displacements(sol))
+    sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=10)
+    x = X + u
+    n = model.set_indices("needle")
+    ax.plot(x[n, 0], x[n, 2], "r^", ms=6, label="needle")
+    if patch is not None:
+        p = model.set_indices("paddle")
+        ax.plot(x[p, 0], x[p, 2], "gs", ms=7, mfc="none", mew=2, label=f"patch {patch}")
+    t = np.asarray(phantom.target)
+    tu = t + np.asarray(model.displacement(sol, np.atleast_2d(t)))[0]
+    ax.axhline(phantom.entry[2], color="r", ls="--", lw=0.8)
+    ax.plot(t[0], t[2], "k+", ms=10, label="target (rest)")
+    ax.plot(tu[0], tu[2], "m*", ms=12, label="target")
+    ax.set_title(title, fontsize=10)
+    return sc
+
+
+def skin_map(ax, phantom: Phantom3D, values, label: str, log=True, best=None):
+    """Patch centres seen from above (x-y), coloured by ``values`` (one per patch)."""
+    c = phantom.paddles
+    v = np.asarray(values, float)
+    from matplotlib.colors import LogNorm
+    norm = LogNorm(vmin=np.nanmin(v), vmax=np.nanmax(v)) if log and np.nanmin(v) > 0 else None
+    a, b, _ = phantom.semi_axes
+    t = np.linspace(0, 2 * np.pi, 200)
+    ax.plot(a * np.cos(t), b * np.sin(t), color="0.6", lw=0.8)
+    ax.plot([phantom.entry[0], phantom.target[0]], [phantom.entry[1], phantom.target[1]], "r-", lw=1.5,
+            label="needle track")
+    sc = ax.scatter(c[:, 0], c[:, 1], c=v, s=120, cmap="viridis_r", norm=norm, edgecolors="k")
+    for i, p in enumerate(c):
+        ax.annotate(str(i + 1), p[:2], fontsize=6, ha="center", va="center", color="w")
+    if best is not None:
+        ax.plot(*c[best - 1, :2], "o", ms=16, mfc="none", mec="r", mew=2, label=f"best patch {best}")
+    ax.plot(*phantom.target[:2], "m*", ms=12, label="target")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    ax.legend(fontsize=7, loc="lower left")
+    ax.figure.colorbar(sc, ax=ax, label=label, shrink=0.8)
+    return sc
+
+
+def final_state(phantom, inclusion, paddle, increments):
+    return nd.static_state(phantom, inclusion, paddle, increments)
+
+
+def write_vtu(out: Path, name: str, model, sol) -> str:
+    return str(output.write_solution(out / f"{name}.vtu", model, sol))
+
+
+def run_static(phantom, inclusion, increments, out: Path, n_devices=1):
+    t0 = time.perf_counter()
+    sw = nd.static_sweep(phantom, inclusion, increments, n_devices=n_devices)
+    return static_report(phantom, sw, out, wall=time.perf_counter() - t0)
+
+
+def static_report(phantom, sw, out: Path, wall=None):
+    """The static mode's summary, figures and .vtu files from a sweep ``sw``."""
+    inclusion, increments = sw.inclusion, len(sw.depths)
+    free = float(sw.no_paddle[-1])
+    final = sw.final
+    best = sw.best
+    ctrl = sw.controllability[:, 0]
+    summary = {
+        "mode": "static", "inclusion": inclusion, "increments": increments,
+        "particles": phantom.body.n, "spacing": phantom.spacing, "insertion": phantom.insertion,
+        "material": phantom.material_law, "patches": len(final), "patch_size": phantom.patch_size,
+        "patch_coordinates": phantom.patch_coordinates.tolist(),
+        "no_paddle_deviation": free, "no_paddle_lateral": phantom.lateral_components(sw.no_paddle_u[-1]).tolist(),
+        "deviation": final.tolist(), "best": best,
+        "best_reduction": abs(free) / max(abs(final[best - 1]), 1e-300),
+        "reduction": (abs(free) / np.maximum(np.abs(final), 1e-300)).tolist(),
+        "controllability": ctrl.tolist(), "most_controllable": int(np.argmin(ctrl)) + 1,
+        "status": [[nd.Status(int(s)).name.lower() for s in row] for row in sw.status],
+        "converged": sw.converged, "wall_s": wall,
+    }
+    fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(13, 4.8), layout="constrained")
+    skin_map(a1, phantom, np.abs(final), "|lateral deviation| at full insertion", best=best)
+    a1.set_title(f"inclusion {inclusion}: no paddle {abs(free):.2e}; best patch {best} "
+                 f"({summary['best_reduction']:.0f}x less)", fontsize=10)
+    skin_map(a2, phantom, ctrl, r"controllability $\delta x_{min}$ (paddle travel / lateral correction)",
+             best=summary["most_controllable"])
+    a2.set_title("controllability after the first increment (smaller: more controllable)", fontsize=10)
+    fig.savefig(out / f"patches_{inclusion}.png", dpi=120)
+    plot.plt.close(fig)
+
+    fig, ax = plot.plt.subplots(figsize=(9, 4))
+    ok = sw.converged_paddles
+    idx = np.arange(1, len(final) + 1)
+    ax.bar(idx, np.abs(final), color=["C0" if o else "0.6" for o in ok])
+    ax.axhline(abs(free), color="r", ls="--", label="no paddle")
+    ax.set_yscale("log")
+    ax.set_xticks(idx)             # one tick per patch: patches are numbered, not a continuum
+    ax.set_xlabel("paddle patch")
+    ax.set_ylabel("|lateral target deviation|")
+    ax.set_title(f"3D phantom, inclusion {inclusion}: final deviation per patch", fontsize=10)
+    ax.legend(fontsize=8)
+    plot.save(fig, out / f"deviation_{inclusion}.png")
+
+    m0, s0 = final_state(phantom, inclusion, None, increments)
+    m1, s1 = final_state(phantom, inclusion, best, increments)
+    vmax = float(max(np.linalg.norm(m.particle_displacements(s), axis=1).max() for m, s in ((m0, s0), (m1, s1))))
+    fig, axes = plot.plt.subplots(1, 2, figsize=(12, 3.3), layout="constrained")
+    draw_deformed(axes[0], phantom, m0, s0, "no paddle (x-z view)", vmax)
+    sc = draw_deformed(axes[1], phantom, m1, s1, f"static patch {best} (x-z view)", vmax, patch=best)
+    axes[1].legend(fontsize=7, loc="upper right")
+    fig.colorbar(sc, ax=axes, label="|u|", shrink=0.8)
+    fig.savefig(out / f"phantom_static_{inclusion}.png", dpi=120)
+    plot.plt.close(fig)
+    summary["vtu"] = [write_vtu(out, f"no_paddle_{inclusion}", m0, s0),
+                      write_vtu(out, f"patch{best}_{inclusion}", m1, s1)]
+    return summary
+
+
+def run_dynamic(phantom, inclusion, increments, out: Path, paddle=None, tol=1e-5, n_devices=1):
+    t0 = time.perf_counter()
+    sw = nd.static_sweep(phantom, inclusion, increments, n_devices=n_devices)
+    ctrl = sw.controllability[:, 0]
+    chosen = int(np.argmin(ctrl)) + 1 if paddle is None else paddle
+    run = nd.dynamic_paddle(phantom, chosen, inclusion, increments, tol=tol)
+    wall = time.perf_counter() - t0
+    size = object_size(phantom)
+    dev = np.abs(run.deviation)
+    summary = {
+        "mode": "dynamic", "inclusion": inclusion, "increments": increments,
+        "particles": phantom.body.n, "controllability": ctrl.tolist(), "paddle": chosen,
+        "object_size": size, "bound": 1e-4 * size, "tol": tol,
+        "max_deviation": float(dev.max()) if len(dev) else None,
+        "held": bool(len(dev) == increments and dev.max() < 1e-4 * size),
+        "paddle_travel": run.travel, "deviation": run.deviation.tolist(),
+        "feed_forward_deviation": run.uncorrected.tolist(), "paddle_u": run.paddle_u.tolist(),
+        "corrections": run.iterations.tolist(), "depths": run.depths.tolist(),
+        "static_deviation": sw.deviation[chosen - 1].tolist(), "no_paddle_per_increment": sw.no_paddle.tolist(),
+        "status": run.status.name.lower(), "message": run.message, "wall_s": wall,
+    }
+    fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(12, 4.3), layout="constrained")
+    d = 100 * np.asarray(run.depths) / phantom.chord
+    a1.semilogy(100 * sw.depths / phantom.chord, np.abs(sw.no_paddle), "k--", label="no paddle")
+    a1.semilogy(100 * sw.depths / phantom.chord, np.abs(sw.deviation[chosen - 1]), "s-", ms=3,
+                label=f"static patch {chosen}")
+    a1.semilogy(d, np.abs(run.uncorrected), "^-", ms=3, label="feed-forward move only")
+    a1.semilogy(d, np.maximum(dev, 1e-16), "o-", ms=3, label="closed loop")
+    a1.axhline(1e-4 * size, color="r", ls=":", label="1e-4 x object size")
+    a1.set_xlabel("needle insertion (% of the chord)")
+    a1.set_ylabel("|lateral target deviation|")
+    a1.legend(fontsize=7)
+    a1.grid(alpha=0.3, which="both")
+    if run.solution is not None:
+        model = phantom.model(inclusion, chosen)
+        sc = draw_deformed(a2, phantom, model, run.solution, f"dynamic patch {chosen}, final state", patch=chosen)
+        a2.legend(fontsize=7, loc="upper right")
+        fig.colorbar(sc, ax=a2, label="|u|", shrink=0.8)
+        summary["vtu"] = write_vtu(out, f"dynamic_patch{chosen}_{inclusion}", model, run.solution)
+    fig.savefig(out / f"dynamic_{inclusion}.png", dpi=120)
+    plot.plt.close(fig)
+    return summary
+
+
+def run_optimize(phantom, inclusion, increments, out: Path, iterations=12, stiffness=1e6, n_devices=1):
+    """The best discrete patch's contact points as a spring paddle (``with_footprint``),
+    slid over the skin by Adam from that patch's centre: its first iterate is the held
+    patch again (to the penalty error), so the optimum compares with it like for like."""
+    t0 = time.perf_counter()
+    sw = nd.static_sweep(phantom, inclusion, increments, n_devices=n_devices)
+    best = sw.best
+    start = phantom.patch_coordinates[best - 1]
+    sliding = phantom.with_footprint(best)
+    opt = nd.optimize_paddle(sliding, inclusion, start=start, increments=increments, iterations=iterations,
+                             learning_rate=0.05, stiffness=stiffness)
+    wall = time.perf_counter() - t0
+    best_dev = float(sw.final[best - 1])
+    summary = {
+        "mode": "optimize", "inclusion": inclusion, "increments": increments, "particles": phantom.body.n,
+        "optimum": {"theta": float(opt.q[0]), "phi": float(opt.q[1]), "deviation": opt.deviation,
+                    "point": np.asarray(ellipsoid_point(phantom.semi_axes, *opt.q)).tolist()},
+        "best_discrete": best, "best_discrete_deviation": best_dev,
+        "best_discrete_coordinates": start.tolist(),
+        "spring_paddle_at_best_discrete": opt.start_deviation,
+        "no_paddle_deviation": float(sw.no_paddle[-1]),
+        "improvement_over_discrete": abs(best_dev) / max(abs(opt.deviation), 1e-300),
+        "status": opt.status.name.lower(), "message": opt.message, "rejected_steps": opt.rejected,
+        "history": opt.history.tolist(), "paddle_stiffness": stiffness, "wall_s": wall,
+    }
+    fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(12, 4.6), layout="constrained")
+    skin_map(a1, phantom, np.abs(sw.final), "|lateral deviation| (discrete patches)", best=best)
+    h = opt.history
+    path = np.array([np.asarray(ellipsoid_point(phantom.semi_axes, *q)) for q in h[:, :2]])
+    a1.plot(path[:, 0], path[:, 1], "o-", color="C3", ms=3, label="Adam iterates")
+    a1.plot(*path[np.argmin(np.abs(h[:, 2])), :2], "*", color="C3", ms=14, label="optimum")
+    a1.legend(fontsize=7, loc="lower left")
+    a1.set_title(f"optimised patch: {abs(opt.deviation):.2e} vs best discrete {abs(best_dev):.2e}", fontsize=10)
+    a2.semilogy(np.abs(h[:, 2]), "o-", label="continuous paddle (Adam)")
+    a2.axhline(abs(best_dev), color="k", ls="--", label=f"best discrete patch {best}")
+    a2.axhline(abs(summary["no_paddle_deviation"]), color="r", ls=":", label="no paddle")
+    a2.set_xlabel("iteration")
+    a2.set_ylabel("|lateral deviation| at full insertion")
+    a2.legend(fontsize=8)
+    a2.grid(alpha=0.3, which="both")
+    fig.savefig(out / f"optimize_{inclusion}.png", dpi=120)
+    plot.plt.close(fig)
+    return summary
+
+
+def result(s: dict) -> tuple[bool, str]:
+    """(goal reached, the result in words) of a needle3d summary. Static: every patch and the
+    no-paddle run reach full insertion; dynamic: the target held within the bound at every
+    increment; optimize: the optimiser converged."""
+    mode, inc, n = s["mode"], s["inclusion"], s["particles"]
+    if mode == "static":
+        failed = [i + 1 for i, row in enumerate(s["status"]) if any(x != "converged" for x in row)]
+        words = (f"needle3d static ({inc}, {n} particles): no paddle {abs(s['no_paddle_deviation']):.2e}, best "
+                 f"patch {s['best']} of {s['patches']} {abs(s['deviation'][s['best'] - 1]):.2e} "
+                 f"({s['best_reduction']:.0f}x less), most controllable patch {s['most_controllable']}")
+        if failed:
+            words += f"; patches {', '.join(map(str, failed))} stopped before full insertion"
+        return bool(s["converged"]), words
+    if mode == "dynamic":
+        dev = "none" if s["max_deviation"] is None else f"{s['max_deviation']:.1e}"
+        words = (f"needle3d dynamic ({inc}, {n} particles): patch {s['paddle']}, max |lateral deviation| {dev} "
+                 f"(bound {s['bound']:.0e}), paddle travel {s['paddle_travel']:.4f}; "
+                 f"{s['status']}: {s['message']}")
+        return bool(s["held"]), words
+    o = s["optimum"]
+    words = (f"needle3d optimize ({inc}, {n} particles): patch at theta {o['theta']:.3f}, phi {o['phi']:.3f}, "
+             f"deviation {abs(o['deviation']):.1e}, {s['improvement_over_discrete']:.1f}x below the best "
+             f"discrete patch {s['best_discrete']}; {s['status']}: {s['message']}")
+    return s["status"] == "converged", words
+
+
+def main(argv=None):
+    a = interface.parse("needle3d", argv)
+    t0 = time.time()
+    out = interface.output_folder(a.out)
+    stages = interface.progress(total=2, desc=f"needle3d {a.mode} {a.inclusion}", unit="stage")
+    stages.set_postfix_str("mesh and models")
+    phantom = Phantom3D(spacing=a.spacing)
+    if a.paddle is not None and a.paddle > len(phantom.paddles):
+        interface.needle3d_parser().error(f"argument --paddle: must be an integer in [1, {len(phantom.paddles)}] "
+                                          f"(the candidate patches), got {a.paddle}")
+    phantom.body
+    stages.update()
+    stages.set_postfix_str("sweep and solves")
+    if a.mode == "static":
+        summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
+    elif a.mode == "dynamic":
+        summary = run_dynamic(phantom, a.inclusion, a.increments, out, a.paddle, a.tol, a.devices)
+    else:
+        summary = run_optimize(phantom, a.inclusion, a.increments, out, a.iterations, n_devices=a.devices)
+    stages.update()
+    stages.close()
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    interface.finish(out, t0, summary, result(summary)[1], a.json)
+    return summary

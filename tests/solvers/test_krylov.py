@@ -1,0 +1,96 @@
+"""The Newton-Krylov path (solver="krylov": CG preconditioned by algebraic multigrid) against
+the direct one, and its failure reported as a status."""
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxrkpm as jr
+from jaxrkpm.solvers.linalg import multigrid as krylov
+from jaxrkpm.solvers.linalg.base import Stability
+from jaxrkpm.mechanics.assembly import dense_tangent
+from tests.problems import unit_grid
+
+PUSH = {"right": jnp.array([-0.2, 0.05, 0.0])}
+
+
+@pytest.fixture(scope="module")
+def cube5():
+    """5^3 neo-Hookean cube, left face held, right face pushed 20% and sheared: the dense
+    solution and a Krylov model."""
+    body = unit_grid(5, 3)
+    sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
+    material = jr.NeoHookean(lam=1.0, mu=1.0)
+    dense = jr.Model(body, material, essential=sets, solver="dense")
+    model = jr.Model(body, material, essential=sets, solver="krylov")
+    return dense, dense.solve(PUSH, steps=2), model
+
+
+def test_krylov_solution_equals_the_direct_one(cube5):
+    dense, ref, model = cube5
+    assert model.linear.name == "krylov"
+    krylov.reset_stats()
+    sol = model.solve(PUSH, steps=2)
+    assert sol.outcome == jr.Status.CONVERGED
+    # both meet the Newton tolerance |r| <= 1e-10 x the force scale: the states agree to it
+    u, u_ref = np.asarray(sol.u), np.asarray(ref.u)
+    assert np.abs(u - u_ref).max() < 1e-9 * np.abs(u_ref).max()
+    assert float(sol.residual_norm) <= 1e-9 * float(np.abs(np.asarray(ref.residual_norm)).max() + 1)
+    # CG did the solves, and the hierarchy was built once for all of them (reused)
+    assert krylov.STATS["krylov_solves"] == int(sol.iterations)
+    assert krylov.STATS["amg_setups"] == 1
+    # a linear solve with the state of a converged tangent (as implicit Jacobians use it)
+    # solves K_ff x = r: checked with the dense K_ff of the state's own tangent blocks
+    prob = model.problem()
+    state = prob.factorise(sol.u, sol.g)
+    assert Stability.of(prob.stability(state)) == Stability.STABLE
+    r = jnp.asarray(np.random.default_rng(0).standard_normal(sol.u.shape))
+    x = np.asarray(prob.solve_linear(state, r)).ravel()
+    K = np.asarray(dense_tangent(prob.ops, state.blocks))
+    assert np.abs(K @ x - np.asarray(r).ravel()).max() < 1e-8 * np.abs(np.asarray(r)).max()
+
+
+def test_krylov_not_converged_is_a_status(cube5, monkeypatch):
+    _, _, model = cube5
+    # two CG iterations cannot solve a 3D tangent to 1e-10: every Newton attempt's linear solve
+    # fails, and the solve says so instead of taking the untrusted steps. (The host reads
+    # maxiter at each call: the compiled solve of the test above serves, no new compile)
+    monkeypatch.setattr(model.linear.system, "maxiter", 2)
+    krylov.pool(model.linear.system).clear()
+    sol = model.solve(PUSH, steps=2, throw=False, max_cuts=1)
+    assert sol.outcome == jr.Status.LINEAR_SOLVE
+    assert float(sol.t) == 0.0
+    with pytest.raises(jr.SolveError, match="iterative linear solver"):
+        model.solve(PUSH, steps=2, max_cuts=1)
+    assert model.linear.system.replace(maxiter=7).maxiter == 7
+    with pytest.raises(ValueError, match="maxiter must be a positive integer"):
+        model.linear.system.replace(maxiter=0)
+    with pytest.raises(ValueError, match="unknown solver 'amg': choose 'auto', 'dense', 'sparse', 'krylov'"):
+        jr.Model(model.body, model.material, solver="amg")
+
+
+def test_pardiso_pattern_holds_the_lower_saddle_point_matrix():
+    """The saddle-point matrix PARDISO factorises (lower triangle, built from the pairs by
+    ``sparse.lower_pattern``) equals the lower triangle of [K C^T; C 0] made densely, for
+    tangent blocks that are not even symmetric (so a block taken transposed would show)."""
+    from jaxrkpm.solvers.linalg import factorisations as sparse
+    try:
+        sparse.factoriser("pardiso")
+    except ValueError:
+        pytest.skip("Intel MKL (PARDISO) is not installed")
+    body = jr.Body.grid((4, 3, 3), 0.5)
+    sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1.5 - 1e-9)}
+    model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets, solver="sparse", factorisation="pardiso")
+    S = model.linear.system
+    pi, pj = np.asarray(model.ops.pair_i), np.asarray(model.ops.pair_j)
+    blocks = np.random.default_rng(1).standard_normal((len(pi), 3, 3))
+    K = np.zeros((body.n * 3, body.n * 3))
+    for p in range(len(pi)):
+        K[pi[p] * 3:pi[p] * 3 + 3, pj[p] * 3:pj[p] * 3 + 3] = blocks[p]
+    C = np.zeros((S.nc, S.n_dof))
+    Cf = S.elimination.Cf.toarray()
+    C[:, S.elimination.free_dofs] = Cf
+    Cb = S.elimination.Cb_lu.solve(np.eye(S.nc))          # C_b^-1: C_b is its inverse's inverse
+    C[:, S.elimination.bnd_dofs] = np.linalg.inv(Cb)
+    full = np.block([[K, C.T], [C, np.zeros((S.nc, S.nc))]])
+    A = S.matrix(blocks).toarray()
+    assert np.abs(A - np.tril(full)).max() < 1e-12 * np.abs(full).max()

@@ -1,0 +1,217 @@
+"""First contact with the command line: help without JAX, descriptions, --version, exit codes,
+one-line errors, the one summary line, the report's verdicts and the figures' fixes. Nothing
+here solves anything big: bad input stops before any solve, the rest uses fake summaries."""
+import json
+import os
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from jaxrkpm.thesis import cli
+from jaxrkpm.thesis.studies import interface
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def python(code: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout,
+                          env=env, cwd=ROOT)
+
+
+def test_help_of_every_command_without_jax():
+    code = ("import sys\nfrom jaxrkpm.thesis import cli\n"
+            "codes = [cli.main(['--help'])] + [cli.main([c, '--help']) for c in cli.COMMANDS]\n"
+            "print('CODES', codes, 'JAX', 'jax' in sys.modules)")
+    p = python(code)
+    assert p.returncode == 0, p.stderr
+    assert f"CODES {[0] * (len(cli.COMMANDS) + 1)} JAX False" in p.stdout
+    for name, (_, what) in cli.COMMANDS.items():
+        assert f"  {name}" in p.stdout and what in p.stdout          # top level: name + description
+        assert f"usage: jaxrkpm {name} " in p.stdout                  # the right program name
+    assert "exit codes:" in p.stdout and "output folder (--out) cannot be" in p.stdout
+    assert "DESIGN.md" not in p.stdout and "as in the issue" not in p.stdout
+
+
+def test_importing_the_package_is_light_and_float64():
+    p = python("import sys, jaxrkpm as jr\nprint('jax' in sys.modules)\n"
+               "import jax.numpy as jnp\nprint(jnp.ones(2).dtype, jr.Model.__name__, jr.track.__name__)")
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.split() == ["False", "float64", "Model", "track"]
+    p = python("import jax\nimport jaxrkpm\nimport jax.numpy as jnp\nprint(jnp.ones(2).dtype)")
+    assert p.stdout.strip() == "float64", p.stderr   # jax imported first: switched on import
+
+
+def test_version(capsys):
+    version = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    assert cli.main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"jaxrkpm {version}"
+
+
+def test_unknown_command_says_so(capsys):
+    assert cli.main(["trak"]) == interface.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "unknown command 'trak'" in err and "did you mean 'track'" in err and "reproduce" in err
+
+
+@pytest.mark.parametrize("argv, option, wanted", [
+    (["track", "--n", "1"], "--n", "an integer >= 3"),
+    (["compress", "--step", "0"], "--step", "a number in (0, 0.5]"),
+    (["compress", "--max", "nan"], "--max", "a number in (0, 1)"),
+    (["needle", "--increments", "-3"], "--increments", "an integer >= 1"),
+    (["needle", "--paddle", "6"], "--paddle", "an integer in [1, 5]"),
+    (["rig-sim", "--gain", "inf"], "--gain", "a number > 0"),
+    (["track", "--tol", "abc"], "--tol", "a number > 0"),
+])
+def test_out_of_range_numbers_are_one_line_usage_errors(argv, option, wanted, capsys):
+    assert cli.main(argv) == interface.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert f"argument {option}: must be {wanted}, got" in err and "Traceback" not in err
+    assert err.strip().splitlines()[-1].startswith(f"jaxrkpm {argv[0]}: error: argument {option}")
+
+
+def test_step_larger_than_the_range_is_a_usage_error(capsys):
+    assert cli.main(["compress", "--step", "0.2", "--max", "0.1"]) == interface.EXIT_USAGE
+    assert "--step 0.2 is larger than --max 0.1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", list(cli.COMMANDS))
+def test_unwritable_output_is_exit_3_before_any_work(command, tmp_path, capsys):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    out = blocker / "results"                       # a folder under a file: cannot be made
+    extra = ["--path", "setpoint", "--n", "3"] if command == "track" else []
+    assert cli.main([command, *extra, "--out", str(out)]) == interface.EXIT_OUTPUT
+    err = capsys.readouterr().err
+    assert err.strip() == f"jaxrkpm {command}: error: cannot write to {out}/: Not a directory"
+
+
+def test_one_summary_line_and_the_exit_code_of_a_missed_goal(tmp_path, monkeypatch, capsys):
+    """The cantilever study with its convergence faked to first order: it runs, writes, says
+    so in one line and exits 1 (ran, goal missed); JSON only with --json."""
+    from jaxrkpm.thesis.studies import cantilever
+    fake = {"h": [0.25, 0.125], "relative_l2_error": [1e-2, 5e-3], "rates": [1.0]}
+    monkeypatch.setattr(cantilever, "convergence", lambda hs: fake)
+    assert cli.main(["cantilever", "--out", str(tmp_path)]) == interface.EXIT_GOAL
+    out = capsys.readouterr().out.strip().splitlines()
+    assert out == [f"wrote {tmp_path}/: convergence.png, summary.json; Timoshenko cantilever: relative L2 "
+                   "errors 1.00e-02, 5.00e-03; rates 1.00 (expected >= 2, linear basis)"]
+    assert json.loads((tmp_path / "summary.json").read_text()) == fake
+    monkeypatch.setattr(cantilever, "convergence", lambda hs: {**fake, "rates": [2.0]})
+    assert cli.main(["cantilever", "--json", "--out", str(tmp_path)]) == interface.EXIT_OK
+    printed = capsys.readouterr().out
+    assert json.loads(printed[:printed.index("wrote ")])["rates"] == [2.0]
+
+
+def test_parser_choices_are_the_studies_own():
+    from jaxrkpm.thesis.studies import compress, rig_sim
+
+    def choices(command, option):
+        return next(a.choices for a in interface.PARSERS[command]()._actions if option in a.option_strings)
+    assert tuple(choices("compress", "--mode")) == tuple(compress.MODES)
+    assert tuple(choices("compress", "--material")) == tuple(compress.MATERIALS)
+    assert tuple(choices("rig-sim", "--path")) == tuple(rig_sim.RIG_PATHS)
+
+
+# ------------------------------------------------------------------ words of the summary lines
+def test_needle_static_says_which_paddles_stopped_and_why():
+    from jaxrkpm.thesis.studies import needle
+    row = ["converged"] * 3
+    s = {"mode": "static", "inclusion": "none", "best": 3, "deviation": [0.02, 0.01, 0.001, 0.004, 0.006],
+         "no_paddle_deviation": 0.014, "best_reduction": 14.0, "thesis": {"best": 4},
+         "status": [row[:2] + ["inverted"], row, row, row[:2] + ["inverted"], row], "no_paddle_status": row}
+    ok, words = needle.result(s)
+    assert ok and "best paddle 3" in words and "14x less" in words
+    assert "2 of 5 paddles (1, 4) stopped before full insertion (inverted: a step would invert" in words
+    s["best"] = 1
+    assert not needle.result(s)[0]          # the best paddle itself failed: goal missed
+
+
+def test_rig_budget_cap_is_explained():
+    from jaxrkpm.thesis.studies import rig_sim
+    run = {"status": "DONE", "message": "", "iterations": 5, "waypoints": [{"reached_at": 0}, {"reached_at": 5}],
+           "physical_error_mm": {"mean": 0.15, "max": 0.15}}
+    budget = {"status": "ITERATION_CAP", "physical_error_mm": {"mean": 9.1, "max": 9.1}}
+    s = {"path": "setpoint", "settings": {"tol_mm": 0.3, "budget": 1},
+         "runs": {"uncorrected": {"tracking": run, "budget": budget}}}
+    ok, words = rig_sim.result(s)
+    assert ok and "2/2 waypoints within 0.3 mm (camera) in 5 iterations" in words
+    assert "with 1 iteration(s) per waypoint (budget run): mean physical error 9.10 mm" in words
+
+
+# ------------------------------------------------------------------ report.md of reproduce
+def test_report_has_a_verdict_per_row_and_each_note_once():
+    from jaxrkpm.thesis.studies import experiments, reproduce
+    entries = {e.id: e for e in reproduce.ENTRIES}
+    comp = {"fold_estimate": 0.44, "max_compression": 0.43}
+    assert entries["compress_straight_gauss"].judge(comp) == ("agrees", "limit")
+    assert entries["compress_straight_gauss"].judge({**comp, "fold_estimate": 0.19}) == ("differs", "limit point")
+    assert entries["compress_straight_scni"].judge(comp) == ("differs", "scheme")
+    track = {"waypoints_reached": 2, "waypoints_total": 2, "max_waypoint_error": 5e-5}
+    assert entries["track_setpoint_gauss"].judge(track) == ("agrees", "tolerance")
+    assert entries["track_setpoint_scni"].judge(track) == ("agrees in kind", "scheme")
+    assert entries["track_box_gauss"].judge({**track, "waypoints_reached": 1}) == ("differs", "stopped")
+    assert entries["track3d_refined"].judge(track) == ("agrees", "error")
+    assert entries["needle_dynamic_none"].judge({"best": 3}) == ("agrees in kind", "phantom")
+    assert entries["needle_dynamic_none"].judge({"best": 5}) == ("differs", "phantom")
+
+    rows = []
+    for i, (id_, verdict, reason) in enumerate([("track_setpoint_scni", "agrees in kind", "scheme"),
+                                                 ("track_box_scni", "agrees in kind", "scheme"),
+                                                 ("compress_straight_gauss", "differs", "limit point")]):
+        e = entries[id_]
+        rows.append({"id": id_, "thesis_ref": e.thesis_ref, "thesis_value": e.thesis_value, "note": e.note,
+                     "ours": f"ours {i}", "verdict": verdict, "reason": reason, "wall_s": 1.0,
+                     "figures": [f"{id_}/cp_path.png"], "status": "ok"})
+    md = reproduce.report_md(rows, quick=False, total_s=60)
+    assert "| verdict |" in md
+    assert "| ours 0 | agrees in kind (scheme) [1] |" in md and "| ours 1 | agrees in kind (scheme) [1] |" in md
+    assert "| ours 2 | differs (limit point) [2] |" in md and md.count(experiments.LIMIT) == 1
+    assert md.count(experiments.COLL) == 1 and f"1. {experiments.COLL}" in md
+    assert "Verdicts: agrees 0, agrees in kind 2, differs 1." in md
+    ok, words = reproduce.result({"experiments": rows, "total_wall_s": 60})
+    assert ok and words == "3/3 experiments ran in 1.0 min; verdicts: agrees 0, agrees in kind 2, differs 1 (report.md)"
+
+
+# ------------------------------------------------------------------ figures
+class FakePhantomModel:
+    """Just what draw_phantom reads: particles, sets and an affine displacement field."""
+
+    def __init__(self, X, grad):
+        self.body = SimpleNamespace(X=X)
+        self.grad = np.asarray(grad)
+
+    def displacement(self, sol, P):
+        return np.asarray(P) @ self.grad.T
+
+    def particle_displacements(self, sol):
+        return self.displacement(sol, self.body.X)
+
+    def set_indices(self, name):
+        return np.arange(3) if name == "needle" else np.arange(3, 6)
+
+
+def test_phantom_drawing_keeps_particles_in_view_and_the_legend_off_them():
+    from jaxrkpm.thesis import needle as nd
+    from jaxrkpm.io import plot
+    from jaxrkpm.thesis.studies import needle
+    phantom = nd.Phantom()
+    X = np.stack(np.meshgrid(np.linspace(0, 1, 6), np.linspace(0, 1, 6)), -1).reshape(-1, 2)
+    model = FakePhantomModel(X, [[0.3, 0.0], [0.0, 0.25]])     # stretches the body past x, y = 1.1
+    fig, ax = plot.plt.subplots(layout="constrained")
+    needle.draw_phantom(ax, phantom, model, None, "right")
+    needle.legend_below(fig, ax)
+    x = X + model.particle_displacements(None)
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+    assert x0 <= x[:, 0].min() and x[:, 0].max() <= x1 and y0 <= x[:, 1].min() and x[:, 1].max() <= y1
+    assert ax.get_legend() is None and len(fig.legends) == 1      # the legend is below, not over the body
+    inclusion = next(l for l in ax.get_lines() if l.get_label().startswith("inclusion"))
+    xy = np.asarray(inclusion.get_xydata())
+    assert xy[:, 0].max() == pytest.approx(0.7 * 1.3) and xy[:, 1].max() == pytest.approx(0.4 * 1.25)  # deformed
+    assert "model units" in ax.get_xlabel() and "model units" in ax.get_ylabel()
+    plot.plt.close(fig)

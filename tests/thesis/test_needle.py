@@ -1,0 +1,149 @@
+"""Needle-insertion target stabilisation (thesis chapter 6): the batched sweep against
+unbatched solves, sharding, the thesis' findings in kind, the dynamic paddle loop."""
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from jaxrkpm.thesis import needle as nd
+from jaxrkpm.solvers.results import Status
+
+INCREMENTS = 15
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    return nd.Phantom()
+
+
+@pytest.fixture(scope="module")
+def sweeps(phantom):
+    return {inc: nd.static_sweep(phantom, inc, INCREMENTS) for inc in ("none", "right", "left")}
+
+
+def test_phantom_layout(phantom):
+    X = phantom.body.X
+    assert np.isclose(phantom.body.volumes.sum(), 1.0 - 0.125)          # unit square less the corner
+    sets = phantom.sets(4)
+    np.testing.assert_allclose(X[sets["needle"]], [[0.5, 0.0], [0.5, 0.1], [0.5, 0.2]], atol=1e-12)
+    np.testing.assert_allclose(X[sets["paddle"]], [[0.0, 0.5], [0.1, 0.4]], atol=1e-12)
+    assert np.all(X[sets["wall"], 1] < 1e-12) and np.all(X[sets["wall"], 0] > 0.5)
+
+
+def test_static_findings_in_kind(sweeps):
+    """A paddle cuts the deviation >= 10x (homogeneous phantom, best fully converged paddle)
+    and the best position moves with the inclusion."""
+    sw = sweeps["none"]
+    assert np.all(sw.no_paddle_status == Status.CONVERGED)
+    assert abs(sw.no_paddle[-1]) > 0.01                                   # thesis 0.0307
+    assert sw.converged_paddles[sw.best - 1]
+    assert abs(sw.no_paddle[-1]) / abs(sw.final[sw.best - 1]) >= 10.0
+    best = {inc: s.best for inc, s in sweeps.items()}
+    assert len(set(best.values())) > 1, best
+    # the deviation grows with insertion without a paddle
+    assert np.all(np.diff(np.abs(sw.no_paddle)) > 0)
+
+
+def test_batched_equals_unbatched(phantom, sweeps):
+    """The batched sweep equals warm-started model.solve per increment, and its Jacobians
+    equal model.jacobian at the same states (failed increments included: both keep the
+    last converged state of the path)."""
+    sw = sweeps["left"]
+    for paddle in (4, 1):                     # one converged throughout, one that fails late
+        model = phantom.model("left", paddle)
+        target = np.atleast_2d(phantom.target)
+        sol = model.initial()
+        for k, depth in enumerate(sw.depths):
+            new = model.solve({"needle": [0.0, float(depth)]}, initial=sol, throw=False)
+            assert int(new.status) == sw.status[paddle - 1, k]
+            sol = new        # a failed increment returns the last converged state on its path
+            dev = float(model.displacement(sol, target)[0, 0])
+            assert abs(dev - sw.deviation[paddle - 1, k]) < 1e-10, (paddle, k)
+            if int(new.status) == Status.CONVERGED and k in (0, len(sw.depths) - 1):
+                J = np.asarray(model.jacobian(sol, "paddle", target))
+                np.testing.assert_allclose(sw.jacobian[paddle - 1, k], J, rtol=1e-8, atol=1e-10)
+
+
+def test_sharded_equals_unsharded():
+    """Four host devices: the sweep sharded over them equals the single-device run."""
+    code = textwrap.dedent("""
+        import json, numpy as np
+        from jaxrkpm.thesis import needle as nd
+        import jax
+        ph = nd.Phantom()
+        models = [ph.model("none", p) for p in (1, 2, 3, 4, 5)]
+        a = nd.insert(models, ph.depths(15)[:2], ph.target, n_devices=4)
+        b = nd.insert(models, ph.depths(15)[:2], ph.target, n_devices=1)
+        print(json.dumps({"devices": len(jax.devices()),
+                          "du": float(np.abs(np.asarray(a.target_u) - np.asarray(b.target_u)).max()),
+                          "dJ": float(np.abs(np.asarray(a.jacobian) - np.asarray(b.jacobian)).max()),
+                          "status": bool(np.array_equal(a.status, b.status))}))
+    """)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["devices"] == 4
+    assert r["du"] < 1e-12 and r["dJ"] < 1e-10 and r["status"]
+
+
+def test_controllability_and_dynamic_paddle(phantom, sweeps):
+    """delta x_min from the implicit Jacobian; the closed loop holds the target on the
+    needle line at every increment."""
+    ctrl = sweeps["none"].controllability[:, 0]
+    assert np.all(np.isfinite(ctrl)) and np.all(ctrl > 0)
+    assert np.argmax(ctrl) == 0                        # paddle 1 the least controllable (Table 6.3)
+    run = nd.dynamic_paddle(phantom, 5, "none", INCREMENTS)
+    assert run.status == nd.HoldStatus.CONVERGED, run.message
+    assert len(run.deviation) == INCREMENTS
+    assert np.abs(run.deviation).max() < 1e-4
+    assert np.abs(run.uncorrected).max() > 1e-5         # the feed-forward alone does not hold it
+    assert run.travel > 0.005
+
+
+def test_cli_static(tmp_path):
+    from jaxrkpm.thesis.studies import needle as cli
+    s = cli.main(["--mode", "static", "--inclusion", "none", "--increments", str(INCREMENTS),
+                  "--out", str(tmp_path)])
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    for key in ("no_paddle_deviation", "deviation", "best"):
+        assert key in saved
+    assert saved["best"] == s["best"] and len(saved["deviation"]) == 5
+    assert (tmp_path / "deviation_none.png").stat().st_size > 10_000
+    assert (tmp_path / "phantom_static_none.png").stat().st_size > 10_000
+
+
+def test_bad_input(phantom):
+    with pytest.raises(ValueError, match="immobile"):
+        nd.Phantom(immobile="left")
+    with pytest.raises(ValueError, match="paddle index"):
+        phantom.sets(9)
+    with pytest.raises(ValueError, match="inclusion"):
+        phantom.material("middle")
+    with pytest.raises(ValueError, match="no particle"):
+        nd.Phantom(paddles=(((0.05, 0.45), (0.0, 0.5)),)).sets(1)
+
+
+def test_continuous_paddle_and_optimised_placement(phantom, sweeps):
+    """The spring paddle at an integer position reproduces the essential paddle; the final
+    deviation is differentiable in the position (implicit == central differences); a few
+    Adam steps from the best discrete paddle find a smaller deviation (left inclusion)."""
+    model = phantom.spring_model("none")
+    depths = phantom.depths(INCREMENTS)
+    _, dev, st = nd.spring_insertion(model, phantom, 4.0, depths)
+    assert st == Status.CONVERGED
+    assert abs(dev[-1] - sweeps["none"].final[3]) < 2e-5           # penalty error O(1/k)
+    d, g, st = nd.final_deviation_and_gradient(model, phantom, 3.5, depths)
+    e = 1e-4
+    dp = nd.final_deviation_and_gradient(model, phantom, 3.5 + e, depths)[0]
+    dm = nd.final_deviation_and_gradient(model, phantom, 3.5 - e, depths)[0]
+    assert g != 0.0 and abs(g - (dp - dm) / (2 * e)) < 1e-6 * abs(g)
+    sw = sweeps["left"]
+    opt = nd.optimize_paddle(phantom, "left", start=float(sw.best), iterations=6)
+    print("optimised paddle (left):", opt.q, opt.deviation, "discrete", sw.final[sw.best - 1])
+    assert abs(opt.deviation) < 0.5 * abs(sw.final[sw.best - 1])
+    assert 1.0 <= opt.q <= len(phantom.paddles)

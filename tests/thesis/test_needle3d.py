@@ -1,0 +1,208 @@
+"""The 3D needle-insertion phantom (chapter 6 lifted to a half-ellipsoid mesh body) through the
+generic needle functions, and shape servoing (Algorithm 3) on a mesh body loaded from a file.
+
+One coarse phantom (~230 particles) and one set of compiled models for the module; few
+increments (the 3D compiles dominate)."""
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import jaxrkpm as jr
+from jaxrkpm.thesis import needle as nd
+from jaxrkpm.thesis.phantom3d import Phantom3D
+from jaxrkpm.solvers.results import Status
+
+SPACING = 0.3
+INCREMENTS = 2
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    return Phantom3D(spacing=SPACING)
+
+
+@pytest.fixture(scope="module")
+def sweep(phantom):
+    return nd.static_sweep(phantom, "none", INCREMENTS)
+
+
+def test_phantom_layout(phantom):
+    body = phantom.body
+    a, b, c = phantom.semi_axes
+    assert abs(body.volumes.sum() - 2 / 3 * np.pi * a * b * c) < 0.05 * 2 / 3 * np.pi * a * b * c
+    X = body.X
+    assert np.all(np.abs(X[phantom.base, 2]) < 1e-12) and len(phantom.base) > 10
+    # the mesh conforms to the track: the needle is its particles on the first needle_length
+    # (within the physical needle_radius), a particle sits on the target, none on the base
+    d = phantom.needle_direction
+    rel = X[phantom.needle] - phantom.entry
+    along = rel @ d
+    r = phantom.needle_radius
+    assert len(phantom.needle) >= 10 and np.all((along > -r) & (along <= phantom.needle_length + r))
+    assert np.all(np.linalg.norm(rel - along[:, None] * d, axis=1) <= r * (1 + 1e-9))
+    on_axis = np.linalg.norm(rel - along[:, None] * d, axis=1) < 1e-12
+    assert np.sum(on_axis & (along > 0) & (along <= phantom.needle_length)) >= 3
+    assert np.linalg.norm(X - np.asarray(phantom.target), axis=1).min() < 1e-12
+    # the needle lies in the symmetry plane y = 0 and the mesh is its exact mirror image
+    assert phantom.mirror_symmetric
+    assert cKDTree(X).query(X * [1, -1, 1])[0].max() < 1e-12
+    # >= 20 candidate patches of equal size on the skin, distinct, away from the needle entry
+    patches = [tuple(phantom.patch(p)) for p in range(1, len(phantom.paddles) + 1)]
+    assert len(set(patches)) >= 20 and {len(p) for p in patches} == {phantom.patch_size}
+    skin = np.concatenate(patches)
+    assert np.allclose(phantom.level(X[skin]), 1.0, atol=1e-6) and np.all(X[skin, 2] > 0)
+    assert np.linalg.norm(X[skin] - phantom.entry, axis=1).min() > phantom.needle_radius   # clear of the needle
+    # the target on the needle line, at 40% of the chord
+    assert np.allclose(phantom.target, phantom.entry + 0.4 * phantom.chord * np.array([1.0, 0, 0]))
+
+
+def test_static_sweep_reduces_deviation(sweep):
+    """No paddle: the target leaves the needle line only vertically (the needle lies in the
+    plane of the mirror-symmetric mesh, so the sideways part is zero to round-off; the fixed
+    base pushes the target up, as the immobile edge does in 2D). The best of the 20 patches
+    over the target cuts the final lateral deviation >= 5x at this coarse test mesh (5.75x:
+    17 particles per patch); issue 17's >= 10x holds at spacing 0.2 and 0.15 (20.8x, 116x: README,
+    experiments/phantom3d_patch_grid.py). Placement matters: the median patch is far worse."""
+    assert np.all(sweep.no_paddle_status == Status.CONVERGED) and np.all(sweep.converged_paddles)
+    u = sweep.no_paddle_u[-1]
+    assert abs(u[1]) < 1e-12 and u[2] > 1e-3, u
+    assert np.all(np.diff(np.abs(sweep.no_paddle)) > 0)
+    reduction = abs(sweep.no_paddle[-1]) / abs(sweep.final[sweep.best - 1])
+    assert reduction >= 5.0, reduction
+    assert np.median(np.abs(sweep.final)) > 3 * abs(sweep.final[sweep.best - 1])   # placement matters
+
+
+FINE_SPACING = 0.2   # the mesh-converged phantom (no-paddle deviation within 4% of 0.15, 0.12, 0.1)
+COARSE_TIE = 1.5     # coarse-mesh deviations within this factor of the best are not told apart
+
+
+def test_best_patch_reduces_10x_on_the_converged_mesh(phantom, sweep):
+    """Issue 17's >= 10x, on the mesh where the no-paddle deviation has converged (spacing
+    0.2; the coarse test mesh gives 5.75x). Coarse search, fine check: the coarse mesh cannot
+    rank patches whose deviations lie within COARSE_TIE of its best (the five around the pole
+    lie within 1.1x there, and their fine-mesh order differs), so all of them are solved on
+    the fine mesh, in one batched call, the needle inserted in one increment (hyperelastic:
+    the same equilibrium as in several). The best of them cuts the deviation >= 10x (20.8x
+    measured); the fine sweep's best patch does at least as well, so its reduction is >= that."""
+    fine = Phantom3D(spacing=FINE_SPACING)
+    best = abs(sweep.final[sweep.best - 1])
+    candidates = [p + 1 for p in np.flatnonzero(np.abs(sweep.final) <= COARSE_TIE * best)]
+    depths = fine.depths(1)
+
+    def final_deviations(paddles):
+        out = nd.insert([fine.model("none", p) for p in paddles], depths, fine.target, jacobian_set=None,
+                        direction=fine.needle_direction)
+        assert np.all(np.asarray(out.status) == Status.CONVERGED)
+        return fine.deviation_of(np.asarray(out.target_u)[:, -1])
+
+    none = float(final_deviations([None])[0])
+    devs = final_deviations(candidates)
+    assert abs(none - 7.37e-3) < 0.05 * 7.37e-3, none        # the converged value (README)
+    assert none / devs.min() >= 10.0, dict(zip(candidates, devs))
+
+
+def test_batched_equals_unbatched(phantom, sweep):
+    """The batched sweep equals warm-started model.solve per increment, Jacobians included."""
+    p = sweep.best
+    model = phantom.model("none", p)
+    target = np.atleast_2d(phantom.target)
+    sol = model.initial()
+    for k, depth in enumerate(sweep.depths):
+        sol = model.solve({"needle": phantom.needle_at(depth)}, initial=sol)
+        u = np.asarray(model.displacement(sol, target))[0]
+        np.testing.assert_allclose(u, sweep.target_u[p - 1, k], rtol=0, atol=1e-10)
+    J = np.asarray(model.jacobian(sol, "paddle", target))
+    np.testing.assert_allclose(sweep.jacobian[p - 1, -1], J, rtol=1e-8, atol=1e-10)
+
+
+def test_controllability(sweep):
+    """delta x_min = largest ||J^-1 e|| over unit lateral e; in 2D it is the thesis'
+    ||J^-1 [1 0]^T||."""
+    ctrl = sweep.controllability
+    assert ctrl.shape == sweep.deviation.shape and np.all(np.isfinite(ctrl)) and np.all(ctrl > 0)
+    assert ctrl[:, 0].max() > 2 * ctrl[:, 0].min()          # patches differ
+    J = sweep.jacobian[0, 0]
+    M = np.linalg.inv(J)[:, 1:]
+    worst = max(np.linalg.norm(M @ [np.cos(t), np.sin(t)]) for t in np.linspace(0, np.pi, 721))
+    assert abs(ctrl[0, 0] - worst) < 1e-5 * worst
+    J2 = np.array([[0.3, -0.1], [0.05, 0.4]])
+    assert abs(nd.controllability(J2) - np.linalg.norm(np.linalg.solve(J2, [1.0, 0.0]))) < 1e-14
+
+
+def test_dynamic_paddle_holds_target(phantom, sweep):
+    """The closed loop keeps |lateral deviation| < 1e-4 of the object size at every increment."""
+    best = int(np.argmin(sweep.controllability[:, 0])) + 1
+    run = nd.dynamic_paddle(phantom, best, "none", INCREMENTS, tol=1e-5)
+    assert run.status == nd.HoldStatus.CONVERGED, run.message
+    size = 2 * max(phantom.semi_axes)
+    assert len(run.deviation) == INCREMENTS and np.abs(run.deviation).max() < 1e-4 * size
+    assert np.abs(run.uncorrected).max() > np.abs(run.deviation).max()
+    assert run.paddle_u.shape == (INCREMENTS, 3) and run.travel > 1e-4
+
+
+def test_optimised_patch_through_the_solve(phantom, sweep):
+    """Adam on the two surface coordinates, through the solve, from the best discrete patch,
+    the continuous paddle being that patch's own contact points as stiff springs slid over
+    the skin (``with_footprint``): its first iterate is the held patch again (to the penalty
+    error), and the best iterate, returned, lies well below it (2.8x in 4 iterations here:
+    the paddle slides over the pole, beyond the grid's first ring)."""
+    best = sweep.best
+    start = phantom.patch_coordinates[best - 1]
+    sliding = phantom.with_footprint(best)
+    assert np.abs(np.asarray(sliding.paddle_points(start)) - phantom.body.X[phantom.patch(best)]).max() < 1e-12
+    opt = nd.optimize_paddle(sliding, "none", start=start, increments=INCREMENTS, iterations=4,
+                             learning_rate=0.05)
+    lo, hi = phantom.paddle_bounds
+    assert opt.q.shape == (2,) and np.all(opt.q >= lo) and np.all(opt.q <= hi)
+    assert opt.history.shape[1] == 5 and np.all(np.isfinite(opt.history))
+    assert abs(opt.deviation) == np.min(np.abs(opt.history[:, 2]))
+    discrete = sweep.final[best - 1]
+    assert abs(opt.start_deviation - discrete) < 1e-3 * abs(discrete), (opt.start_deviation, discrete)
+    assert abs(opt.deviation) < 0.75 * abs(discrete), (opt.deviation, discrete)
+
+
+def test_shape_servoing_on_loaded_mesh(tmp_path, phantom):
+    """Algorithm 3 (``control.track``) on a body loaded from a mesh file: a skin patch driven,
+    an interior control point following a short path, every waypoint reached."""
+    from jaxrkpm.control.tracking import track
+    path = tmp_path / "phantom.vtu"
+    phantom.mesh().write(path)
+    body = jr.Body.from_mesh(str(path))
+    np.testing.assert_allclose(body.X, phantom.body.X, atol=1e-12)
+    model = jr.Model(body, phantom.material(), essential={"base": phantom.base, "paddle": phantom.patch(1)},
+                     support=phantom.support)
+    cp = np.array([[0.3, 0.0, 0.25]])
+    waypoints = np.array([[0.0, 0.0, 0.0], [0.004, 0.0, 0.002], [0.004, 0.003, 0.004]])
+    res = track(model, waypoints, "paddle", cp, gain=0.5, clamp=0.01, tol=1e-4)
+    assert res.status.name == "DONE", res.message
+    assert np.all(res.reached >= 0) and res.max_waypoint_error < 1e-4
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="material_law"):
+        Phantom3D(material_law="rubber")
+    with pytest.raises(ValueError, match="needle line"):
+        Phantom3D(needle_point=(0.0, 0.1, -0.1))
+    with pytest.raises(ValueError, match="target"):
+        Phantom3D(insertion=0.6)
+    with pytest.raises(ValueError, match="start"):
+        nd.optimize_paddle(Phantom3D(), start=[0.5])
+    with pytest.raises(ValueError, match="paddle_footprint"):
+        Phantom3D(paddle_footprint=21)
+
+
+def test_cli_static(tmp_path, phantom, sweep):
+    """``jaxrkpm needle3d --mode static``: summary, figures and .vtu files (its report on
+    the module's sweep, so no second sweep is compiled and run)."""
+    import json
+    from jaxrkpm.thesis.studies import needle3d as cli
+    s = cli.static_report(phantom, sweep, tmp_path)
+    (tmp_path / "summary.json").write_text(json.dumps(s))
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    assert saved["patches"] == 20 and saved["converged"] and saved["best_reduction"] >= 5.0
+    assert len(saved["controllability"]) == 20 and 1 <= saved["most_controllable"] <= 20
+    for name in ("patches_none.png", "deviation_none.png", "phantom_static_none.png"):
+        assert (tmp_path / name).stat().st_size > 10_000
+    assert all((tmp_path / p).name.endswith(".vtu") and (tmp_path / p).exists() for p in saved["vtu"])
+    with pytest.raises(SystemExit):
+        cli.main(["--increments", "0", "--out", str(tmp_path)])
