@@ -74,7 +74,7 @@ def run_case(n: int, integration: str, case: str, steps: int = 10, warm: bool = 
     if check and float(sol.t) < 1.0:
         # minima every dt of the whole load, from the last stable state to the full load
         t0 = time.perf_counter()
-        b = stable_beyond(model, sol, model.prescribed({"edge": jnp.asarray(push)}), min(1.0, dt / (1 - float(sol.t))))
+        b = stable_beyond(model.problem(), sol, model.prescribed({"edge": jnp.asarray(push)}), min(1.0, dt / (1 - float(sol.t))))
         t = float(sol.t)
         b.update({"from_t": t, "last_stable_t": t + b["reached"] * (1 - t), "time_s": time.perf_counter() - t0})
         if "failed_at" in b:

@@ -55,7 +55,7 @@ def test_the_checker_finds_private_uses():
     private = private_members_of_model()
     assert {"_springs", "_check_set"} <= private
     assert uses("model._check_set('a')\ncfg = m._springs(None)", private) == [(1, "_check_set"), (2, "_springs")]
-    assert uses("model.config()\nx = y.public", private) == []
+    assert uses("model.solver()\nx = y.public", private) == []
 
 
 RETIRED = {"_config", "_jacobian_tables", "_sparse_solver"}   # private once; public now or gone
@@ -93,9 +93,8 @@ def test_unknown_inertia_is_reported_as_unknown(monkeypatch):
     sol = model.solve({"r": [-0.05, 0.0]})
     assert sol.outcome == jr.Status.STABILITY_UNKNOWN and sol.converged
     assert "could not tell" in sol.message
-    state = model.problem().factorise(sol.u, sol.g)
-    from jaxrkpm.solvers.linalg.base import Stability
-    assert Stability.of(model.problem().stability(state)) == Stability.UNKNOWN
+    state = model.linear.state_at(model.problem(), sol.u, sol.g)
+    assert jr.Stability.of(model.linear.stability(state)) == jr.Stability.UNKNOWN
     # with the check off there is nothing to report
     assert model.solve({"r": [-0.05, 0.0]}, check_stability=False).outcome == jr.Status.CONVERGED
 
@@ -119,34 +118,32 @@ class FakeDevice:
 
 def test_auto_goes_dense_on_an_accelerator_while_the_matrices_fit():
     """solver="auto": the measured CPU crossover on a CPU; on a GPU, dense (no host callback)
-    up to DENSE_COPIES n^2 doubles of device memory."""
-    from jaxrkpm.model.model import DENSE_COPIES, DENSE_LIMIT, dense_limit
-    assert dense_limit(3, FakeDevice("cpu")) == DENSE_LIMIT[3] and dense_limit(2, FakeDevice("cpu")) == DENSE_LIMIT[2]
-    n = dense_limit(3, FakeDevice("gpu", 80 * 2**30))
-    assert 8 * DENSE_COPIES * n**2 <= 80 * 2**30 < 8 * DENSE_COPIES * (n + 1) ** 2
+    up to ``dense_copies`` n^2 doubles of device memory."""
+    choice = jr.internal.SolverChoice()
+    assert choice.dense_limit(3, FakeDevice("cpu")) == choice.dense_3d
+    assert choice.dense_limit(2, FakeDevice("cpu")) == choice.dense_2d
+    n = choice.dense_limit(3, FakeDevice("gpu", 80 * 2**30))
+    assert 8 * choice.dense_copies * n**2 <= 80 * 2**30 < 8 * choice.dense_copies * (n + 1) ** 2
     assert n > 21_600                                   # the 20^3 cube is dense on an 80 GB GPU
-    assert dense_limit(3, FakeDevice("gpu")) >= 20_000    # memory not reported
-    assert dense_limit(3, FakeDevice("gpu", 2**20)) == DENSE_LIMIT[3]   # never below the CPU's
-    assert dense_limit(3) == DENSE_LIMIT[3]                # this test machine: a CPU
+    assert choice.dense_limit(3, FakeDevice("gpu")) >= 20_000    # memory not reported
+    assert choice.dense_limit(3, FakeDevice("gpu", 2**20)) == choice.dense_3d   # never below the CPU's
+    assert choice.dense_limit(3) == choice.dense_3d                # this test machine: a CPU
 
 
-def test_precision_is_chosen_by_size_and_mixed_solves_equal_double(monkeypatch):
-    """Model(precision=...): "auto" factorises in mixed precision from MIXED_MIN free DOFs;
+def test_precision_is_chosen_by_size_and_mixed_solves_equal_double():
+    """Model(precision=...): "auto" factorises in mixed precision from ``mixed_min`` free DOFs;
     a mixed-precision solve and Jacobian equal the double ones to the solver's tolerance;
     an unknown precision is refused with the choices."""
     import jax.numpy as jnp
 
-    from jaxrkpm.model import model as model_module
-
     body = jr.Body.grid((5, 5), 0.25)
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "push": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
 
-    def make(precision):
-        return jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets, precision=precision)
+    def make(precision, **kw):
+        return jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets, precision=precision, **kw)
 
     assert not make("auto").linear.mixed and make("mixed").linear.mixed and not make("double").linear.mixed
-    monkeypatch.setattr(model_module, "MIXED_MIN", 10)
-    assert make("auto").linear.mixed
+    assert make("auto", choice=jr.internal.SolverChoice(mixed_min=10)).linear.mixed
     with pytest.raises(ValueError, match="unknown precision 'half'.*'mixed'"):
         make("half")
     g = jnp.array([-0.2, 0.05])

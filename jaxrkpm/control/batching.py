@@ -12,7 +12,7 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
 from ..model.model import Model
-from ..solvers.problem import Problem
+from ..mechanics.problem import Problem
 
 
 # ----------------------------------------------------------------------- batching
@@ -34,7 +34,7 @@ def stack_models(models: Sequence[Model]) -> tuple[Problem, tuple]:
         if m.ops.free.shape != ref.ops.free.shape:
             raise ValueError("batched models must have essential sets of equal sizes "
                              f"({m.ops.bnd.shape[0]} vs {ref.ops.bnd.shape[0]} essential particles)")
-        if m.config() != ref.config():
+        if m.material.W != ref.material.W or m.linear != ref.linear:
             raise ValueError("batched models must share one material law and linear solver")
 
     def same(xs):
@@ -48,7 +48,7 @@ def stack_models(models: Sequence[Model]) -> tuple[Problem, tuple]:
         return jnp.asarray(np.stack([np.pad(np.asarray(x), [(0, s - n) for s, n in zip(shape, np.shape(x))])
                                      for x in xs]))
 
-    flat = [jax.tree.flatten(Problem(m.ops, m.params, ref.config())) for m in models]
+    flat = [jax.tree.flatten(m.problem()) for m in models]
     treedef = flat[0][1]
     columns = list(zip(*[leaves for leaves, _ in flat]))
     batched = tuple(not same(xs) for xs in columns)

@@ -16,7 +16,7 @@ chord corrections, ``linear.QuasiNewton``) and made again only where a correctio
 residual by less than ``reuse``: same residual tolerance, and the Jacobian then comes from the
 kept factorisation (of a nearby earlier state) by iterative refinement with exact
 Hessian-vector products (``jaxrkpm.solvers.implicit.sensitivity(refine=...)``): the implicit Jacobian of
-the current state, to a relative residual of JACOBIAN_RTOL. That refinement starts from the
+the current state, to a relative residual of ``jacobian_rtol``. That refinement starts from the
 response predicted along the path (``response_trend``), and the chord from the move's
 second-order prediction (``predicted_change``): on the 9x9 box path, 0-1 CG iterations and
 1.6 chord solves a control step.
@@ -31,15 +31,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..solvers.linalg.dense import DenseSolver
-from ..solvers.linalg.quasi_newton import QuasiNewton
-from ..model.model import Model
 from ..base.outcome import Outcome
 from ..discretise.polygons import distance_to_segment
-from ..solvers.problem import Problem
+from ..mechanics.problem import Problem
+from ..model.model import Model
+from ..solvers.implicit import point_jacobian, response
+from ..solvers.iterate import when
+from ..solvers.linalg.dense import DenseSolver
+from ..solvers.linalg.quasi_newton import QuasiNewton
+from ..solvers.newton import Chord, Newton
+from ..solvers.path import LoadPath
 from ..solvers.results import Limits, Solution, Status, reached_equilibrium
-from ..solvers.path import solve_path
-from ..solvers.loops import when
 
 
 class TrackStatus(Outcome):
@@ -68,53 +70,65 @@ def control_increment(J, e, gain, clamp, damping=0.0):
     return jnp.where(biggest > clamp, step * (clamp / biggest), step)
 
 
-QN_MEMORY = 8   # secant pairs a kept factorisation carries (``ControlledModel.of`` with reuse)
-# the Jacobian from a kept factorisation is refined until |K x - rhs| <= this x |rhs|: it only
-# sets the direction of a gained, clamped increment (the equilibria keep the solver's own
-# tolerance), and each correction costs m Hessian-vector products. Measured on the 10^3 cube
-# from a factorisation 5 control steps old: 1e-10 0.33 s (J to 1e-11), 1e-6 0.20 s (7e-8),
-# 1e-4 0.13 s (1e-5); with a fresh factorisation 0.03 s
-JACOBIAN_RTOL = 1e-6
-# track(reuse=None) on the dense path: factorisations kept across control steps, refactorised
-# where a chord correction cuts |r| by less than 2x. Measured (same run, quiet, factorising
-# every step / kept): 10^3 cube 0.280 / 0.128 s a control step; the 2D box path 1.24 / 0.63 s,
-# the same waypoints reached at the same iterations. Not on the sparse path, whose chord
-# corrections are refined host solves with no secant update (14^3: 1.54 / 1.89 s a step)
-KEPT_REUSE = 0.5
-KEPT_CORRECTIONS = 30   # chord corrections allowed with a kept factorisation (each must still
-#                         cut |r| by Config.reuse: 0.5**30 ~ 1e-9 of the predictor's residual)
+@partial(jax.tree_util.register_dataclass, data_fields=("problem", "G", "idx", "psi"),
+         meta_fields=("driver", "chord", "jacobian_rtol", "corrections"))
+@dataclass(frozen=True)
+class ControlledModel:
+    """One model inside the tracking loop (a pytree: the problem and the tables are its
+    arrays; the solvers and settings its static part): the rigid directions of the driven set,
+    the control points' shape functions, the adaptive solve (``driver``) and the chord that
+    settles each move (``chord``).
 
-
-class ControlledModel(NamedTuple):
-    """One model inside the tracking loop (a pytree): its problem, the rigid directions of
-    the driven set and the control points' shape functions."""
+    jacobian_rtol  with a kept factorisation the Jacobian is refined until
+                   |K x - rhs| <= jacobian_rtol |rhs|: it only sets the direction of a gained,
+                   clamped increment (the equilibria keep the solver's own tolerance), and each
+                   correction costs m Hessian-vector products (``experiments/bench_cube3d.py``).
+    corrections    chord corrections allowed with a kept factorisation (each must still cut |r|
+                   by the chord's ``reuse``: 0.5**30 ~ 1e-9 of the predictor's residual)."""
 
     problem: Problem
     G: jax.Array     # (d_mp, Nb, d) rigid directions of the driven set
     idx: jax.Array   # (C, K) control point neighbours
     psi: jax.Array   # (C, K)
+    driver: LoadPath
+    chord: Chord
+    jacobian_rtol: float = 1e-6
+    corrections: int = 30
 
     @staticmethod
-    def of(model: Model, driven: str, control_points, params=None, reuse: float = 0.0) -> "ControlledModel":
+    def of(model: Model, driven: str, control_points, params=None, reuse: float = 0.0,
+           memory: int = 8) -> "ControlledModel":
         """``reuse`` in (0, 1): keep factorisations across control steps (``keeps``); the
-        chord corrections must then cut |r| by at least this factor each (Config.reuse).
-        A dense model then solves with ``QuasiNewton(DenseSolver(inverse=True))``: L^-1 is
-        kept (solves are matrix-vector products, and a kept factorisation serves many) and
-        the corrections' secant pairs improve it (L-BFGS), across control steps too."""
+        chord corrections must then cut |r| by at least this factor each. A dense model then
+        solves with ``QuasiNewton(DenseSolver(inverse=True), memory)``: L^-1 is kept (solves
+        are matrix-vector products, and a kept factorisation serves many) and the
+        corrections' secant pairs improve it (L-BFGS), across control steps too."""
         sf = model.shape_functions(np.atleast_2d(np.asarray(control_points, float)), gradients=False)
-        problem = model.problem(params)
-        if reuse:
-            problem = problem.with_config(reuse=reuse)
-            if isinstance(model.linear, DenseSolver):
-                problem = problem.with_config(linear=QuasiNewton(DenseSolver(inverse=True), QN_MEMORY))
-        return ControlledModel(problem, model.directions(driven), jnp.asarray(sf.idx), jnp.asarray(sf.psi))
+        linear = model.linear
+        if reuse and isinstance(linear, DenseSolver):
+            linear = QuasiNewton(DenseSolver(inverse=True), memory)
+        newton = Newton(linear, reuse=reuse)
+        return ControlledModel(model.problem(params), model.directions(driven), jnp.asarray(sf.idx),
+                               jnp.asarray(sf.psi), LoadPath(newton), Chord(linear, reuse=reuse))
 
     @property
     def keeps(self) -> bool:
-        """Whether a factorisation is kept across control steps (static: Config.reuse > 0)
-        and refactorised only where the chord corrections contract too slowly; else every
+        """Whether a factorisation is kept across control steps (static: the chord's reuse
+        > 0) and refactorised only where the chord corrections contract too slowly; else every
         control step factorises K_ff at its converged state."""
-        return self.problem.config.reuse > 0
+        return self.chord.reuse > 0
+
+    @property
+    def linear(self):
+        return self.chord.linear
+
+    def factorise(self, sol: Solution):
+        """The linear solver's factorisation of K_ff at ``sol``."""
+        return self.linear.state_at(self.problem, sol.u, sol.g)
+
+    def roundoff_floor(self, sol: Solution):
+        """The round-off floor of the residual test at ``sol`` (``Tolerance``)."""
+        return self.chord.tolerance.floor(self.problem.force_scales(sol.u, sol.g)[1])
 
     def measure(self, sol: Solution):
         """Control point displacements, flattened (C*d,)."""
@@ -123,15 +137,16 @@ class ControlledModel(NamedTuple):
     def response(self, sol: Solution, state, guess=None):
         """du (d_mp, Nf, d): the free coefficients' sensitivity to the manipulation point at
         ``sol`` from its factorisation ``state`` (with ``keeps``, of an earlier state: refined
-        with exact products to this state's, to JACOBIAN_RTOL, from ``guess``, e.g. the
+        with exact products to this state's, to ``jacobian_rtol``, from ``guess``, e.g. the
         response of the previous control step, where given)."""
-        return self.problem.response(sol, self.G, state, refine=JACOBIAN_RTOL if self.keeps else 0.0, guess=guess)
+        return response(self.problem, self.linear, sol.u, sol.g, sol.load, self.G, state,
+                        refine=self.jacobian_rtol if self.keeps else 0.0, guess=guess)
 
     def jacobian(self, sol: Solution, state, du=None):
         """J = d CP / d MP (C*d, d_mp) at ``sol`` from its factorisation ``state`` (see
         ``response``), or from the ``response`` ``du`` there where it is already known."""
         du = self.response(sol, state) if du is None else du
-        J = self.problem.jacobian(sol, self.G, self.idx, self.psi, du=du)
+        J = point_jacobian(self.problem, self.idx, self.psi, sol.u, sol.g, du, self.G)
         return J.reshape(-1, self.G.shape[0])
 
     def settle(self, sol: Solution, state, g1, lim: Limits, max_corr: int, du=None, floor=None):
@@ -140,27 +155,28 @@ class ControlledModel(NamedTuple):
         coefficients predicted for the move (``predicted_change``); where given, the chord
         starts at g1 from sol.u + du (from sol.u where du is not finite) instead of from the
         kept factorisation's own predictor. ``floor``: the round-off floor of the chord's
-        residual test (``Problem.roundoff_floor``), where the caller keeps one (default: the
-        chord computes it).
+        residual test (``roundoff_floor``), where the caller keeps one (default: the chord
+        computes it).
 
-        The Newton predictor and up to ``max_corr`` (with ``keeps``: KEPT_CORRECTIONS) chord corrections with the factorisation
-        ``state`` (no assembly), to the solver's residual tolerance. Where they fail (a
-        tangent that is not positive definite, no residual decrease, det F <= 0, or with
-        ``keeps`` a correction that cuts |r| by less than Config.reuse): with ``keeps``, a
-        fresh factorisation at the chord's last iterate and chord corrections from there
-        (that factorisation is the one kept); then, if still not converged, the full
-        adaptive Newton path (and, with ``keeps``, a factorisation at its end).
+        The Newton predictor and up to ``max_corr`` (with ``keeps``: ``corrections``) chord
+        corrections with the factorisation ``state`` (no assembly), to the solver's residual
+        tolerance. Where they fail (a tangent that is not positive definite, no residual
+        decrease, det F <= 0, or with ``keeps`` a correction that cuts |r| by less than the
+        chord's reuse): with ``keeps``, a fresh factorisation at the chord's last iterate and
+        chord corrections from there (that factorisation is the one kept); then, if still not
+        converged, the full adaptive load path (and, with ``keeps``, a factorisation at its
+        end).
 
         With ``keeps`` the ``state`` may factorise an earlier state than ``sol``: the
         stability reported is that of the factorisation used (of a nearby, earlier state),
         and a loss of stability shows as a chord that stops contracting (a refactorisation,
         whose stability is then checked)."""
         prob = self.problem
-        # a kept factorisation is given up by its contraction (Config.reuse), not a count
-        cap = max(max_corr, KEPT_CORRECTIONS) if self.keeps else max_corr
+        # a kept factorisation is given up by its contraction (the chord's reuse), not a count
+        cap = max(max_corr, self.corrections) if self.keeps else max_corr
 
         def chord(u, g0, st):
-            return prob.newton(u, g0, g1, sol.load, sol.load, max_iter=cap + 1, state=st, chord=True, floor=floor)
+            return self.chord.solve(prob, u, g0, g1, sol.load, sol.load, st, max_iter=cap + 1, floor=floor)
 
         u0, g0 = sol.u, sol.g
         if du is not None:
@@ -172,7 +188,7 @@ class ControlledModel(NamedTuple):
             state = learned   # with a quasi-Newton solver: the secant pairs of the corrections
 
             def refactorised():
-                v, st2, its2, rn2, fresh = chord(u, None, prob.factorise(u, g1))
+                v, st2, its2, rn2, fresh = chord(u, None, self.linear.state_at(prob, u, g1))
                 return v, st2, its + its2, rn2, fresh
 
             u, st, its, rn, state = when(st != Status.CONVERGED, refactorised, (u, st, its, rn, state))
@@ -182,9 +198,9 @@ class ControlledModel(NamedTuple):
                          jnp.zeros_like(sol.branch), sol.critical)
 
         def full():
-            new = solve_path(prob.ops, prob.params, prob.config, lim, sol.u, sol.g, g1, sol.load, sol.load)
+            new = self.driver.solve(prob, lim, sol.u, sol.g, g1, sol.load, sol.load)
             new = jax.tree.map(lambda a, b: a.astype(b.dtype), new, sol)   # the carry's dtypes
-            return new, (prob.factorise(new.u, new.g) if self.keeps else state)
+            return new, (self.factorise(new) if self.keeps else state)
 
         return when(st != Status.CONVERGED, full, (quick, state))
 
@@ -269,13 +285,12 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
 
     cg_base, pg_base = c0.g, p0.g   # the manipulation point moves relative to the start
     # the chords' round-off floors, once, at the start: the floor is a stiffness times machine
-    # epsilon with a margin of 200-2,000x over the round-off actually left in |r| (see
-    # solve.ROUNDOFF_FACTOR), and the tracked object moves by small increments, so the floor of
-    # the start serves the whole path; its own pass through the material cost as much as a
-    # chord correction (9x9 box path, with the force scale from the residual's pass too:
-    # 1.06-1.20 -> 0.97-1.03 s, four interleaved runs each)
-    c_floor = ctrl.problem.roundoff_floor(c0.u, c0.g)
-    p_floor = c_floor if same else plant.problem.roundoff_floor(p0.u, p0.g)
+    # epsilon with a wide margin over the round-off actually left in |r| (``Tolerance``), and
+    # the tracked object moves by small increments, so the floor of the start serves the whole
+    # path; its own pass through the material costs as much as a chord correction
+    # (``experiments/bench_tracking.py``)
+    c_floor = ctrl.roundoff_floor(c0)
+    p_floor = c_floor if same else plant.roundoff_floor(p0)
     H = max_steps + 1
     hist = dict(mp=jnp.zeros((H, dim_mp)), cp=jnp.zeros((H, n_cp)), error=jnp.zeros(H),
                 waypoint=jnp.zeros(H, jnp.int32), newton=jnp.zeros(H, jnp.int32),
@@ -320,7 +335,7 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
         return (s.status < 0) & (s.wp < n_wp)
 
     def factorisation(side, sol, kept):
-        return kept if side.keeps else side.problem.factorise(sol.u, sol.g)
+        return kept if side.keeps else side.factorise(sol)
 
     def step(s, e):
         state = factorisation(ctrl, s.c, s.c_state)
@@ -393,8 +408,8 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
 
     def first_state(side, sol):   # the factorisation kept from the start (a placeholder if none is)
         if side.keeps:
-            return side.problem.factorise(sol.u, sol.g)
-        return side.problem.config.linear.empty(side.problem.ops, sol.u.dtype)
+            return side.factorise(sol)
+        return side.linear.empty(side.problem, sol.u.dtype)
 
     c_state0 = first_state(ctrl, c0)
     p_state0 = c_state0 if same else first_state(plant, p0)
@@ -408,10 +423,14 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
 
 
 def _kept(model: Model, reuse: float | None) -> float:
-    """``track``'s reuse for ``model``: KEPT_REUSE on the dense path where none is given."""
+    """``track``'s reuse for ``model`` where none is given: factorisations kept across control
+    steps on the dense path, refactorised where a chord correction cuts |r| by less than 2x
+    (the same waypoints at the same iterations, fewer factorisations:
+    ``experiments/bench_tracking.py``, ``experiments/bench_cube3d.py``); not on the sparse
+    path, whose chord corrections are refined host solves with no secant update."""
     if reuse is not None:
         return reuse
-    return KEPT_REUSE if isinstance(model.linear, DenseSolver) else 0.0
+    return 0.5 if isinstance(model.linear, DenseSolver) else 0.0
 
 
 def track(model: Model, path, driven: str, control_points, *, plant: Model | None = None,
@@ -427,7 +446,7 @@ def track(model: Model, path, driven: str, control_points, *, plant: Model | Non
     only where a chord correction cuts the residual by less than this factor (see
     ``ControlledModel.of``; same residual tolerance; the Jacobian then comes from the kept
     factorisation of a nearby earlier state, refined to this state's: ``ControlledModel.jacobian``);
-    0: one factorisation per iteration; None (default): KEPT_REUSE for a model on the dense
+    0: one factorisation per iteration; None (default): 0.5 for a model on the dense
     path, 0 on the sparse and Krylov paths."""
     path = np.atleast_2d(np.asarray(path, float))
     cps = np.atleast_2d(np.asarray(control_points, float))

@@ -175,18 +175,14 @@ def stress_force_scale(ops, wP):
     return _scatter_norm(ops, wP) + jnp.linalg.norm(ops.f_ext)
 
 
-ROUNDOFF_FACTOR = 100.0   # the convergence floor in units of eps x stiffness scale (see force_scales);
-
-
 def force_scales(ops, params, W, d):
-    """(``stress_force_scale``, round-off floor) at d from one pass (a jvp of the stress
-    along F gives P and dP/dF : F together; two passes cost ~2x, measured at the 9x9 box).
+    """(``stress_force_scale``, stiffness scale) at d from one pass (a jvp of the stress
+    along F gives P and dP/dF : F together, where two passes would cost twice).
 
-    The floor is the residual norm below which |r| carries no information: ROUNDOFF_FACTOR x
-    machine epsilon x || sum_q w |grad Psi| |dP/dF : F| ||, the force that rounding the strain
-    E = (F^T F - I)/2 to machine precision produces (dP/dF : F is the stress change of a unit
-    relative stretch: a stiffness). Without it, a tiny load step (steps=10**6, or a 1e-9
-    prescribed displacement) asks for |r| <= rtol x (a tiny force) and never converges."""
+    The stiffness scale is || sum_q w |grad Psi| |dP/dF : F| || (dP/dF : F is the stress change
+    of a unit relative stretch): times machine epsilon, the force that rounding the strain
+    E = (F^T F - I)/2 to machine precision produces, below which |r| carries no information
+    (the convergence test's round-off floor, ``jaxrkpm.solvers.newton.Tolerance``)."""
     F = group_gradients(ops, d)
     p, axes = _group_params(ops, params)
 
@@ -194,8 +190,7 @@ def force_scales(ops, params, W, d):
         return jax.jvp(lambda G: jax.grad(_point_energy(W))(G, p), (F,), (F,))
 
     P, dP = _per_group(stress_and_stiffness, axes)(F, p)
-    eps = jnp.finfo(d.dtype).eps
-    return stress_force_scale(ops, _weighted(ops, P)), ROUNDOFF_FACTOR * eps * _scatter_norm(ops, _weighted(ops, dP))
+    return stress_force_scale(ops, _weighted(ops, P)), _scatter_norm(ops, _weighted(ops, dP))
 
 
 # doubles of (chunk, K, K, d, d) local tangent blocks held at once by pair_blocks (public: a

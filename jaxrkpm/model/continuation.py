@@ -12,8 +12,7 @@ import numpy as np
 import math
 from functools import partial
 
-from ..mechanics.assembly import point_values
-from ..solvers.continuation import EquilibriumPath, PathStatus, arc_step, start_point
+from ..solvers.continuation import ArcLength, EquilibriumPath, PathStatus, arc_step, start_point
 from ..solvers.results import Limits, Solution, Status
 from .model import Model
 
@@ -61,8 +60,8 @@ def arc_length(model, ds: float, *, steps: int = 50, initial: Solution | None = 
     ``max_cuts`` times in a row), stopping early once lambda >= ``load_max``. ``psi`` 0:
     cylindrical constraint; > 0: spherical (Riks), the load term weighted by psi^2 |q|^2.
     ``direction`` -1 starts with a decreasing load factor. ``points`` (P, d): reference
-    points whose displacement is recorded per point. ``options``: Config fields
-    (e.g. rtol). Returns an EquilibriumPath (never raises for a failed step: its status
+    points whose displacement is recorded per point. ``options``: solver settings of
+    ``Model.solve`` (the corrector takes ``rtol``). Returns an EquilibriumPath (never raises for a failed step: its status
     says why the path stopped, every accepted point is kept)."""
     if not isinstance(model, Model):
         raise TypeError(f"model must be a jaxrkpm Model, got {type(model).__name__}")
@@ -85,19 +84,20 @@ def arc_length(model, ds: float, *, steps: int = 50, initial: Solution | None = 
     start = model.initial() if initial is None else model.check_solution(initial, "initial")
     if not Status.of(start.status).equilibrium:
         raise ValueError(f"initial must be an equilibrium, but its status is {Status.of(start.status).name}")
-    ops = model.ops
+    problem = model.problem(params)
+    f_ext = problem.ops.f_ext
     if load_pattern is not None:
         f = np.asarray(load_pattern, float)
-        if f.shape != ops.f_ext.shape or not np.all(np.isfinite(f)):
-            raise ValueError(f"load_pattern must be finite nodal loads of shape {ops.f_ext.shape} "
-                             f"(e.g. from continuation.point_load), got shape {f.shape}")
-        ops = ops._replace(f_ext=jnp.asarray(f))
+        if f.shape != f_ext.shape or not np.all(np.isfinite(f)):
+            raise ValueError(f"load_pattern must be finite nodal loads of shape {f_ext.shape} "
+                             f"(e.g. from jaxrkpm.point_load), got shape {f.shape}")
+        problem = problem.with_load_pattern(f)
     dg = model.prescribed(prescribed)
-    if not (np.any(np.asarray(ops.f_ext)) or np.any(np.asarray(dg))):
+    if not (np.any(np.asarray(problem.ops.f_ext)) or np.any(np.asarray(dg))):
         raise ValueError("nothing drives the path: the model has no dead load (tractions, body force), "
                          "and neither load_pattern nor prescribed is given")
-    prm = model.params_with(params)
-    cfg = model.config(**options)
+    newton = model.solver(**options).newton   # the options checked as a solve's
+    arc = ArcLength(newton.linear, newton.tolerance)
     # explicit dtypes: a weakly typed Python scalar would compile arc_step a second time
     f64 = partial(jnp.asarray, dtype=jnp.float64)
     psi_a = f64(psi)
@@ -105,7 +105,7 @@ def arc_length(model, ds: float, *, steps: int = 50, initial: Solution | None = 
     u = jnp.asarray(start.u, jnp.float64)
     g = jnp.asarray(start.g, jnp.float64)
     lam = jnp.asarray(start.load, jnp.float64)
-    state, stab, neg, rn0 = start_point(ops, prm, cfg, u, g, lam)
+    state, stab, neg, rn0 = start_point(arc, problem, u, g, lam)
     rows = [(np.asarray(u), np.asarray(g), float(lam), float(rn0), int(stab), int(neg), 0.0, 0)]
     du_prev, dlam_prev = jnp.zeros_like(u), f64(direction)
     step_ds, cuts, status = ds, 0, PathStatus.COMPLETED
@@ -113,7 +113,7 @@ def arc_length(model, ds: float, *, steps: int = 50, initial: Solution | None = 
         for _ in range(steps):
             tries = 0
             while True:
-                out = arc_step(ops, prm, cfg, lim.max_iter, u, g, dg, lam, state, du_prev, dlam_prev,
+                out = arc_step(arc, problem, lim.max_iter, u, g, dg, lam, state, du_prev, dlam_prev,
                                f64(step_ds), psi_a)
                 code = int(out[3])
                 if code == PathStatus.COMPLETED:
@@ -141,8 +141,8 @@ def arc_length(model, ds: float, *, steps: int = 50, initial: Solution | None = 
         sf = model.shape_functions(points, gradients=False)
         idx, psi_p = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
         # one point at a time: a compiled function of the path's length would recompile per length
-        disp = np.stack([np.asarray(_point_values(ops, idx, psi_p, u_k, g_k)) for u_k, g_k in zip(U, G)])
+        disp = np.stack([np.asarray(_point_values(problem, idx, psi_p, u_k, g_k)) for u_k, g_k in zip(U, G)])
     return EquilibriumPath(L, U, G, disp, R, ST, NEG, A, IT, cuts, int(status), start)
 
 
-_point_values = jax.jit(point_values)
+_point_values = jax.jit(lambda problem, idx, psi, u, g: problem.point_values(idx, psi, u, g))

@@ -2,6 +2,7 @@
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Mapping
 
 import jax
@@ -18,72 +19,79 @@ from ..discretise.rk import psi_jax
 from ..mechanics.assembly import Ops, Params, coefficients, deformation_gradients, energy_full, point_values
 from ..mechanics.loads import Springs, nodal_forces
 from ..mechanics.materials import Material, det, green_lagrange, pk2
-from ..solvers.config import Config
+from ..mechanics.problem import Problem
+from ..solvers.branch import BranchSwitch, StableDescent
 from ..solvers.implicit import implicit_jacobian, solve_path_jit
-from ..solvers.branch import switches_branch
 from ..solvers.linalg.dense import DenseSolver
 from ..solvers.linalg.factorisations import SaddlePointSystem, factoriser
 from ..solvers.linalg.krylov import KrylovSolver
 from ..solvers.linalg.multigrid import KrylovSystem
 from ..solvers.linalg.sparse import SparseSolver
-from ..solvers.problem import Problem
+from ..solvers.newton import Newton, Tolerance
+from ..solvers.path import LoadPath
 from ..solvers.results import Critical, Limits, Solution, Status, joined
 
 
 _point_values_jit = jax.jit(point_values)   # FD evaluates it per re-solve: one dispatch, not ~10 eager ops
 
 MAX_SUPPORT_DIAMETERS = 2.0   # kernel support (support x spacing) allowed, in body diameters
-
-# free DOFs up to which solver="auto" takes the dense factorisation, by dimension. 3D: where one
-# Newton iteration's linear work (assemble, factorise, solve) costs the same dense and sparse
-# (PARDISO), measured on the neo-Hookean cubes (experiments/bench_cube3d.py --only-crossover,
-# same run, load ~5; dense / sparse: 6^3 0.34, 8^3 0.65, 10^3 0.60, 12^3 (4,320 DOF) 0.97,
-# 14^3 (7,056 DOF) 1.73). 2D stays at 2500: there sparse wins from ~1,000 DOF (24^2 .. 40^2
-# squares: 1.7-7.7x), but the stable-branch and modified-Newton options are dense-only, so
-# moving 2D models to the sparse path changes what they can do (left for its own change)
-DENSE_LIMIT = {2: 2500, 3: 4400}
-
 SOLVERS = ("auto", "dense", "sparse", "krylov")   # Model(solver=...)
-
 PRECISIONS = ("auto", "double", "mixed")          # Model(precision=...): dense and PARDISO factorisations
-
-# free DOFs from which precision="auto" factorises dense K_ff in single precision and refines
-# its solves in double (DenseSolver(mixed=True)): where the Cholesky factorisation's n^3 is
-# most of a Newton iteration (see MIXED_MIN's measurement in experiments/bench_cube3d.py
-# --precision); below it the 2D models and their stability studies stay in double throughout
-MIXED_MIN = 1000
-
-# On an accelerator the sparse paths are host callbacks (the factorisation or AMG runs on the
-# CPU) and the dense one runs on the device: one H100 solved the 20^3 cube (21,600 DOF) dense
-# in 4.0 s against 268 s for PARDISO on this 2-core CPU. So "auto" goes dense there while the
-# dense matrices fit: K_ff, its factor and their workspace, about DENSE_COPIES n^2 doubles
-DENSE_COPIES = 4
-
-ACCELERATOR_DENSE_LIMIT = 20_000   # where the device does not report its memory
-
-# Config.reuse of an eager ``Model.solve`` on the dense path (``reuse=None``): modified Newton,
-# a kept factorisation while each step cuts |r| by 10x (same residual tolerance). Measured
-# (30% compression in 10 steps, same run, quiet; full / modified Newton): 9^2 0.03 / 0.02 s,
-# 20^2 0.31 / 0.18, 35^2 3.5 / 1.76, 6^3 0.75 / 0.37, 8^3 2.34 / 1.14 (30 -> 40 iterations,
-# 10 factorisations instead of 30). Not under jit/vmap: a vmapped lax.cond evaluates both
-# branches, so lock-step members would assemble at every iteration and iterate more
-NEWTON_REUSE = 0.1
+# the options of ``Model.solve``: fields of the solver objects (``Model.solver``)
+NEWTON_OPTIONS = ("line_search", "armijo", "reuse", "check_stability")
+SOLVER_OPTIONS = ("rtol", *NEWTON_OPTIONS, "easy", "growth", "locate", "stable_branch")
 
 
-def dense_limit(dim: int, device=None) -> int:
-    """Free DOFs up to which ``solver="auto"`` takes the dense path on ``device`` (default:
-    JAX's first device): DENSE_LIMIT[dim] on a CPU; on a GPU/TPU as many as DENSE_COPIES
-    dense n x n float64 matrices fit in its memory."""
-    device = jax.devices()[0] if device is None else device
-    if device.platform == "cpu":
-        return DENSE_LIMIT[dim]
-    try:
-        memory = (device.memory_stats() or {}).get("bytes_limit")
-    except (AttributeError, NotImplementedError, RuntimeError):   # no memory statistics there
-        memory = None
-    if not memory:
-        return max(ACCELERATOR_DENSE_LIMIT, DENSE_LIMIT[dim])
-    return max(int((memory / (8 * DENSE_COPIES)) ** 0.5), DENSE_LIMIT[dim])
+@dataclass(frozen=True)
+class SolverChoice:
+    """How a Model chooses its solvers where the user leaves it to it (``solver="auto"``,
+    ``precision="auto"``, ``reuse=None``), each choice a field (a test or a user gives
+    another value by passing ``Model(..., choice=SolverChoice(...))``).
+
+    dense_2d, dense_3d   free DOFs up to which "auto" takes the dense factorisation on a CPU.
+                         3D: where one Newton iteration's linear work (assemble, factorise,
+                         solve) costs the same dense and sparse (PARDISO)
+                         (``experiments/bench_cube3d.py --only-crossover``). 2D stays higher
+                         although sparse wins earlier there, because the stable-branch and
+                         modified-Newton options are dense-only.
+    mixed_min            free DOFs from which "auto" factorises dense K_ff in single precision
+                         and refines its solves in double: where the Cholesky factorisation is
+                         most of a Newton iteration (``experiments/bench_cube3d.py --precision``);
+                         below it the 2D models and their stability studies stay in double.
+    dense_copies, accelerator_dense
+                         on an accelerator the sparse paths are host callbacks and the dense one
+                         runs on the device, so "auto" goes dense while about ``dense_copies``
+                         n^2 doubles fit in its memory (``accelerator_dense`` free DOFs where the
+                         device does not report it).
+    newton_reuse         modified Newton's ``reuse`` for an eager solve on the dense path: a
+                         kept factorisation while each step cuts |r| by this factor (same
+                         residual tolerance, fewer factorisations:
+                         ``experiments/bench_cube3d.py``). Not under jit/vmap: a vmapped
+                         lax.cond evaluates both branches, so lock-step members would assemble
+                         at every iteration and iterate more."""
+
+    dense_2d: int = 2500
+    dense_3d: int = 4400
+    mixed_min: int = 1000
+    dense_copies: int = 4
+    accelerator_dense: int = 20_000
+    newton_reuse: float = 0.1
+
+    def dense_limit(self, dim: int, device=None) -> int:
+        """Free DOFs up to which ``solver="auto"`` takes the dense path on ``device`` (default:
+        JAX's first device): ``dense_2d``/``dense_3d`` on a CPU; on a GPU/TPU as many as
+        ``dense_copies`` dense n x n float64 matrices fit in its memory."""
+        cpu = self.dense_2d if dim == 2 else self.dense_3d
+        device = jax.devices()[0] if device is None else device
+        if device.platform == "cpu":
+            return cpu
+        try:
+            memory = (device.memory_stats() or {}).get("bytes_limit")
+        except (AttributeError, NotImplementedError, RuntimeError):   # no memory statistics there
+            memory = None
+        if not memory:
+            return max(self.accelerator_dense, cpu)
+        return max(int((memory / (8 * self.dense_copies)) ** 0.5), cpu)
 
 
 class SolveError(RuntimeError):
@@ -124,24 +132,24 @@ class Model:
                 points where predicate(X) holds
     springs     Springs(points, stiffness, region): zero-length springs holding material
                 points (elastic supports, penalty paddles; movable, see ``springs_at``)
-    solver      "auto" (dense up to ``dense_limit(dim)`` free DOFs: DENSE_LIMIT[dim] on a CPU,
-                as many as the device memory holds on a GPU; else sparse) | "dense" | "sparse"
+    solver      "auto" (dense up to ``choice.dense_limit(dim)`` free DOFs on a CPU, as many as
+                the device memory holds on a GPU; else sparse) | "dense" | "sparse"
                 | "krylov" (CG preconditioned by algebraic multigrid, no factorisation: large 3D
                 models; see jaxrkpm.solvers.linalg.multigrid)
     factorisation  of the sparse path: "auto" (PARDISO where Intel MKL is installed, else
                 SuperLU) | "pardiso" | "superlu"; see jaxrkpm.solvers.linalg.factorisations
-    precision   of the factorisation: "auto" (dense: mixed from MIXED_MIN free DOFs, else
-                double; PARDISO: mixed) | "double" | "mixed" (single-precision factorisation,
-                solves refined to double accuracy: about half the factorisation time; see
-                jaxrkpm.solvers.linalg.dense.DenseSolver and jaxrkpm.solvers.linalg.factorisations.SaddlePointSystem; SuperLU is
-                double only)
+    precision   of the factorisation: "auto" (dense: mixed from ``choice.mixed_min`` free
+                DOFs, else double; PARDISO: mixed) | "double" | "mixed" (single-precision
+                factorisation, solves refined to double accuracy: about half the factorisation
+                time; see ``DenseSolver`` and ``SaddlePointSystem``; SuperLU is double only)
+    choice      a ``SolverChoice``: how "auto" chooses (its fields)
     """
 
     def __init__(self, body: Body, material: Material, integration: str = "gauss",
                  essential: Mapping | None = None, support: float = 2.01, order: int = 2,
                  cell_size: float | None = None, body_force=None, tractions=(),
                  springs: Springs | None = None, solver: str = "auto",
-                 factorisation: str = "auto", precision: str = "auto"):
+                 factorisation: str = "auto", precision: str = "auto", choice: SolverChoice = SolverChoice()):
         if not isinstance(body, Body):
             raise ValueError(f"body must be a jaxrkpm Body, got {type(body).__name__}")
         if not isinstance(material, Material):
@@ -213,9 +221,12 @@ class Model:
             sp_idx=jnp.asarray(sp_idx, jnp.int32), sp_pair=jnp.asarray(sp_pair, jnp.int32))
 
         n_free = Nf * d
-        use_dense = solver == "dense" or (solver == "auto" and n_free <= dense_limit(d))
+        if not isinstance(choice, SolverChoice):
+            raise ValueError(f"choice must be a SolverChoice, got {type(choice).__name__}")
+        self.choice = choice
+        use_dense = solver == "dense" or (solver == "auto" and n_free <= choice.dense_limit(d))
         if use_dense:
-            self.linear = DenseSolver(mixed=precision == "mixed" or (precision == "auto" and n_free >= MIXED_MIN))
+            self.linear = DenseSolver(mixed=precision == "mixed" or (precision == "auto" and n_free >= choice.mixed_min))
         elif solver == "krylov":
             self.linear = KrylovSolver(KrylovSystem(body.X, pair_i, pair_j, self._constraints(trans),
                                                     self.sets.free, self.sets.bnd))
@@ -292,18 +303,31 @@ class Model:
             return sp.csr_matrix((v.ravel(), (r.ravel(), c.ravel())), shape=(Nb * d, N * d))
         return sp.csr_matrix((0, N * d))
 
-    def config(self, **settings) -> Config:
-        """The static solver settings of this model (``Config`` fields may be overridden)."""
-        unknown = set(settings) - set(Config.__dataclass_fields__) - {"W", "linear"}
+    def solver(self, **options) -> LoadPath:
+        """The solver of this model's solves: a ``LoadPath`` (adaptive load stepping) over a
+        ``Newton`` with the model's linear solver, from the ``solve`` options (each a field of
+        the object it tunes): ``rtol`` (the residual tolerance, ``Tolerance``), ``line_search``,
+        ``armijo``, ``reuse``, ``check_stability`` (``Newton``), ``easy``, ``growth``,
+        ``locate`` (``LoadPath``) and ``stable_branch`` (True: a ``BranchSwitch`` past critical
+        points)."""
+        unknown = set(options) - set(SOLVER_OPTIONS)
         if unknown:
-            raise ValueError(f"unknown solver setting(s) {sorted(unknown)}; Config has "
-                             f"{sorted(set(Config.__dataclass_fields__) - {'W', 'linear'})}")
-        return Config(W=self.material.W, linear=self.linear, **settings)
+            raise ValueError(f"unknown solver option(s) {sorted(unknown)}; the options are {list(SOLVER_OPTIONS)}")
+        options = dict(options)
+        stable_branch = options.pop("stable_branch", False)
+        if not isinstance(stable_branch, (bool, np.bool_)):
+            raise ValueError(f"stable_branch must be True, False or None (automatic), got {stable_branch!r}")
+        tolerance = Tolerance(options.pop("rtol")) if "rtol" in options else Tolerance()
+        newton = Newton(self.linear, tolerance, **{k: options.pop(k) for k in NEWTON_OPTIONS if k in options})
+        branch = None
+        if stable_branch:
+            branch = BranchSwitch(StableDescent(tolerance, newton.line_search, newton.armijo))
+        return LoadPath(newton, branch=branch, **options)
 
-    def problem(self, params=None, **settings) -> Problem:
-        """The discrete problem with parameter overrides ``params`` (see ``params_with``)
-        and solver settings: a jit-friendly pytree (see jaxrkpm.solvers.problem)."""
-        return Problem(self.ops, self.params_with(params), self.config(**settings))
+    def problem(self, params=None) -> Problem:
+        """The discrete problem with parameter overrides ``params`` (see ``params_with``): a
+        jit-friendly pytree (see jaxrkpm.mechanics.problem)."""
+        return Problem(self.ops, self.params_with(params), self.material.W)
 
     @property
     def dim(self) -> int:
@@ -433,14 +457,14 @@ class Model:
         SolveError (carrying the last converged state), also under jax.jacfwd / jax.grad;
         under jit/vmap the status is returned instead.
 
-        ``options``: ``Config`` settings. ``stable_branch`` None (default): where the solve
+        ``options``: solver settings (``solver``). ``stable_branch`` None (default): where the solve
         stops at a critical point (UNSTABLE_TANGENT, dense solver), the rest of the path is
         solved with ``stable_branch=True`` from the last stable state (on to a stable state
         of a bifurcated branch; ``Solution.critical`` records the point); its compile is paid
         only then, and only in eager calls. False: stop there; True: always (also under jit).
         ``reuse`` None (default): ``newton_reuse`` in eager calls (modified Newton on the dense
         path: ~2x faster, the same residual tolerance), 0 (full Newton) under jit/vmap; a
-        number sets Config.reuse.
+        number sets the Newton solver's ``reuse``.
 
         Differentiable (jax.jacfwd / jax.grad) in the prescribed values, ``loads`` and
         ``params`` by implicit differentiation of the converged equilibrium. The derivative
@@ -467,18 +491,18 @@ class Model:
         # point does the rest of the path run with the stable-branch solve, so its longer
         # compile is paid on first need (eager calls only: under jit the status is a tracer)
         auto = options.get("stable_branch") is None
-        params, lim = self.params_with(params), Limits.of(steps, max_iter, max_cuts)
+        lim = Limits.of(steps, max_iter, max_cuts)
         loads = jnp.asarray(loads, jnp.float64)
         if options.get("reuse") is None:
             eager = all(map(_is_concrete, jax.tree.leaves((g, loads, params, start))))
             options["reuse"] = self.newton_reuse if eager else 0.0
         options = {k: v for k, v in options.items() if not (k == "stable_branch" and v is None)}
-        sol = solve_path_jit(self.ops, params, self.config(**options), lim, start.u, start.g, g,
+        problem = self.problem(params)
+        sol = solve_path_jit(self.solver(**options), problem, lim, start.u, start.g, g,
                              jnp.asarray(start.load, jnp.float64), loads)
         status = _concrete(sol.status)
-        if auto and status == Status.UNSTABLE_TANGENT and switches_branch(
-                branching := self.config(**options, stable_branch=True)):
-            rest = solve_path_jit(self.ops, params, branching, lim, sol.u, sol.g, g, sol.load, loads)
+        if auto and status == Status.UNSTABLE_TANGENT and (branching := self.solver(**options, stable_branch=True)).switches:
+            rest = solve_path_jit(branching, problem, lim, sol.u, sol.g, g, sol.load, loads)
             sol = joined(sol, rest)
             status = _concrete(sol.status)
         if throw and status is not None and not Status.of(status).equilibrium:
@@ -488,10 +512,10 @@ class Model:
 
     @property
     def newton_reuse(self) -> float:
-        """Config.reuse of an eager ``solve`` where none is given: NEWTON_REUSE (modified
-        Newton) on the dense path; 0 (full Newton) on the sparse and Krylov paths, which
-        already keep their factorisation or hierarchy as a preconditioner."""
-        return NEWTON_REUSE if isinstance(self.linear, DenseSolver) else 0.0
+        """The Newton ``reuse`` of an eager ``solve`` where none is given: the choice's
+        ``newton_reuse`` (modified Newton) on the dense path; 0 (full Newton) on the sparse and
+        Krylov paths, which already keep their factorisation or hierarchy as a preconditioner."""
+        return self.choice.newton_reuse if isinstance(self.linear, DenseSolver) else 0.0
 
     def directions(self, name: str, rigid: bool = True):
         """Unit prescribed-value directions (m, Nb, d) that drive set ``name``: d rigid
@@ -548,8 +572,7 @@ class Model:
         idx, psi, G = self._jacobian_tables(points, driven, rigid)
         P = idx.shape[0]
         if method == "implicit":
-            J = implicit_jacobian(self.ops, self.params_with(params), self.config(), sol.u, sol.g,
-                                  sol.load, G, idx, psi)
+            J = implicit_jacobian(self.problem(params), self.linear, sol.u, sol.g, sol.load, G, idx, psi)
             return J.reshape(P * self.dim, -1)
         if not (np.isfinite(eps) and eps > 0):
             raise ValueError(f"eps must be positive, got {eps}")

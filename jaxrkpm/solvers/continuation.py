@@ -48,15 +48,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..base.outcome import Outcome
-from ..mechanics import assembly as A
-from . import newton as N
-from .linalg.base import Stability
+from .iterate import iterate
+from .linalg.base import LinearSolver, Stability
+from .linalg.dense import DenseSolver
+from .newton import Tolerance
 from .results import Solution, Status
 
 
@@ -163,71 +165,86 @@ class EquilibriumPath:
 
 
 # ----------------------------------------------------------------------- inside jit
-@partial(jax.jit, static_argnames=("cfg",))
-def start_point(ops, params, cfg, u, g, load):
-    """The path's first point: (factorisation of K_ff, stability, negative eigenvalues, |r|)."""
-    state = N.linear_state(ops, params, cfg, u, g)
-    rn = jnp.linalg.norm(A.residual(ops, params, cfg.W, u, g, load))
-    return state, cfg.linear.stability(state), cfg.linear.negative_eigenvalues(state), rn
+class ArcStep(NamedTuple):
+    """One step's constants: from the equilibrium (u0, g0, lam0) by the arc length ``ds``."""
+
+    u0: jax.Array        # (Nf, d)
+    g0: jax.Array        # (Nb, d)
+    dg: jax.Array        # (Nb, d) prescribed-value direction per unit lambda
+    lam0: jax.Array      # ()
+    ds: jax.Array        # () the arc length
+    psi2: jax.Array      # () the load term's weight in the constraint, psi^2 |q|^2
+    r_ref: jax.Array     # () the out-of-balance load the step puts on
+    max_iter: jax.Array  # () corrector iterations
 
 
-def _residual_and_load(ops, params, W, u, g0, dg, lam0, lam):
-    """r(u, lambda) (Nf, d), q = -dr/dlambda (the load the path parameter drives) and the
-    smallest det F, at g = g0 + (lambda - lambda0) dg and load scale lambda."""
-    def r_of(l):
-        (_, detmin), r = jax.value_and_grad(
-            lambda v: A.energy(ops, params, W, v, g0 + (l - lam0) * dg, l), has_aux=True)(u)
-        return r, detmin
-
-    (r, detmin), (dr, _) = jax.jvp(r_of, (lam,), (jnp.ones_like(lam),))
-    return r, -dr, detmin
+class ArcState(NamedTuple):
+    iteration: jax.Array      # () corrector iterations done
+    du: jax.Array             # (Nf, d) the increment of the free coefficients
+    dlam: jax.Array           # () the increment of the load factor
+    status: jax.Array         # () _RUNNING, else a PathStatus code
+    residual_norm: jax.Array  # () |r| at the last iterate
+    linear: Any               # the factorisation of K_ff at the last iterate
 
 
-@partial(jax.jit, static_argnames=("cfg",))
-def arc_step(ops, params, cfg, max_iter, u0, g0, dg, lam0, state0, du_prev, dlam_prev, ds, psi):
-    """One arc-length step of length ``ds`` from the equilibrium (u0, g0, lam0), whose
-    factorisation is ``state0``; (du_prev, dlam_prev) is the last accepted increment (zeros
-    and the wanted sign of the first load increment on the first step).
+@dataclass(frozen=True)
+class ArcLength:
+    """The arc-length corrector (see the module docstring): full Newton on (u, lambda) with
+    Crisfield's constraint, the tangent factorised at every iterate by ``linear``, converged
+    by ``tolerance``. A solver with init / step / terminate; ``step_from`` takes one step."""
 
-    Returns (u, g, lam, status, iterations, |r|, state, stability, negative eigenvalues) at
-    the new point; status 0 accepted, else the PathStatus of the failure (the caller cuts
-    ``ds``)."""
-    W = cfg.W
-    res = partial(_residual_and_load, ops, params, W)
-    _, q0, _ = res(u0, g0, dg, lam0, lam0)
-    qq = jnp.sum(q0 * q0)
-    psi2 = psi * psi * qq     # the load term's weight in the constraint
+    linear: LinearSolver = DenseSolver()
+    tolerance: Tolerance = Tolerance()
 
-    # predictor: the tangent u_t = K^-1 q, scaled to the arc length, signed by the angle
-    # with the last increment (see the module docstring)
-    ut = cfg.linear.solve(state0, q0)
-    angle = jnp.sum(ut * du_prev) + psi2 * dlam_prev
-    sign = jnp.where(angle != 0, jnp.sign(angle), jnp.where(dlam_prev < 0, -1.0, 1.0))
-    dlam = sign * ds / jnp.sqrt(jnp.sum(ut * ut) + psi2)
-    du = dlam * ut
+    def residual_and_load(self, problem, u, g0, dg, lam0, lam):
+        """r(u, lambda) (Nf, d), q = -dr/dlambda (the load the path parameter drives) and the
+        smallest det F, at g = g0 + (lambda - lambda0) dg and load scale lambda."""
+        def r_of(l):
+            (_, detmin), r = jax.value_and_grad(
+                lambda v: problem.energy(v, g0 + (l - lam0) * dg, l), has_aux=True)(u)
+            return r, detmin
 
-    r_ref = jnp.abs(dlam) * jnp.sqrt(qq)   # the out-of-balance load the step puts on
+        (r, detmin), (dr, _) = jax.jvp(r_of, (lam,), (jnp.ones_like(lam),))
+        return r, -dr, detmin
 
-    def at(du, dlam):
-        lam = lam0 + dlam
-        return u0 + du, g0 + dlam * dg, lam
+    def start(self, problem, u, g, load):
+        """The path's first point: (factorisation of K_ff, stability, negative eigenvalues, |r|)."""
+        state = self.linear.state_at(problem, u, g)
+        rn = jnp.linalg.norm(problem.residual(u, g, load))
+        return state, self.linear.stability(state), self.linear.negative_eigenvalues(state), rn
 
-    def cond(c):
-        return c[3] == _RUNNING
+    def init(self, problem, step: ArcStep, state0, du_prev, dlam_prev) -> tuple:
+        """The predictor: the tangent u_t = K^-1 q scaled to the arc length, signed by the
+        angle with the last increment (see the module docstring). Returns (the step's
+        constants completed, the corrector's first state)."""
+        _, q0, _ = self.residual_and_load(problem, step.u0, step.g0, step.dg, step.lam0, step.lam0)
+        qq = jnp.sum(q0 * q0)
+        psi2 = step.psi2 * qq     # the load term's weight in the constraint
+        ut = self.linear.solve(state0, q0)
+        angle = jnp.sum(ut * du_prev) + psi2 * dlam_prev
+        sign = jnp.where(angle != 0, jnp.sign(angle), jnp.where(dlam_prev < 0, -1.0, 1.0))
+        dlam = sign * step.ds / jnp.sqrt(jnp.sum(ut * ut) + psi2)
+        du = dlam * ut
+        step = step._replace(psi2=psi2, r_ref=jnp.abs(dlam) * jnp.sqrt(qq))
+        return step, ArcState(jnp.array(0), du, dlam, jnp.array(_RUNNING), jnp.array(jnp.inf), state0)
 
-    def body(c):
-        it, du, dlam, _, _, state = c
-        u, g, lam = at(du, dlam)
-        r, q, detmin = res(u, g0, dg, lam0, lam)
+    def terminate(self, s: ArcState):
+        return s.status != _RUNNING
+
+    def step(self, problem, step: ArcStep, s: ArcState) -> ArcState:
+        du, dlam, it = s.du, s.dlam, s.iteration
+        u, g, lam = step.u0 + du, step.g0 + dlam * step.dg, step.lam0 + dlam
+        r, q, detmin = self.residual_and_load(problem, u, step.g0, step.dg, step.lam0, lam)
         rn = jnp.linalg.norm(r)
         finite = jnp.all(jnp.isfinite(r)) & jnp.all(jnp.isfinite(q))
-        scale, floor = A.force_scales(ops, params, W, A.coefficients(ops, u, g))
-        converged = rn <= jnp.maximum(cfg.rtol * jnp.maximum(r_ref, scale), floor)
-        state = cfg.linear.init(ops, A.pair_blocks(ops, params, W, A.coefficients(ops, u, g)))
+        scale, stiffness = problem.force_scales(u, g)
+        converged = rn <= self.tolerance.of(scale, self.tolerance.floor(stiffness), step.r_ref)
+        state = self.linear.state_at(problem, u, g)
         # K [dr, dt] = [-r, q]: the residual correction and the tangent at this iterate
-        x = cfg.linear.solve(state, jnp.stack([-r, q], axis=-1))
+        x = self.linear.solve(state, jnp.stack([-r, q], axis=-1))
         d_r, d_t = x[..., 0], x[..., 1]
         w = du + d_r
+        psi2, ds = step.psi2, step.ds
         a = jnp.sum(d_t * d_t) + psi2
         b = 2.0 * (jnp.sum(d_t * w) + psi2 * dlam)
         cc = jnp.sum(w * w) + psi2 * dlam * dlam - ds * ds
@@ -243,14 +260,31 @@ def arc_step(ops, params, cfg, max_iter, u0, g0, dg, lam0, state0, du_prev, dlam
                            jnp.where(detmin <= 0, PathStatus.INVERTED,
                                      jnp.where(converged, PathStatus.COMPLETED,
                                                jnp.where(disc < 0, PathStatus.NO_ROOT,
-                                                         jnp.where(it + 1 >= max_iter, PathStatus.MAX_ITERATIONS,
+                                                         jnp.where(it + 1 >= step.max_iter, PathStatus.MAX_ITERATIONS,
                                                                    _RUNNING)))))
         keep = converged | (status != _RUNNING)
-        return (it + 1, jnp.where(keep, du, w + dl * d_t), jnp.where(keep, dlam, dlam + dl),
-                status, rn, state)
+        return ArcState(it + 1, jnp.where(keep, du, w + dl * d_t), jnp.where(keep, dlam, dlam + dl), status, rn,
+                        state)
 
-    init = (jnp.array(0), du, dlam, jnp.array(_RUNNING), jnp.array(jnp.inf), state0)
-    it, du, dlam, status, rn, state = jax.lax.while_loop(cond, body, init)
-    u, g, lam = at(du, dlam)
-    return (u, g, lam, status, it - 1, rn, state, cfg.linear.stability(state),
-            cfg.linear.negative_eigenvalues(state))
+
+@partial(jax.jit, static_argnames=("arc",))
+def start_point(arc: ArcLength, problem, u, g, load):
+    """``ArcLength.start``, compiled."""
+    return arc.start(problem, u, g, load)
+
+
+@partial(jax.jit, static_argnames=("arc",))
+def arc_step(arc: ArcLength, problem, max_iter, u0, g0, dg, lam0, state0, du_prev, dlam_prev, ds, psi):
+    """One arc-length step of length ``ds`` from the equilibrium (u0, g0, lam0), whose
+    factorisation is ``state0``; (du_prev, dlam_prev) is the last accepted increment (zeros
+    and the wanted sign of the first load increment on the first step).
+
+    Returns (u, g, lam, status, iterations, |r|, state, stability, negative eigenvalues) at
+    the new point; status 0 accepted, else the PathStatus of the failure (the caller cuts
+    ``ds``)."""
+    step = ArcStep(u0, g0, dg, lam0, ds, psi * psi, jnp.zeros((), u0.dtype), max_iter)
+    step, s = arc.init(problem, step, state0, du_prev, dlam_prev)
+    s = iterate(arc, problem, step, s)
+    u, g, lam = u0 + s.du, g0 + s.dlam * dg, lam0 + s.dlam
+    return (u, g, lam, s.status, s.iteration - 1, s.residual_norm, s.linear, arc.linear.stability(s.linear),
+            arc.linear.negative_eigenvalues(s.linear))

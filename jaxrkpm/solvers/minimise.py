@@ -19,21 +19,19 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import minimize
 
-_ENERGY = jax.jit(lambda prob, u, g: (prob.energy(u, g), prob.min_det_f(u, g)))
+_ENERGY = jax.jit(lambda prob, u, g: prob.energy(u, g))
 _RESIDUAL = jax.jit(lambda prob, u, g: prob.residual(u, g))
 _TANGENT = jax.jit(lambda prob, u, g: prob.tangent(u, g))
-_SCALE = jax.jit(lambda prob, u, g: prob.force_scale(u, g))
-
-COLLAPSE = 1e-6   # a failed minimisation that ends with det F below this ran into det F = 0
+_SCALE = jax.jit(lambda prob, u, g: prob.force_scale(prob.energy_residual(u, g)[3]))
 
 
 def minimise(prob, u, g, radius: float, max_iter: int = 1000):
-    """A local minimum of the energy of ``prob`` (a ``Model.problem()``, dense) at the prescribed
+    """A local minimum of the energy of ``prob`` (a ``Model.problem()``, small) at the prescribed
     values g from u, by exact trust-region Newton with trust radius at most ``radius`` (in
     coefficient units, |du|): every step stays within it, so the minimisation follows the
     energy downhill and stops in the first minimum it meets instead of jumping out of a
-    shallow basin (measured: unbounded, from a state 0.1% of the load before a stable
-    equilibrium near the end of the 9x9 square's stable path, it overshot into the collapse).
+    shallow basin (unbounded, from a state just before a stable equilibrium near the end of
+    the 9x9 square's stable path, it overshot into the collapse).
     Every iterate keeps det F > 0. Returns a dict:
     u (Nf, d), energy, min_detF, residual |r|, force_scale (the convergence test's), the three
     lowest eigenvalues of K_ff, iterations."""
@@ -77,29 +75,26 @@ def minimise(prob, u, g, radius: float, max_iter: int = 1000):
             "lowest_eigenvalues": np.linalg.eigvalsh(hess(res.x))[:3].tolist(), "iterations": int(res.nit)}
 
 
-RADIUS = 0.02   # stable_beyond's trust radius, in particle spacings
-
-
-def stable_beyond(model, sol, g_end, fraction: float = 0.1, rtol: float = 1e-6, max_iter: int = 1000) -> dict:
-    """Stable states past the (stable) equilibrium ``sol`` on the straight path of prescribed
-    values from sol.g to ``g_end`` (Nb, d): energy minima (``minimise``) at s = fraction,
-    2 fraction, ... of that path, each from the last. Stops at the first that is not an
-    equilibrium (|r| <= rtol x the force scale) with K_ff positive definite. Trust radius:
-    RADIUS particle spacings. Returns a dict:
-    ``reached`` (the largest s with a stable minimum, 0 if none), ``full`` (s = 1 reached),
-    and at the first failure (``failed_at`` s): min_detF, residual, force_scale,
-    lowest_eigenvalues, iterations, ``collapse`` (min_detF < COLLAPSE)."""
+def stable_beyond(prob, sol, g_end, fraction: float = 0.1, rtol: float = 1e-6, max_iter: int = 1000,
+                  radius: float = 0.02, collapse: float = 1e-6) -> dict:
+    """Stable states past the (stable) equilibrium ``sol`` of the problem ``prob`` on the
+    straight path of prescribed values from sol.g to ``g_end`` (Nb, d): energy minima
+    (``minimise``) at s = fraction, 2 fraction, ... of that path, each from the last. Stops at
+    the first that is not an equilibrium (|r| <= rtol x the force scale) with K_ff positive
+    definite. Trust radius: ``radius`` particle spacings. Returns a dict: ``reached`` (the
+    largest s with a stable minimum, 0 if none), ``full`` (s = 1 reached), and at the first
+    failure (``failed_at`` s): min_detF, residual, force_scale, lowest_eigenvalues, iterations,
+    ``collapse`` (min_detF below ``collapse``: the minimisation ran into det F = 0)."""
     if not 0 < fraction <= 1:
         raise ValueError(f"fraction must lie in (0, 1] (a share of the path per minimisation), got {fraction}")
-    prob = model.problem()
     g0, g1 = np.asarray(sol.g, float), np.asarray(g_end, float)
     u, s, out = np.asarray(sol.u, float), 0.0, {}
     while s < 1 - 1e-12:
         s1 = min(1.0, s + fraction)
-        m = minimise(prob, u, g0 + s1 * (g1 - g0), RADIUS * float(model.body.spacing), max_iter)
+        m = minimise(prob, u, g0 + s1 * (g1 - g0), radius * float(prob.spacing), max_iter)
         if not (m["residual"] <= rtol * m["force_scale"] and m["lowest_eigenvalues"][0] > 0):
             out = {"failed_at": s1, **{k: v for k, v in m.items() if k not in ("u", "energy")},
-                   "collapse": bool(m["min_detF"] < COLLAPSE)}
+                   "collapse": bool(m["min_detF"] < collapse)}
             break
         u, s = m["u"], s1
     return {"reached": s, "full": s >= 1 - 1e-12, **out}

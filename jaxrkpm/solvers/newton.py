@@ -1,86 +1,317 @@
-"""Newton's method on the free RK coefficients (full, modified, chord and quasi-Newton chord).
+"""Newton's method on the free RK coefficients, as solver objects with named state.
+
+``Newton`` (full Newton; modified Newton with ``reuse`` > 0) and ``Chord`` (every solve with a
+given factorisation; quasi-Newton chord with a ``QuasiNewton`` linear solver) differ by one
+flag. Each is a static, immutable description with ``init`` / ``step`` / ``terminate`` over a
+``NewtonState``, run by the one loop of :func:`jaxrkpm.solvers.iterate.iterate`; ``solve``
+does it all::
+
+    newton = Newton(linear=DenseSolver(), rtol=1e-10)
+    res = newton.solve(problem, u, g0, g1, l0, l1, state, max_iter=25)   # NewtonResult
+
+Every tuning constant is a field of the object it tunes (a test builds an object with another
+value instead of patching a module global).
 """
 from __future__ import annotations
 
-from functools import partial
+from dataclasses import dataclass
+from typing import Any, ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from ..mechanics.assembly import (coefficients, energy_residual_stress, force_scales, pair_blocks, residual,
-                                  stress_force_scale, zero_stress)
-from .config import Config
-from .linalg.base import Stability
-from .loops import when
+from .iterate import iterate, when
+from .linalg.base import LinearSolver, Stability
+from .linalg.dense import DenseSolver
 from .results import Status
 
 
-def tangent(ops, params, cfg: Config, u, g):
-    """The tangent as the linear solver takes it: dense K_ff, or (P, d, d) pair blocks."""
-    return cfg.linear.matrix(ops, pair_blocks(ops, params, cfg.W, coefficients(ops, u, g)))
+def _positive(name, v):
+    if isinstance(v, (bool, np.bool_)) or not (isinstance(v, (int, float, np.integer, np.floating))
+                                               and np.isfinite(v) and v > 0):
+        raise ValueError(f"{name} must be a positive number, got {v!r}")
 
 
-def linear_state(ops, params, cfg: Config, u, g):
-    """The linear solver's factorisation of K_ff at (u, g) (see jaxrkpm.solvers.linalg)."""
-    return cfg.linear.init(ops, pair_blocks(ops, params, cfg.W, coefficients(ops, u, g)))
+def _count(name, v, low=0):
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < low:
+        raise ValueError(f"{name} must be an int >= {low}, got {v!r}")
 
 
-# ---------------------------------------------------------------------------- Newton
-# relative residual of an iterative solver's predictor solve: the predictor is a linearised
-# step, off by O(increment^2) whatever its solve's accuracy
-PREDICTOR_RTOL = 1e-4
+def _flag(name, v):
+    if not isinstance(v, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {v!r}")
 
 
-def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: bool = False, floor=None):
-    """Newton from the equilibrium at (g0, l0) to (g1, l1); returns (u, status, iterations,
-    |r|, linear state).
+@dataclass(frozen=True)
+class Tolerance:
+    """The residual test of every nonlinear solver: converged when
+    |r| <= max(rtol max(|r_ref|, force scale), floor), the floor being ``roundoff`` x machine
+    epsilon x the problem's stiffness scale: the residual that rounding the strain to machine
+    precision produces, below which |r| carries no information. Without the floor a tiny load
+    step (steps=10**6, or a 1e-9 prescribed displacement) asks for |r| <= rtol x (a tiny force)
+    and never converges; the round-off actually left in |r| is a few percent of the floor."""
+
+    rtol: float = 1e-10
+    roundoff: float = 100.0
+
+    def __post_init__(self):
+        _positive("rtol", self.rtol)
+        _positive("roundoff", self.roundoff)
+
+    def floor(self, stiffness):
+        """The round-off floor from the problem's stiffness scale (``Problem.force_scales``)."""
+        return self.roundoff * jnp.finfo(stiffness.dtype).eps * stiffness
+
+    def of(self, scale, floor, r_ref=None):
+        """The residual norm that counts as converged."""
+        ref = scale if r_ref is None else jnp.maximum(r_ref, scale)
+        return jnp.maximum(self.rtol * ref, floor)
+
+
+class Increment(NamedTuple):
+    """What one Newton solve is asked, from the equilibrium at (g0, l0) to (g1, l1): its
+    constants inside the loop."""
+
+    g0: jax.Array         # (Nb, d) prescribed values at the start (the predictor's tangent)
+    g1: jax.Array         # (Nb, d) prescribed values at the end
+    l1: jax.Array         # () load scale at the end
+    rhs0: jax.Array       # (Nf, d) the predictor's right-hand side r(u, g0, l1) + K_fg (g1 - g0)
+    r_ref: jax.Array      # () |rhs0|: the out-of-balance force the increment puts on
+    max_iter: jax.Array   # () iteration cap
+    floor: Any            # () round-off floor given by the caller, or None (computed once)
+
+
+class NewtonState(NamedTuple):
+    """The Newton iteration's state (a pytree: the loop's carry)."""
+
+    iteration: jax.Array  # () iterations done
+    u: jax.Array          # (Nf, d) the iterate
+    energy: jax.Array     # () Pi at u
+    residual: jax.Array   # (Nf, d) r at u (before the first step: the predictor's right-hand side)
+    status: jax.Array     # () -1 while running, else a Status code
+    linear: Any           # the linear solver's state (its factorisation)
+    keep: jax.Array       # () modified Newton: the kept factorisation serves the next iteration
+    scale: jax.Array      # () the force scale of the tolerance
+    floor: jax.Array      # () the round-off floor of the tolerance
+    factorised: jax.Array  # () modified Newton: a tangent of this load step has been factorised
+
+
+class NewtonResult(NamedTuple):
+    u: jax.Array
+    status: jax.Array
+    iterations: jax.Array
+    residual_norm: jax.Array
+    linear: Any           # the linear solver's last state
+
+
+@dataclass(frozen=True)
+class Newton:
+    """Newton from the equilibrium at (g0, l0) to (g1, l1).
 
     The first linear solve is the predictor: it carries the prescribed increment,
     K_ff(u, g0) du = -(r(u, g0, l1) + K_fg (g1 - g0)); later ones are Newton steps at g1.
     ``g0`` None: u is an iterate at g1 (e.g. a state predicted by the caller) and the first
     solve a Newton step there (a residual pass instead of the predictor's linearisation).
-    Converged when |r| <= max(rtol max(|r + K_fg dg|, internal force scale), round-off
-    floor) (the force scale at the iterate after the last step that assembled the tangent,
-    or after the predictor: chord steps reuse it; the floor there, after the predictor, unless
-    ``floor`` gives it: e.g. one that the caller computed at a nearby state and keeps, as the
-    control loop does, since the floor's own pass through the material cost as much as a
-    chord correction). The force scale comes from the stress that each residual evaluation
-    computes (``energy_residual_stress``): no pass of its own.
+    Converged by ``tolerance`` with r_ref = |r + K_fg dg|: the force scale at the iterate after
+    the last step that assembled the tangent (or after the predictor: chord steps reuse it),
+    the floor after the predictor unless the caller gives it (the control loop keeps one from
+    a nearby state: the floor's own pass through the material costs as much as a chord
+    correction). The force scale comes from the stresses each residual evaluation computes.
 
-    ``chord=False``: every iteration assembles the tangent and solves through
-    ``cfg.linear.newton_solve`` (which may reuse ``state``, e.g. as a preconditioner), then a
-    backtracking line search (energy decrease or residual decrease).
-    ``chord=True``: every solve uses the factorisation ``state`` as it is (no assembly: the
-    chord, or modified Newton, iteration of a kept tangent; a solver with an ``update``, such
-    as ``linear.QuasiNewton``, adds each correction's secant pair to the state it returns:
-    quasi-Newton corrections); no line search, each correction
-    must lower |r|; a ``state`` that is not stable gives UNSTABLE_TANGENT at once. With
-    ``cfg.reuse`` > 0 a correction must cut |r| by at least that factor, else the chord
-    stops at once with MAX_ITERATIONS (it contracts too slowly: the caller refactorises).
-    ``cfg.reuse`` > 0 (with ``chord=False``): an iteration solves with the kept, stable
-    ``state`` (no assembly) where the previous step cut |r| by at least ``cfg.reuse`` (the
-    predictor: where ``state``, the previous load step's last, is stable), else assembles and
-    factorises; the line search stays. Once |r| is small enough that one Newton step meets
-    the tolerance, the tangent there is factorised (once per load step, where the chord has
-    not already made one) and serves the rest of the step. Convergence is declared only
-    after a tangent of this load step was factorised (its stability is the one reported)."""
-    W = cfg.W
-    res = partial(residual, ops, params, W)
-    if g0 is None:   # no increment: the residual at (u, g1), not a linearisation along g1 - g0 = 0
-        g0, rhs0 = g1, res(u, g1, l1)
-    else:
-        r_pred, kfg_dg = jax.jvp(lambda g: res(u, g, l1), (g0,), (g1 - g0,))
-        rhs0 = r_pred + kfg_dg
-    r_ref = jnp.linalg.norm(rhs0)
-    halvings = 0 if chord else cfg.line_search
+    Every iteration assembles the tangent and solves through ``linear.newton_solve`` (which
+    may reuse the state, e.g. as a preconditioner), then a backtracking line search (energy
+    decrease or residual decrease; ``line_search`` halvings, ``armijo`` its sufficient
+    decrease).
 
-    def evaluate(v):
-        return energy_residual_stress(ops, params, W, v, g1, l1)
+    ``reuse`` > 0 (modified Newton, for solvers with ``modified_newton``): an iteration solves
+    with the kept, stable factorisation (no assembly) where the previous step cut |r| by at
+    least ``reuse`` (the predictor: where the given state, the previous load step's last, is
+    stable), else assembles and factorises; the line search stays. Once |r| is small enough
+    that one Newton step meets the tolerance, the tangent there is factorised (once per load
+    step, where the chord has not already made one) and serves the rest of the step.
+    Convergence is declared only after a tangent of this load step was factorised (its
+    stability is the one reported: with one of the previous step only, a solve passed a
+    critical point). Assembly dominates 3D solves, so this roughly halves their cost at the
+    same residual tolerance (``experiments/bench_cube3d.py``).
 
-    def line_search(u, Pi, r, du, first):
+    ``check_stability``: an equilibrium whose last factorised tangent is not positive definite
+    ends with UNSTABLE_TANGENT (STABILITY_UNKNOWN where the factorisation cannot tell); off,
+    iterative solvers may also stop their solves early (the inexact-Newton forcing term).
+    ``predictor_rtol``: the relative residual of an iterative solver's predictor solve (the
+    predictor is a linearised step, off by O(increment^2) whatever its solve's accuracy)."""
+
+    linear: LinearSolver = DenseSolver()
+    tolerance: Tolerance = Tolerance()
+    line_search: int = 8
+    armijo: float = 1e-4
+    reuse: float = 0.0
+    check_stability: bool = True
+    predictor_rtol: float = 1e-4
+    chord: ClassVar[bool] = False
+
+    def __post_init__(self):
+        if not isinstance(self.linear, LinearSolver):
+            raise ValueError(f"linear must be a jaxrkpm linear solver, got {type(self.linear).__name__}")
+        if not isinstance(self.tolerance, Tolerance):
+            raise ValueError(f"tolerance must be a Tolerance, got {self.tolerance!r}")
+        _count("line_search", self.line_search)
+        _positive("armijo", self.armijo)
+        _positive("predictor_rtol", self.predictor_rtol)
+        if isinstance(self.reuse, (bool, np.bool_)) or not (isinstance(self.reuse, (int, float)) and 0 <= self.reuse < 1):
+            raise ValueError(f"reuse must be a number in [0, 1) (0: full Newton), got {self.reuse!r}")
+        _flag("check_stability", self.check_stability)
+
+    @property
+    def rtol(self) -> float:
+        return self.tolerance.rtol
+
+    @property
+    def halvings(self) -> int:
+        """Line-search halvings: none for a chord (each correction must lower |r|)."""
+        return 0 if self.chord else self.line_search
+
+    @property
+    def modified(self) -> bool:
+        """Modified Newton (static): a kept factorisation serves later iterations. Not for
+        the sparse and Krylov solvers, whose newton_solve already reuses theirs as a
+        preconditioner, and whose kept state may factorise an older tangent than the last."""
+        return (not self.chord) and self.reuse > 0 and self.linear.modified_newton
+
+    # ------------------------------------------------------------------- the protocol
+    def increment(self, problem, u, g0, g1, l0, l1, max_iter, floor=None) -> Increment:
+        """The loop's constants for a solve from u (an equilibrium at g0, or with g0 None an
+        iterate at g1)."""
+        del l0   # the predictor linearises at the end load: r(u, g0, l1) + K_fg (g1 - g0)
+        if g0 is None:   # no increment: the residual at (u, g1), not a linearisation along zero
+            g0, rhs0 = g1, problem.residual(u, g1, l1)
+        else:
+            r_pred, kfg_dg = jax.jvp(lambda g: problem.residual(u, g, l1), (g0,), (g1 - g0,))
+            rhs0 = r_pred + kfg_dg
+        given = None if floor is None else jnp.asarray(floor, u.dtype)
+        return Increment(g0, g1, l1, rhs0, jnp.linalg.norm(rhs0), max_iter, given)
+
+    def init(self, problem, inc: Increment, u, linear) -> NewtonState:
+        if self.chord:
+            # the chord's first solve is the predictor (right-hand side rhs0, accepted whenever
+            # admissible): the energy and residual at (u, g1) would go unused, not evaluated
+            energy, residual = jnp.array(jnp.inf, u.dtype), inc.rhs0
+            status = jnp.where(self.linear.stability(linear) == Stability.STABLE, -1, Status.UNSTABLE_TANGENT)
+        else:
+            energy, _, residual, _ = problem.energy_residual(u, inc.g1, inc.l1)
+            status = jnp.array(-1)
+        keep = jnp.asarray(self.modified) & (self.linear.stability(linear) == Stability.STABLE)
+        zero = jnp.zeros((), u.dtype)
+        return NewtonState(jnp.array(0), u, energy, residual, status, linear, keep, zero, zero, jnp.array(False))
+
+    def terminate(self, s: NewtonState):
+        return s.status >= 0
+
+    def step(self, problem, inc: Increment, s: NewtonState) -> NewtonState:
+        first = s.iteration == 0
+        rhs = jnp.where(first, inc.rhs0, s.residual)
+        state, keep, factorised = s.linear, s.keep, s.factorised
+        made = True
+        if self.chord:
+            dx, stab = self.linear.solve(state, rhs), self.linear.stability(state)
+            made = False
+        elif self.modified:
+            dx, state, stab, made = jax.lax.cond(
+                keep, lambda: (self.linear.solve(state, rhs), state, self.linear.stability(state), False),
+                lambda: (*self._assemble_and_solve(problem, inc, s.u, first, rhs, state), True))
+        else:
+            dx, state, stab = self._assemble_and_solve(problem, inc, s.u, first, rhs, state)
+        ok, v, Pi_v, r_v, aux_v, why = self._line_search(problem, inc, s, -dx, first)
+        if self.chord:
+            # a quasi-Newton solver learns from each correction (the predictor's step also
+            # changes the load: not a secant pair of one residual)
+            state = self.linear.update(state, v - s.u, r_v - s.residual, ok & ~first)
+        rn = jnp.linalg.norm(r_v)
+        # the force scale of the tolerance: at the iterate after each assembled step, kept
+        # through the chord steps that follow it (they move the state by less than the step
+        # before them, so the scale by a relative O(|du|)); the round-off floor once a call,
+        # after the predictor, where not given
+        scale = when(first | made, lambda: problem.force_scale(aux_v), s.scale)
+        if inc.floor is None:
+            floor = when(first, lambda: self.tolerance.floor(problem.force_scales(v, inc.g1)[1]), s.floor)
+        else:
+            floor = inc.floor
+        tol = self.tolerance.of(scale, floor, inc.r_ref)
+        converged = ok & (rn <= tol)
+        cap = inc.max_iter
+        if self.chord and self.reuse > 0:
+            # a kept factorisation that no longer contracts fast is not worth more corrections
+            slow = ~first & ~converged & (rn > self.reuse * jnp.linalg.norm(s.residual))
+            cap = jnp.where(slow, s.iteration + 1, inc.max_iter)
+        if self.modified:
+            # the equilibrium is declared only once a tangent of this step (at g1: not the
+            # predictor's) has been factorised, so the stability reported is, as in full
+            # Newton, that of an iterate of this step's Newton sequence; a chord step that
+            # meets the tolerance before that is followed by one. That factorisation is made
+            # where it does most: once |r| is low enough that a Newton step from there meets
+            # the tolerance (quadratic convergence, |r|^2 <= tol r_ref), so the chord steps
+            # after it contract at once
+            factorised = factorised | (made & ~first)
+            met = converged
+            converged = converged & (factorised | (not self.check_stability))
+            # (without the stability check no factorisation is owed: chords while they contract)
+            owed = self.check_stability & ~factorised & (rn * rn <= tol * inc.r_ref)
+            keep = ok & ~met & (rn <= self.reuse * jnp.linalg.norm(s.residual)) & \
+                (self.linear.stability(state) == Stability.STABLE) & ~owed
+        # stability from the last factorised tangent (at the iterate before the converged one)
+        if self.check_stability:
+            done = jnp.where(stab == Stability.STABLE, Status.CONVERGED,
+                             jnp.where(stab == Stability.UNSTABLE, Status.UNSTABLE_TANGENT,
+                                       Status.STABILITY_UNKNOWN))
+        else:
+            done = Status.CONVERGED
+        status = jnp.where(~ok, why, jnp.where(converged, done,
+                                               jnp.where(s.iteration + 1 >= cap, Status.MAX_ITERATIONS, -1)))
+        # a linear solve that did not converge (Krylov) gives an untrusted step: unless the
+        # residual met the tolerance anyway, the attempt ends
+        status = jnp.where((stab == Stability.FAILED) & ~converged, Status.LINEAR_SOLVE, status)
+        return NewtonState(s.iteration + 1, jnp.where(ok, v, s.u), jnp.where(ok, Pi_v, s.energy),
+                           jnp.where(ok, r_v, s.residual), status, state, keep, scale, floor, factorised)
+
+    def solve(self, problem, u, g0, g1, l0, l1, linear=None, *, max_iter=25, floor=None) -> NewtonResult:
+        """The whole solve: ``increment``, ``init``, the loop; ``linear`` the solver's state to
+        start from (a chord needs the factorisation it reuses)."""
+        if linear is None:
+            if self.chord:
+                raise ValueError("a chord solve needs the factorisation to reuse (linear=...)")
+            linear = self.linear.empty(problem, jnp.result_type(u))
+        inc = self.increment(problem, u, g0, g1, jnp.asarray(l0, jnp.float64), jnp.asarray(l1, jnp.float64),
+                             max_iter, floor)
+        s = iterate(self, problem, inc, self.init(problem, inc, u, linear))
+        return NewtonResult(s.u, s.status, s.iteration, jnp.linalg.norm(s.residual), s.linear)
+
+    # -------------------------------------------------------------------------- parts
+    def _assemble_and_solve(self, problem, inc: Increment, u, first, rhs, state):
+        """A Newton step with the tangent at u (at g0 for the predictor): (dx, state, stability)."""
+        blocks = problem.tangent_blocks(u, jnp.where(first, inc.g0, inc.g1))
+        # inexact Newton (iterative linear solvers): far from equilibrium the linear solve
+        # need only be as accurate as the step is good (a forcing term proportional to the
+        # residual keeps the convergence quadratic), near it solves are tight. With the
+        # stability check only the predictor's solve may stop early: an iterative solver
+        # finds negative curvature only in a rich Krylov space (with loose early corrections
+        # a buckling column's CG path passed the critical point and reported the state beyond
+        # it as stable), and the predictor's tangent is the previous equilibrium's, which that
+        # equilibrium's own tight solves checked
+        forcing = None
+        if not self.check_stability:
+            rel = jnp.linalg.norm(rhs) / jnp.maximum(inc.r_ref, 1e-300)
+            forcing = jnp.where(rel > 1e-4, jnp.minimum(1e-2 * rel, 1e-4), 1e-11)
+        elif self.linear.tight_rtol is not None:
+            forcing = jnp.where(first, self.predictor_rtol, self.linear.tight_rtol)
+        return self.linear.newton_solve(state, problem, blocks, rhs, forcing)
+
+    def _line_search(self, problem, inc: Increment, s: NewtonState, du, first):
+        """Backtracking along du from s.u: (accepted, v, Pi, r, aux, status if refused)."""
+        u, Pi, r = s.u, s.energy, s.residual
         slope = jnp.sum(du * r)
         rn = jnp.linalg.norm(r)
         start_ok = jnp.isfinite(Pi) & jnp.all(jnp.isfinite(r))
+        halvings = self.halvings
 
         def cond(c):
             return (~c[1]) & (c[0] <= halvings)
@@ -89,133 +320,31 @@ def newton(ops, params, cfg: Config, max_iter, u, g0, g1, l0, l1, state, chord: 
             k, _, _, _, _, _, any_finite, _ = c
             alpha = 0.5 ** k
             v = u + alpha * du
-            Pi_v, det_v, r_v, wP_v = evaluate(v)
+            Pi_v, det_v, r_v, aux_v = problem.energy_residual(v, inc.g1, inc.l1)
             finite = jnp.isfinite(Pi_v) & jnp.all(jnp.isfinite(r_v))
             valid = finite & (det_v > 0)
             lower_r = jnp.linalg.norm(r_v) < rn
-            if chord:   # the predictor need only be admissible; corrections must lower |r|
+            if self.chord:   # the predictor need only be admissible; corrections must lower |r|
                 decrease = first | lower_r
             else:
-                decrease = (Pi_v <= Pi + cfg.armijo * alpha * slope) | lower_r | ~start_ok
-            return (k + 1, valid & decrease, v, Pi_v, r_v, wP_v, any_finite | finite, det_v > 0)
+                decrease = (Pi_v <= Pi + self.armijo * alpha * slope) | lower_r | ~start_ok
+            return (k + 1, valid & decrease, v, Pi_v, r_v, aux_v, any_finite | finite, det_v > 0)
 
-        init = (jnp.array(0), jnp.array(False), u, Pi, r, wP0, jnp.array(False), jnp.array(True))
+        init = (jnp.array(0), jnp.array(False), u, Pi, r, problem.no_aux(u), jnp.array(False), jnp.array(True))
         # no halvings (chord): the one trial step, without a loop around it
-        search = body if halvings == 0 else partial(jax.lax.while_loop, cond, body)
-        _, accepted, v, Pi_v, r_v, wP_v, any_finite, det_ok = search(init)
-        why = jnp.where(~any_finite, Status.NONFINITE,
-                        jnp.where(~det_ok, Status.INVERTED, Status.LINE_SEARCH))
-        return accepted, v, Pi_v, r_v, wP_v, why
+        _, accepted, v, Pi_v, r_v, aux_v, any_finite, det_ok = (
+            body(init) if halvings == 0 else jax.lax.while_loop(cond, body, init))
+        why = jnp.where(~any_finite, Status.NONFINITE, jnp.where(~det_ok, Status.INVERTED, Status.LINE_SEARCH))
+        return accepted, v, Pi_v, r_v, aux_v, why
 
-    def cond(c):
-        return c[4] < 0
 
-    # dense only: the sparse solver's newton_solve already reuses its factorisation (as a CG
-    # preconditioner), and its kept state may factorise an older tangent than the last step's
-    reusing = (not chord) and cfg.reuse > 0 and cfg.linear.name == "dense"
+@dataclass(frozen=True)
+class Chord(Newton):
+    """The chord (modified Newton) iteration of a kept tangent: every solve uses the given
+    factorisation as it is (no assembly; with a ``QuasiNewton`` linear solver each
+    correction's secant pair improves it: quasi-Newton corrections); no line search, each
+    correction must lower |r|; a factorisation that is not stable gives UNSTABLE_TANGENT at
+    once. With ``reuse`` > 0 a correction must cut |r| by at least that factor, else the chord
+    stops at once with MAX_ITERATIONS (it contracts too slowly: the caller refactorises)."""
 
-    def body(c):
-        it, u, Pi, r, _, state, keep, scales, step_factorised = c
-        first = it == 0
-        rhs = jnp.where(first, rhs0, r)
-        made = True
-        if chord:
-            dx, stab = cfg.linear.solve(state, rhs), cfg.linear.stability(state)
-            made = False
-        elif reusing:
-            dx, state, stab, made = jax.lax.cond(
-                keep, lambda: (cfg.linear.solve(state, rhs), state, cfg.linear.stability(state), False),
-                lambda: (*assemble_and_solve(u, first, rhs, state), True))
-        else:
-            dx, state, stab = assemble_and_solve(u, first, rhs, state)
-        ok, v, Pi_v, r_v, wP_v, why = line_search(u, Pi, r, -dx, first)
-        if chord and hasattr(cfg.linear, "update"):
-            # a quasi-Newton solver learns from each correction (the predictor's step also
-            # changes the load: not a secant pair of one residual)
-            state = cfg.linear.update(state, v - u, r_v - r, ok & ~first)
-        rn = jnp.linalg.norm(r_v)
-        # the force scale of the tolerance: at the iterate after each assembled step, kept
-        # through the chord steps that follow it (they move the state by less than the step
-        # before them, so the scale by a relative O(|du|));
-        # the round-off floor once a call after the predictor, where not given
-        scale = when(first | made, lambda: stress_force_scale(ops, wP_v), scales[0])
-        if floor is None:
-            floor_now = when(first, lambda: force_scales(ops, params, W, coefficients(ops, v, g1))[1], scales[1])
-        else:
-            floor_now = jnp.asarray(floor, u.dtype)
-        tol = jnp.maximum(cfg.rtol * jnp.maximum(r_ref, scale), floor_now)
-        converged = ok & (rn <= tol)
-        cap = max_iter
-        if chord and cfg.reuse > 0:
-            # a kept factorisation that no longer contracts fast is not worth more corrections
-            slow = ~first & ~converged & (rn > cfg.reuse * jnp.linalg.norm(r))
-            cap = jnp.where(slow, it + 1, max_iter)
-        if reusing:
-            # the equilibrium is declared only once a tangent of this step (at g1: not the
-            # predictor's) has been factorised, so the stability reported is, as in full
-            # Newton, that of an iterate of this step's Newton sequence (measured: with one
-            # of the previous step only, a solve passed a critical point); a chord step that
-            # meets the tolerance before that is followed by one. That factorisation is made
-            # where it does most: once |r| is low enough that a Newton step from there meets
-            # the tolerance (quadratic convergence, |r|^2 <= tol r_ref), so the chord steps
-            # after it contract at once (10^3 cube, 30% in 10 steps: 76 -> 40 iterations, the
-            # same 10 factorisations, 5.37 -> 4.08 s, quiet machine, runs minutes apart)
-            step_factorised = step_factorised | (made & ~first)
-            met = converged
-            converged = converged & (step_factorised | (not cfg.check_stability))
-            # (without the stability check no factorisation is owed: chords while they contract)
-            owed = cfg.check_stability & ~step_factorised & (rn * rn <= tol * r_ref)
-            keep = ok & ~met & (rn <= cfg.reuse * jnp.linalg.norm(r)) & \
-                (cfg.linear.stability(state) == Stability.STABLE) & ~owed
-        # stability from the last factorised tangent (at the iterate before the converged one)
-        if cfg.check_stability:
-            done = jnp.where(stab == Stability.STABLE, Status.CONVERGED,
-                             jnp.where(stab == Stability.UNSTABLE, Status.UNSTABLE_TANGENT,
-                                       Status.STABILITY_UNKNOWN))
-        else:
-            done = Status.CONVERGED
-        status = jnp.where(~ok, why, jnp.where(converged, done,
-                                               jnp.where(it + 1 >= cap, Status.MAX_ITERATIONS, -1)))
-        # a linear solve that did not converge (krylov) gives an untrusted step: unless the
-        # residual met the tolerance anyway, the attempt ends
-        status = jnp.where((stab == Stability.FAILED) & ~converged, Status.LINEAR_SOLVE, status)
-        return (it + 1, jnp.where(ok, v, u), jnp.where(ok, Pi_v, Pi), jnp.where(ok, r_v, r), status, state, keep,
-                (scale, floor_now), step_factorised)
-
-    def assemble_and_solve(u, first, rhs, state):
-        """A Newton step with the tangent at u (at g0 for the predictor): (dx, state, stability)."""
-        blocks = pair_blocks(ops, params, W, coefficients(ops, u, jnp.where(first, g0, g1)))
-        # inexact Newton (iterative linear solvers): far from equilibrium the linear solve
-        # need only be as accurate as the step is good (a forcing term proportional to the
-        # residual keeps the convergence quadratic), near it solves are tight. With the
-        # stability check only the predictor's solve may stop early: an iterative solver
-        # finds negative curvature only in a rich Krylov space (measured: with loose early
-        # corrections a buckling column's CG path, SuperLU-preconditioned, passed the
-        # critical point and reported the state beyond it, lowest eigenvalue -2.5e-5, as
-        # stable), and the predictor's tangent is the previous equilibrium's, which that
-        # equilibrium's own tight solves checked (measured only together with the sparse
-        # path's refactorisation when CG slows: 20^3 cube, 412 -> 213 CG iterations)
-        forcing = None
-        if not cfg.check_stability:
-            rel = jnp.linalg.norm(rhs) / jnp.maximum(r_ref, 1e-300)
-            forcing = jnp.where(rel > 1e-4, jnp.minimum(1e-2 * rel, 1e-4), 1e-11)
-        elif cfg.linear.tight_rtol is not None:
-            forcing = jnp.where(first, PREDICTOR_RTOL, cfg.linear.tight_rtol)
-        return cfg.linear.newton_solve(state, ops, blocks, rhs, forcing)
-
-    if chord:
-        # the chord's first solve is the predictor (right-hand side rhs0, accepted whenever
-        # admissible): the energy and residual at (u, g1) would go unused, so they are not
-        # evaluated (one energy-gradient pass per settle saved)
-        Pi0, r0 = jnp.array(jnp.inf, u.dtype), rhs0
-        wP0 = zero_stress(ops, u)
-    else:
-        Pi0, _, r0, wP0 = evaluate(u)
-    status0 = jnp.array(-1)
-    if chord:
-        status0 = jnp.where(cfg.linear.stability(state) == Stability.STABLE, -1, Status.UNSTABLE_TANGENT)
-    keep0 = jnp.asarray(reusing) & (cfg.linear.stability(state) == Stability.STABLE)
-    it, u_new, _, r, status, state, _, _, _ = jax.lax.while_loop(
-        cond, body, (jnp.array(0), u, Pi0, r0, status0, state, keep0, (jnp.zeros((), u.dtype),) * 2,
-                     jnp.array(False)))
-    return u_new, status, it, jnp.linalg.norm(r), state
+    chord: ClassVar[bool] = True

@@ -1,81 +1,150 @@
-"""Adaptive load stepping from one equilibrium to another (the driver of every solve).
+"""Adaptive load stepping from one equilibrium to another: ``LoadPath``, the driver of every
+solve, over a ``Newton`` solver (and a ``BranchSwitch`` past critical points).
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from ..mechanics.assembly import Ops, Params, residual
-from .branch import switch_branch, switches_branch
-from .config import Config
-from .loops import when
-from .newton import newton
+from .branch import BranchSwitch
+from .iterate import iterate, when
+from .linalg.dense import DenseSolver
+from .newton import Newton, _count, _positive
 from .results import CRITICAL_EIGS, Critical, Limits, Solution, Status
 
 
-FAILED_WORK = 2    # Newton iterations of failed attempts allowed per iteration of useful work (solve_path)
+class Path(NamedTuple):
+    """The driver's constants: the increment asked for and the step sizes it may take."""
+
+    g0: jax.Array         # (Nb, d) prescribed values at the start
+    g1: jax.Array         # (Nb, d) at the end
+    l0: jax.Array         # () load scale at the start
+    l1: jax.Array         # () at the end
+    dt0: jax.Array        # () the initial (and largest) step, as a fraction of the increment
+    dt_min: jax.Array     # () the smallest step allowed
+    dt_locate: jax.Array  # () the step that pins a critical point before a branch switch
+    nominal: jax.Array    # () a converging solve's nominal Newton work (steps x easy)
+    max_iter: jax.Array   # () Newton iterations per step
+
+    def at(self, t):
+        """(g, load) at the fraction t of the increment: exactly g0 before the first converged
+        step (a NaN in g1 must not leak into the kept state: 0 * NaN is NaN) and exactly g1 at
+        the end."""
+        def lerp(a, b):
+            return jnp.where(t >= 1.0, b, jnp.where(t > 0.0, a + t * (b - a), a))
+        return lerp(self.g0, self.g1), lerp(self.l0, self.l1)
 
 
-def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l0, l1, state0=None) -> Solution:
-    """Adaptive load stepping from the equilibrium (u0, g0, l0) to (g1, l1).
+class PathState(NamedTuple):
+    t: jax.Array              # () fraction of the increment reached
+    dt: jax.Array             # () the next step
+    u: jax.Array              # (Nf, d) the last converged state
+    status: jax.Array         # () 0 while running (or done), else the failing Status
+    iterations: jax.Array     # () Newton iterations, all attempts
+    steps: jax.Array          # () accepted steps
+    cuts: jax.Array           # () failed (cut) steps
+    residual_norm: jax.Array  # () |r| of the last converged state
+    unknown: jax.Array        # () an accepted state's stability was unknown
+    linear: Any               # the linear solver's state, carried from step to step
+    branch: jax.Array         # () critical points passed by switching to a stable branch
+    critical: Critical        # the critical points passed (fixed size)
+    wasted: jax.Array         # () Newton iterations spent in failed attempts
 
-    Halves the step on failure (up to lim.max_cuts times below the initial step), grows it
-    by ``cfg.growth`` after easy steps (never above the initial step). On failure the last
-    converged state is returned with the failing status. The linear solver's state runs
-    through every step (a sparse factorisation keeps preconditioning later steps).
-    ``state0``: a factorisation of K_ff at the start (u0, g0, l0), e.g. the one an implicit
-    Jacobian at that equilibrium made: the first step starts from it where the solver keeps
-    states (modified Newton's predictor, ``Config.reuse``; the sparse path's preconditioner),
-    so the same matrix is not factorised twice; full Newton ignores it.
 
-    Past a critical point (``switches_branch(cfg)``): a step whose equilibrium has a K_ff that
-    is not positive definite is cut (as any failure) until it is at most dt0 / 2**cfg.locate
-    long, which pins the critical point between the last stable state and that step's end;
-    then ``switch_branch`` goes on from that unstable equilibrium to a stable equilibrium of
-    the same load, and the step is accepted there; if none is found the solve stops there
-    with UNSTABLE_TANGENT (the last stable state kept). (A step whose Newton fails is cut as
-    before: measured on the Fung squares, a descent from where Newton stalled did not reach a
-    stable state within max_iter, and it costs several times a Newton attempt.) Where K_ff had a negative eigenvalue there, the critical point is recorded in
+@dataclass(frozen=True)
+class LoadPath:
+    """Adaptive load stepping from the equilibrium (u0, g0, l0) to (g1, l1) by ``newton``.
+
+    Halves the step on failure (up to ``Limits.max_cuts`` times below the initial step), grows
+    it by ``growth`` after steps that converge within ``easy`` iterations (never above the
+    initial step). On failure the last converged state is returned with the failing status.
+    The linear solver's state runs through every step (a sparse factorisation keeps
+    preconditioning later steps); the solve may start from a factorisation of K_ff at the
+    start (``state0``, e.g. the one an implicit Jacobian there made), which the first step
+    uses where the solver keeps states (modified Newton's predictor; the sparse path's
+    preconditioner), so the same matrix is not factorised twice; full Newton ignores it.
+
+    Past a critical point (``branch`` given, with the stability check and the dense solver):
+    a step whose equilibrium has a K_ff that is not positive definite is cut (as any failure)
+    until it is at most dt0 / 2**``locate`` long, which pins the critical point between the
+    last stable state and that step's end; then the ``BranchSwitch`` goes on from that unstable
+    equilibrium to a stable equilibrium of the same load, and the step is accepted there; if
+    none is found the solve stops there with UNSTABLE_TANGENT (the last stable state kept). A
+    step whose Newton fails is cut as before (on the Fung squares, a descent from where Newton
+    stalled did not reach a stable state within max_iter, at several times a Newton attempt's
+    cost). Where K_ff had a negative eigenvalue there, the critical point is recorded in
     ``Solution.critical`` and counted in ``Solution.branch``.
 
     Failure in bounded time: the Newton iterations spent in failed attempts (cut steps and
-    failed switches) may not exceed FAILED_WORK x max(iterations of the accepted steps,
-    steps x cfg.easy) + 2 x max_iter; the solve gives up (with the failing attempt's status)
-    once they would. So a solve that cannot proceed costs at most (1 + FAILED_WORK) x the
-    larger of the work it did and a converging solve's nominal work (steps x easy), plus two
-    attempts, whatever lim.max_cuts allows. Without the budget, a solve stuck at a limit point
-    spends up to max_cuts attempts of max_iter iterations each, and more where successes and
-    failures alternate (tens of times a converging solve's work)."""
-    dt0 = 1.0 / lim.steps
-    dt_min = dt0 * 0.5 ** lim.max_cuts
-    dt_locate = jnp.maximum(dt0 * 0.5 ** cfg.locate, dt_min)
-    branching = switches_branch(cfg)
-    nominal = lim.steps * max(int(cfg.easy), 1)
+    failed switches) may not exceed ``failed_work`` x max(iterations of the accepted steps,
+    steps x easy) + 2 x max_iter; the solve gives up (with the failing attempt's status) once
+    they would. So a solve that cannot proceed costs at most (1 + failed_work) x the larger of
+    the work it did and a converging solve's nominal work, plus two attempts, whatever
+    max_cuts allows (without the budget, a solve stuck at a limit point spent tens of times a
+    converging solve's work)."""
 
-    def at(t):
-        # exactly g0 before the first converged step (a NaN in g1 must not leak into the
-        # kept state: 0 * NaN is NaN) and exactly g1 at the end
-        def lerp(a, b):
-            return jnp.where(t >= 1.0, b, jnp.where(t > 0.0, a + t * (b - a), a))
-        return lerp(g0, g1), lerp(l0, l1)
+    newton: Newton = Newton()
+    easy: int = 4
+    growth: float = 1.5
+    branch: BranchSwitch | None = None
+    locate: int = 6
+    failed_work: int = 2
 
-    def cond(c):
-        t, dt, u, status, *_ = c
-        return (t < 1.0) & (status <= 0)
+    def __post_init__(self):
+        if not isinstance(self.newton, Newton) or self.newton.chord:
+            raise ValueError(f"newton must be a Newton solver (not a chord), got {self.newton!r}")
+        _count("easy", self.easy)
+        _positive("growth", self.growth)
+        _count("locate", self.locate)
+        _count("failed_work", self.failed_work)
+        if self.branch is not None and not isinstance(self.branch, BranchSwitch):
+            raise ValueError(f"branch must be a BranchSwitch or None, got {self.branch!r}")
 
-    def body(c):
-        t, dt, u, status, iters, steps, cuts, rn, unknown, state, branch, crit, wasted = c
+    @property
+    def linear(self):
+        return self.newton.linear
+
+    @property
+    def switches(self) -> bool:
+        """Whether solves go on past a critical point (static): the branch switch needs the
+        stability check and the dense tangent (its eigenpairs); other paths stop with
+        UNSTABLE_TANGENT."""
+        return bool(self.branch is not None and self.newton.check_stability
+                    and isinstance(self.newton.linear, DenseSolver))
+
+    def path(self, lim: Limits, g0, g1, l0, l1) -> Path:
+        dt0 = 1.0 / lim.steps
+        dt_min = dt0 * 0.5 ** lim.max_cuts
+        return Path(g0, g1, l0, l1, dt0, dt_min, jnp.maximum(dt0 * 0.5 ** self.locate, dt_min),
+                    lim.steps * max(int(self.easy), 1), lim.max_iter)
+
+    def init(self, problem, path: Path, u0, state0=None) -> PathState:
+        zero = jnp.array(0)
+        linear = self.linear.empty(problem, u0.dtype) if state0 is None else state0
+        return PathState(jnp.array(0.0), jnp.array(path.dt0), u0, zero, zero, zero, zero, jnp.array(0.0),
+                         jnp.array(False), linear, zero, Critical.empty(u0), zero)
+
+    def terminate(self, s: PathState):
+        return ~((s.t < 1.0) & (s.status <= 0))
+
+    def step(self, problem, path: Path, s: PathState) -> PathState:
+        t, dt, u = s.t, s.dt, s.u
         t1 = jnp.minimum(t + dt, 1.0)
         t1 = jnp.where(1.0 - t1 < 1e-12, 1.0, t1)
-        ga, la = at(t)
-        gb, lb = at(t1)
-        v, st, it, rn_v, state = newton(ops, params, cfg, lim.max_iter, u, ga, gb, la, lb, state)
+        ga, la = path.at(t)
+        gb, lb = path.at(t1)
+        res = self.newton.solve(problem, u, ga, gb, la, lb, s.linear, max_iter=path.max_iter)
+        v, st, it, rn_v, linear = res
         ok = (st == Status.CONVERGED) | (st == Status.STABILITY_UNKNOWN)
-        if branching:
-            switch = (st == Status.UNSTABLE_TANGENT) & (dt <= dt_locate * (1 + 1e-9))
+        branch, crit = s.branch, s.critical
+        if self.switches:
+            switch = (st == Status.UNSTABLE_TANGENT) & (dt <= path.dt_locate * (1 + 1e-9))
             nan = jnp.full((CRITICAL_EIGS,), jnp.nan, u.dtype)
             w, found, lam, mode, its = when(
-                switch, lambda: switch_branch(ops, params, cfg, lim.max_iter, v, gb, lb),
+                switch, lambda: self.branch.switch(problem, v, gb, lb, path.max_iter),
                 (v, jnp.array(False), nan, jnp.zeros_like(u), jnp.array(0)))
             moved = switch & found
             lost = switch & ~found
@@ -87,24 +156,26 @@ def solve_path(ops: Ops, params: Params, cfg: Config, lim: Limits, u0, g0, g1, l
             ok = ok | moved
             st = jnp.where(moved, Status.CONVERGED, st)
             # the residual of the state kept (the switch converged to the Newton tolerance)
-            rn_v = jnp.where(moved, jnp.linalg.norm(residual(ops, params, cfg.W, v, gb, lb)), rn_v)
-        grow = jnp.where(it <= cfg.easy, cfg.growth, 1.0)
-        dt_next = jnp.where(ok, jnp.minimum(dt * grow, dt0), dt / 2)
-        wasted = wasted + jnp.where(ok, 0, it)
-        budget = FAILED_WORK * jnp.maximum(iters + it - wasted, nominal) + 2 * lim.max_iter
-        give_up = (~ok) & ((dt / 2 < dt_min * (1 - 1e-9)) | (wasted > budget))
-        if branching:
+            rn_v = jnp.where(moved, jnp.linalg.norm(problem.residual(v, gb, lb)), rn_v)
+        grow = jnp.where(it <= self.easy, self.growth, 1.0)
+        dt_next = jnp.where(ok, jnp.minimum(dt * grow, path.dt0), dt / 2)
+        wasted = s.wasted + jnp.where(ok, 0, it)
+        budget = self.failed_work * jnp.maximum(s.iterations + it - wasted, path.nominal) + 2 * path.max_iter
+        give_up = (~ok) & ((dt / 2 < path.dt_min * (1 - 1e-9)) | (wasted > budget))
+        if self.switches:
             # the critical point is bracketed and no stable state of that load was found:
             # smaller steps would only bracket it again
             give_up = give_up | lost
-        return (jnp.where(ok, t1, t), dt_next, jnp.where(ok, v, u),
-                jnp.where(give_up, st, 0), iters + it, steps + ok, cuts + (~ok), jnp.where(ok, rn_v, rn),
-                unknown | (st == Status.STABILITY_UNKNOWN), state, branch, crit, wasted)
+        return PathState(jnp.where(ok, t1, t), dt_next, jnp.where(ok, v, u), jnp.where(give_up, st, 0),
+                         s.iterations + it, s.steps + ok, s.cuts + (~ok), jnp.where(ok, rn_v, s.residual_norm),
+                         s.unknown | (st == Status.STABILITY_UNKNOWN), linear, branch, crit, wasted)
 
-    zero = jnp.array(0)
-    init = (jnp.array(0.0), jnp.array(dt0), u0, zero, zero, zero, zero, jnp.array(0.0), jnp.array(False),
-            cfg.linear.empty(ops, u0.dtype) if state0 is None else state0, zero, Critical.empty(u0), zero)
-    t, _, u, status, iters, steps, cuts, rn, unknown, _, branch, crit, _ = jax.lax.while_loop(cond, body, init)
-    status = jnp.where((status == 0) & unknown, Status.STABILITY_UNKNOWN, status)
-    g, load = at(t)
-    return Solution(u, g, load, status, t, iters, steps, cuts, rn, branch, crit)
+    def solve(self, problem, lim: Limits, u0, g0, g1, l0, l1, state0=None) -> Solution:
+        """The equilibrium at (g1, l1) reached from (u0, g0, l0): a Solution (the last
+        converged state and the failing status where the path stopped)."""
+        path = self.path(lim, g0, g1, l0, l1)
+        s = iterate(self, problem, path, self.init(problem, path, u0, state0))
+        status = jnp.where((s.status == 0) & s.unknown, Status.STABILITY_UNKNOWN, s.status)
+        g, load = path.at(s.t)
+        return Solution(s.u, g, load, status, s.t, s.iterations, s.steps, s.cuts, s.residual_norm, s.branch,
+                        s.critical)

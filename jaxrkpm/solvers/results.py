@@ -89,7 +89,7 @@ class Critical(NamedTuple):
 
     The tangent K_ff lost positive definiteness between the load fractions ``t_stable`` (the
     last stable equilibrium) and ``t_unstable`` (the first equilibrium on the path with a
-    negative eigenvalue; ``t_unstable - t_stable`` <= dt0 / 2**Config.locate); ``eigenvalues``
+    negative eigenvalue; ``t_unstable - t_stable`` <= dt0 / 2**LoadPath.locate); ``eigenvalues``
     (K, CRITICAL_EIGS) the lowest eigenvalues of K_ff there, ``mode`` (K, Nf, d) the critical
     mode (unit norm) along which the solve left the unstable branch."""
 

@@ -29,7 +29,9 @@ from ..mechanics.assembly import point_values
 from ..mechanics.loads import Springs
 from ..mechanics.materials import Fung
 from ..model.model import Model
-from ..solvers.problem import Problem
+from ..mechanics.problem import Problem
+from ..solvers.implicit import point_jacobian, response, solve_path_diff
+from ..solvers.path import LoadPath
 from ..solvers.results import Limits, Status
 from .data import INCLUSIONS, PHANTOM_OUTLINE, TABLE_6_2
 from .data import NEEDLE as THESIS  # noqa: F401  (re-exported: needle.THESIS, the reference values)
@@ -259,48 +261,28 @@ class Insertion(NamedTuple):
     jacobian: jax.Array
 
 
-@partial(jax.jit, static_argnames=("batched", "with_jacobian", "batching"))
-def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, batched, with_jacobian, batching):
+@partial(jax.jit, static_argnames=("driver", "batched", "with_jacobian", "batching"))
+def _insert_batch(driver: LoadPath, prob: Problem, G, dG, lim, idx, psi, *, batched, with_jacobian, batching):
     """prob: the batched problems (``batched``: which leaves carry the batch axis, see
-    ``stack_models``); G (B, n+1, Nb, d) prescribed values per increment (G[:, 0] the
-    start); dG (B, m, Nb, d) the paddle directions for the Jacobian; idx, psi (P, K) the
-    target's shape functions.
+    ``stack_models``), solved by ``driver``; G (B, n+1, Nb, d) prescribed values per increment
+    (G[:, 0] the start); dG (B, m, Nb, d) the paddle directions for the Jacobian; idx, psi
+    (P, K) the target's shape functions.
 
     ``batching``: "map" runs the configurations one after another (``lax.map``); "vmap"
     advances all of them through each increment at once, their Newton while-loops in lock
     step (each increment costs the slowest member's iterations, step cuts and line-search
     trials; a ``lax.cond`` runs both branches). Which wins depends on the device
-    (experiments/bench_sweep.py, 80 configurations = 5 paddles x 16 stiffness ratios x 15
-    increments, inclusion "right"; 58 of the 1,200 solves fail, INVERTED, and they take 43%
-    of the Newton iterations):
+    (``experiments/bench_sweep.py``):
 
-    - CPU: "map". XLA:CPU runs the batched forms of the assembly's contractions and
-      scatters slower per member than the unbatched ones (per member, 20 configurations:
-      the assembly ~4x the unbatched kernel with the shared table unbatched, ~7x with it
-      stacked), and lock step costs the slowest member (the increment with a failing
-      member: 90-103 iterations against 3-5), so vmap loses to map on a 2-core CPU (5 x 15
-      increments: 12.7 s against 4.8 s, loaded machine). Map: 16.6 s against 19.4 s for
-      the loop (1.17x, load 4.4 falling to 1.6); the arithmetic of the same 7,363 Newton
-      iterations and 1,142 Jacobians alone (bench_sweep's ``floor``; assembly + Cholesky
-      1.2 of an iteration's 1.4 ms) is 12.0 s, so no batching of these solves can beat
-      the loop by more than ~1.6x on this CPU. Since then "map" solves with modified
-      Newton (``Model.newton_reuse``), as the eager loop does by default: 20
-      configurations, consecutive runs, quiet, full / modified Newton: map 7.53 / 5.61 s, loop
-      8.21 / 6.16 s (the same 1.1x between them; 1,812 / 2,300 iterations, fewer of them
-      factorising). Each increment's Jacobian factorisation is carried into the next
-      increment's predictor (the loop makes that matrix twice); with the faster small
-      factorisations (``linear.triangular_pair``, ``solve.pair_blocks``'s equal windows),
-      80 configurations, one run, quiet: map 12.0 s against 15.6 s for the loop (1.30x;
-      9,446 iterations both, deviations equal to 1.4e-16, statuses equal), where it was
-      23.1 s against 24.2 s (1.05x) before both changes. The rest is arithmetic: 4,401
-      factorisations (1.3 ms each; 5,521 before the carry) and 26,912 energy evaluations,
-      68% of them in the last two increments, where the 58 failing solves cut their steps.
+    - CPU: "map". XLA:CPU runs the batched forms of the assembly's contractions and scatters
+      slower per member than the unbatched ones, and lock step costs the slowest member (an
+      increment with a failing member takes many times the iterations of the others). "map"
+      solves with modified Newton (``Model.newton_reuse``), as the eager loop does by default,
+      and carries each increment's Jacobian factorisation into the next increment's predictor
+      (the eager loop makes that matrix twice).
     - GPU: "vmap" (one batched kernel per operation, native batched factorisations; see
-      ``linear.one_at_a_time``). H100: 5.78 s against 31.2 s for the Python loop of the
-      same solves (5.4x), equal to 1e-16.
-
-    (Vmapped solves deadlocked XLA:CPU in jax 0.10 until the factorisations and triangular
-    solves ran one member at a time: ``jaxrkpm.solvers.linalg.dense.one_at_a_time``.)"""
+      ``jaxrkpm.solvers.linalg.dense.one_at_a_time``, which also keeps vmapped solves from
+      deadlocking XLA:CPU)."""
 
     def one(prob, G, dG):
         def step(carry, g1):
@@ -308,17 +290,18 @@ def _insert_batch(prob: Problem, G, dG, lim, idx, psi, *, batched, with_jacobian
             # ``state``: the Jacobian's factorisation at the equilibrium this increment starts
             # from, the predictor's matrix too (the eager loop, model.solve then
             # model.jacobian, makes it twice: same matrix, same results)
-            sol = prob.solve(lim, u, g0, g1, jnp.float64(1.0), jnp.float64(1.0), state)
+            sol = solve_path_diff(driver, prob, lim, u, g0, g1, jnp.float64(1.0), jnp.float64(1.0), state)
             tu = prob.point_values(idx, psi, sol.u, sol.g)[0]
             if with_jacobian:
-                state = prob.factorise(sol.u, sol.g)
-                J = prob.jacobian(sol, dG, idx, psi, state)[0]             # (d, m)
+                state = driver.linear.state_at(prob, sol.u, sol.g)
+                du = response(prob, driver.linear, sol.u, sol.g, sol.load, dG, state)
+                J = point_jacobian(prob, idx, psi, sol.u, sol.g, du, dG)[0]             # (d, m)
             else:
                 J = jnp.zeros((tu.shape[0], dG.shape[0]))
             return (sol.u, sol.g, state), (tu, sol.status, sol.iterations, J)
 
-        u0 = jnp.zeros((prob.ops.free.shape[-1], G.shape[-1]))
-        start = (u0, G[0], prob.config.linear.empty(prob.ops, u0.dtype))
+        u0 = jnp.zeros((prob.n_free, G.shape[-1]))
+        start = (u0, G[0], driver.linear.empty(prob, u0.dtype))
         _, out = jax.lax.scan(step, start, G[1:])
         return out
 
@@ -352,10 +335,9 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
         raise ValueError(f"depths must be a non-empty 1D array of finite needle depths, got {depths!r}")
     ref = models[0]
     prob, batched = stack_models(models)
-    if batching == "map":
-        # one member at a time: modified Newton's branch is a branch (as in an eager solve);
-        # in lock step (vmap) it would run both sides, so full Newton stays there
-        prob = prob.with_config(reuse=ref.newton_reuse)
+    # one member at a time ("map"): modified Newton's branch is a branch (as in an eager
+    # solve); in lock step (vmap) it would run both sides, so full Newton stays there
+    driver = ref.solver(reuse=ref.newton_reuse if batching == "map" else 0.0)
     d = ref.dim
     direction = np.eye(d)[-1] if direction is None else np.asarray(direction, float)
     if direction.shape != (d,) or not np.isclose(np.linalg.norm(direction), 1.0):
@@ -367,7 +349,7 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
         G.append(jnp.stack(rows))
         dG.append(m.directions(jacobian_set) if jacobian_set else jnp.zeros((1,) + rows[0].shape))
     sf = ref.shape_functions(np.atleast_2d(point), gradients=False)
-    fn = partial(_insert_batch, batched=batched, with_jacobian=jacobian_set is not None, batching=batching)
+    fn = partial(_insert_batch, driver, batched=batched, with_jacobian=jacobian_set is not None, batching=batching)
     lim = Limits.of(steps, max_iter)
     idx, psi = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
     return run_batched(lambda pr, g, dg: fn(pr, g, dg, lim, idx, psi),

@@ -74,8 +74,7 @@ def test_nan_prescribed_value_is_named_and_never_kept(blk):
     # where no check can run (the solver core, as under jit/vmap) the failed solve keeps the
     # last converged state: g0 exactly, not g0 + 0 * NaN
     start = model.initial()
-    sol = solve_path_jit(model.ops, model.params, model.config(), Limits.of(), start.u, start.g, g,
-                         start.load, start.load)
+    sol = solve_path_jit(model.solver(), model.problem(), Limits.of(), start.u, start.g, g, start.load, start.load)
     assert Status.of(sol.status) == Status.NONFINITE and float(sol.t) == 0.0
     assert np.array_equal(np.asarray(sol.g), np.asarray(start.g))
     assert np.all(np.isfinite(np.asarray(model.displacement(sol, POINT))))

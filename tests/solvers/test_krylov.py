@@ -7,7 +7,6 @@ import pytest
 import jaxrkpm as jr
 from jaxrkpm.solvers.linalg import multigrid as krylov
 from jaxrkpm.solvers.linalg.base import Stability
-from jaxrkpm.mechanics.assembly import dense_tangent
 from tests.problems import unit_grid
 
 PUSH = {"right": jnp.array([-0.2, 0.05, 0.0])}
@@ -40,12 +39,12 @@ def test_krylov_solution_equals_the_direct_one(cube5):
     assert krylov.STATS["amg_setups"] == 1
     # a linear solve with the state of a converged tangent (as implicit Jacobians use it)
     # solves K_ff x = r: checked with the dense K_ff of the state's own tangent blocks
-    prob = model.problem()
-    state = prob.factorise(sol.u, sol.g)
-    assert Stability.of(prob.stability(state)) == Stability.STABLE
+    prob, linear = model.problem(), model.linear
+    state = linear.state_at(prob, sol.u, sol.g)
+    assert Stability.of(linear.stability(state)) == Stability.STABLE
     r = jnp.asarray(np.random.default_rng(0).standard_normal(sol.u.shape))
-    x = np.asarray(prob.solve_linear(state, r)).ravel()
-    K = np.asarray(dense_tangent(prob.ops, state.blocks))
+    x = np.asarray(linear.solve(state, r)).ravel()
+    K = np.asarray(prob.dense_tangent(state.blocks))
     assert np.abs(K @ x - np.asarray(r).ravel()).max() < 1e-8 * np.abs(np.asarray(r)).max()
 
 

@@ -1,4 +1,4 @@
-"""Modified Newton (Config.reuse): a kept factorisation serves later iterations and the next
+"""Modified Newton (Newton(reuse=...)): a kept factorisation serves later iterations and the next
 load step while the residual contracts; the equilibrium is full Newton's to the tolerance,
 and the solve still stops where full Newton's does at an instability. One small clamped
 strip (experiments.elastica) serves both: its compiled solves are shared. Eager dense solves
@@ -32,7 +32,7 @@ def test_reuse_reaches_full_newton_equilibrium(strip):
     assert float(jnp.abs(kept.u - full.u).max()) < 1e-8 * float(jnp.abs(full.u).max())
     prob = strip.problem()
     assert float(jnp.linalg.norm(prob.residual(kept.u, kept.g))) <= \
-        1e-10 * max(float(prob.force_scale(kept.u, kept.g)), 1.0)
+        1e-10 * max(float(prob.force_scale(prob.energy_residual(kept.u, kept.g)[3])), 1.0)
 
 
 def test_reuse_still_stops_at_the_instability(strip):
@@ -56,14 +56,14 @@ class Recorded(Exception):
 def test_eager_dense_solves_default_to_modified_newton(strip, monkeypatch):
     """reuse=None (default): modified Newton in an eager solve on the dense path, full Newton
     under jit (and vmap, where a vmapped cond would run both branches) and on the sparse path."""
-    assert strip.newton_reuse == model_module.NEWTON_REUSE > 0
+    assert strip.newton_reuse == strip.choice.newton_reuse > 0
     default = push(strip, 0.02)
-    assert int(default.iterations) == int(push(strip, 0.02, reuse=model_module.NEWTON_REUSE).iterations)
+    assert int(default.iterations) == int(push(strip, 0.02, reuse=strip.choice.newton_reuse).iterations)
     assert int(default.iterations) != int(push(strip, 0.02, reuse=0).iterations)
     seen = []
 
-    def record(ops, params, cfg, *args):     # the solve's static settings, then stop
-        seen.append(cfg.reuse)
+    def record(driver, *args):     # the solve's static settings, then stop
+        seen.append(driver.newton.reuse)
         raise Recorded
 
     monkeypatch.setattr(model_module, "solve_path_jit", record)
@@ -73,14 +73,14 @@ def test_eager_dense_solves_default_to_modified_newton(strip, monkeypatch):
                  lambda: strip.solve_g(g, reuse=0.3)):
         with pytest.raises(Recorded):
             call()
-    assert seen == [model_module.NEWTON_REUSE, 0.0, 0.0, 0.3]
+    assert seen == [strip.choice.newton_reuse, 0.0, 0.0, 0.3]
     sets = {name: strip.set_indices(name) for name in strip.set_names}
     assert jr.Model(strip.body, strip.material, essential=sets, solver="sparse").newton_reuse == 0.0
 
 
 def test_reuse_must_lie_in_unit_interval(strip):
     with pytest.raises(ValueError, match="reuse"):
-        strip.config(reuse=1.5)
+        strip.solver(reuse=1.5)
 
 
 def test_preconditioned_cg_on_host_and_in_jit():

@@ -206,15 +206,15 @@ def test_tangent_chunked_assembly_matches_one_chunk(block9, monkeypatch):
     equals the assembly of all groups in one piece, at a random deformed state."""
     from jaxrkpm.mechanics import assembly as jsolve
     model = block9[2]
-    ops, cfg = model.ops, model.config()
+    ops, W = model.ops, model.material.W
     rng = np.random.default_rng(3)
     u = 0.03 * rng.standard_normal((len(model.sets.free), 2))
     d = jsolve.coefficients(ops, u, model.prescribed({"right": jnp.array([0.1, 0.02])}))
-    whole = np.asarray(jsolve.pair_blocks(ops, model.params, cfg.W, d))
+    whole = np.asarray(jsolve.pair_blocks(ops, model.params, W, d))
     G, K = ops.groups.shape[0], ops.idx.shape[1]
     chunk = next(c for c in range(7, G) if G % c)     # a partial last window
     monkeypatch.setattr(jsolve, "BLOCK_BUDGET", chunk * K * K * 4)
-    swept = np.asarray(jsolve.pair_blocks(ops, model.params, cfg.W, d))
+    swept = np.asarray(jsolve.pair_blocks(ops, model.params, W, d))
     assert G > 2 * chunk
     assert np.abs(swept - whole).max() < 1e-12 * np.abs(whole).max()
 
@@ -240,20 +240,20 @@ def test_3d_tangent_from_one_triangle_is_the_energy_hessian(monkeypatch):
     body = jr.Body.grid((5, 5, 5), 0.25)
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
     model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets)
-    ops, cfg = model.ops, model.config()
+    ops, W = model.ops, model.material.W
     assert ops.idx.shape[1] // jsolve.HALF_PART >= 2            # the triangle is taken
     rng = np.random.default_rng(4)
     u = 0.02 * rng.standard_normal((len(model.sets.free), 3))
     g = model.prescribed({"right": jnp.array([-0.1, 0.02, 0.0])})
     d = jsolve.coefficients(ops, u, g)
-    half = np.asarray(jsolve.pair_blocks(ops, model.params, cfg.W, d))
+    half = np.asarray(jsolve.pair_blocks(ops, model.params, W, d))
     monkeypatch.setattr(jsolve, "HALF_PART", 10**6)           # the whole square
-    whole = np.asarray(jsolve.pair_blocks(ops, model.params, cfg.W, d))
+    whole = np.asarray(jsolve.pair_blocks(ops, model.params, W, d))
     assert np.abs(half - whole).max() < 1e-12 * np.abs(whole).max()
     monkeypatch.undo()
     prob = model.problem()
     K = np.asarray(prob.tangent(jnp.asarray(u), g))
-    grad = jax.grad(lambda v: prob.energy(v, g))
+    grad = jax.grad(lambda v: prob.energy(v, g)[0])
     for v in rng.standard_normal((2,) + u.shape):
         Hv = np.asarray(jax.jvp(grad, (jnp.asarray(u),), (jnp.asarray(v),))[1]).ravel()
         assert np.abs(K @ v.ravel() - Hv).max() < 1e-10 * np.abs(Hv).max()
@@ -384,20 +384,20 @@ def test_sparse_path_matches_dense_3d(block3d, factorisation, monkeypatch):
     assert np.abs(np.asarray(a.u) - np.asarray(b.u)).max() < 1e-10
     assert int(a.iterations) == int(b.iterations)
     # the factorisation's inertia: K_ff has as many positive eigenvalues as free dofs
-    prob = sparse.problem()
-    state = jax.jit(prob.factorise)(b.u, b.g)
-    assert int(state.inertia) == 0 and Stability.of(prob.stability(state)) == Stability.STABLE
+    prob, linear = sparse.problem(), sparse.linear
+    state = jax.jit(lambda p, u, g: linear.state_at(p, u, g))(prob, b.u, b.g)
+    assert int(state.inertia) == 0 and Stability.of(linear.stability(state)) == Stability.STABLE
     # a solve with the factorisation = the dense solve of K_ff
     r = jnp.asarray(np.random.default_rng(0).standard_normal(b.u.shape))
-    x = np.asarray(prob.solve_linear(state, r)).ravel()
+    x = np.asarray(linear.solve(state, r)).ravel()
     K = np.asarray(prob.tangent(b.u, b.g))
     assert np.abs(K @ x - np.asarray(r).ravel()).max() < 1e-9 * np.abs(np.asarray(r)).max()
     # an evicted factorisation is made again from the blocks the state carries: same result
     jsparse.pool(sparse.linear.system).clear()
-    assert np.abs(np.asarray(prob.solve_linear(state, r)).ravel() - x).max() < 1e-12 * np.abs(x).max()
+    assert np.abs(np.asarray(linear.solve(state, r)).ravel() - x).max() < 1e-12 * np.abs(x).max()
     if factorisation == "pardiso":     # unrefined, the single-precision solve is far less exact
         monkeypatch.setattr(sparse.linear.system, "refinements", 0)
-        x0 = np.asarray(prob.solve_linear(state, r)).ravel()
+        x0 = np.asarray(linear.solve(state, r)).ravel()
         assert np.abs(K @ x0 - np.asarray(r).ravel()).max() > 1e-9 * np.abs(np.asarray(r)).max()
 
 

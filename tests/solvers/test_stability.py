@@ -57,7 +57,7 @@ def test_strip_buckles_at_euler_load(strip, strip_path):
     assert below.branch == 0 and through.branch == 1
     assert through.outcome == jr.Status.CONVERGED and "secondary branch" in through.message
     lo, hi = float(through.critical.t_stable[0]), float(through.critical.t_unstable[0])
-    assert 0 < hi - lo <= 1 / 2 ** strip.config().locate + 1e-12
+    assert 0 < hi - lo <= 1 / 2 ** strip.solver().locate + 1e-12
     assert np.isnan(np.asarray(through.critical.t_stable[1:])).all()   # one critical point only
     eig = np.asarray(through.critical.eigenvalues[0])
     assert eig[0] < 0 < eig[1]                     # one eigenvalue crossed: a simple bifurcation
@@ -161,7 +161,7 @@ def test_small_strip_passes_its_bifurcation_in_one_solve():
     assert eig[0] < 0 < eig[1]
     lo, hi = (0.02 * float(sol.critical.t_stable[0]), 0.02 * float(sol.critical.t_unstable[0]))
     axial = EULER / (E_PLANE * H)                  # the shortening at Euler's load, 0.82%
-    assert lo <= axial * 1.05 and hi >= axial * 0.95 and hi - lo <= 0.02 / 4 / 2 ** strip.config().locate + 1e-12
+    assert lo <= axial * 1.05 and hi >= axial * 0.95 and hi - lo <= 0.02 / 4 / 2 ** strip.solver().locate + 1e-12
     mode = np.asarray(sol.critical.mode[0])
     assert np.linalg.norm(mode[:, 1]) > 5 * np.linalg.norm(mode[:, 0])
     assert min_eig(strip, sol) > 0
@@ -195,14 +195,14 @@ def test_branch_switch_gives_up_at_once_where_the_square_collapses(fung_block):
     assert 0.3 < 0.6 * float(sol.t) < 0.32 and min_eig(fung_block, sol) > 0
     assert int(sol.iterations) <= int(plain.iterations) + 2
     # minima every 0.2% of the load (the solve stopped on a step of 1/(10 x 2**cuts))
-    past = stable_beyond(fung_block, sol, fung_block.prescribed(push), fraction=0.002 / (1 - float(sol.t)))
+    past = stable_beyond(fung_block.problem(), sol, fung_block.prescribed(push), fraction=0.002 / (1 - float(sol.t)))
     assert past["reached"] == 0.0 and past["failed_at"] > 0   # the solve stopped at the end of the stable path
     assert past["collapse"] and past["min_detF"] < 1e-6 and past["residual"] > 1e-4 * past["force_scale"]
     # the check is not blind: it finds the stable states of the 0.6% before the end
     near = fung_block.solve({"edge": jnp.array([-0.6 * (float(sol.t) - 0.01), 0.0])}, steps=10)
-    back = stable_beyond(fung_block, near, sol.g, fraction=0.5)
+    back = stable_beyond(fung_block.problem(), near, sol.g, fraction=0.5)
     assert back["full"] and "failed_at" not in back
     with pytest.raises(ValueError, match="fraction"):
-        stable_beyond(fung_block, near, sol.g, fraction=0.0)
+        stable_beyond(fung_block.problem(), near, sol.g, fraction=0.0)
     with pytest.raises(ValueError, match="inverts the material"):   # the undeformed state at 18% compression
         minimise(fung_block.problem(), np.zeros(sol.u.shape), sol.g, radius=0.01)

@@ -10,18 +10,15 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ...mechanics.assembly import dense_tangent
-from .base import Stability
-from .refinement import REFINEMENTS, refine
+from .base import LinearSolver, Stability
+from .refinement import refine
 
 
-# ------------------------------------------------------------------------------- dense
 class DenseState(NamedTuple):
     """A dense factorisation of K_ff. Its matrices are held flat (row-major by construction):
     held as (n, n) arrays inside a Newton or control loop, XLA gave the loop's carry LAPACK's
-    column-major layout (they come out of, or feed, the factorisations), and every solve then
-    copied them to the row-major layout of its products (10^3 cube, n = 2,400: a kept
-    factorisation's solve 15 ms, 6.6 ms without the copies)."""
+    column-major layout and every solve then copied them to the row-major layout of its
+    products (measured by ``experiments/bench_cube3d.py``'s kept control loop)."""
     K_flat: jax.Array     # (n * n,) K_ff
     spd: jax.Array        # () K_ff positive definite: L is usable (else solves use LU of K)
     Linv_flat: jax.Array  # (n * n,) L^-1 (``DenseSolver(inverse=True)``; K^-1 where K_ff is not
@@ -45,47 +42,40 @@ def _square(flat):
     return flat.reshape(n, n)
 
 
-TRIANGULAR_BLOCK = 256   # rows of L per block of the blocked triangular solves
-
-
-def by_columns(f, b):
-    """f(b) for b (n, k) as k calls on single columns (n <= TRIANGULAR_BLOCK; else f(b)).
+def by_columns(f, b, block: int):
+    """f(b) for b (n, k) as k calls on single columns where n <= ``block`` (else f(b)).
     Why: XLA:CPU runs the products of a small matrix with a few columns slower than that
     many matrix-vector products, worst where the matrix is contracted over its rows (A^T b
-    without a transposed copy): one thread, n = 138, k = 2, 13.2 us against 1.0 us a
-    column; a kept L^-1's solve 14.1 us against 6.7 us by columns (the 2D box path's
-    tracking, interleaved runs: 1.19 / 1.30 s -> 1.16 / 1.10 s). Not for large matrices,
-    which each column would stream from memory again: at n = 2,400 (the 10^3 cube, three
-    columns) the kept control loop took 0.18-0.20 s a step by columns against 0.16-0.18 s
-    (runs interleaved)."""
-    if b.shape[0] > TRIANGULAR_BLOCK or b.shape[1] == 1:
+    without a transposed copy); not for large matrices, which each column would stream from
+    memory again (both measured by ``experiments/bench_tracking.py`` and the kept control
+    loop of ``experiments/bench_cube3d.py``)."""
+    if b.shape[0] > block or b.shape[1] == 1:
         return f(b)
     return jnp.concatenate([f(b[:, j:j + 1]) for j in range(b.shape[1])], axis=1)
 
 
-def _block_edges(n):
-    return list(range(0, n, TRIANGULAR_BLOCK)) + [n]
+def _block_edges(n, block: int):
+    return list(range(0, n, block)) + [n]
 
 
-def factor_blocks(L):
-    """The Cholesky factor L (n, n) as the row blocks of U = L^T (TRIANGULAR_BLOCK rows
-    each, every one its own array, held flat as ``DenseState`` holds its matrices):
-    U_i = L[:, a:c]^T, a column panel of L.
+def factor_blocks(L, block: int):
+    """The Cholesky factor L (n, n) as the row blocks of U = L^T (``block`` rows each, every
+    one its own array, held flat as ``DenseState`` holds its matrices): U_i = L[:, a:c]^T, a
+    column panel of L.
 
-    Why separate arrays: a product with a slice of L taken inside jit ran ~8x slower than
-    the same product with the slice held as an array (XLA:CPU, n = 2,400), so the blocks are
-    cut once per factorisation instead of at every solve. Why column panels of L: LAPACK
-    leaves L column-major, where a panel is contiguous and its transpose is row-major with
-    no copy (row blocks of L were copied at every solve inside a loop: see ``DenseState``)."""
-    edges = _block_edges(L.shape[0])
+    Why separate arrays: a product with a slice of L taken inside jit ran several times slower
+    than the same product with the slice held as an array (XLA:CPU), so the blocks are cut
+    once per factorisation instead of at every solve. Why column panels of L: LAPACK leaves L
+    column-major, where a panel is contiguous and its transpose is row-major with no copy."""
+    edges = _block_edges(L.shape[0], block)
     return jax.lax.optimization_barrier(tuple(L[:, a:c].T.ravel() for a, c in zip(edges[:-1], edges[1:])))
 
 
-def blocked_inverses(blocks):
+def blocked_inverses(blocks, block: int):
     """Inverses of the diagonal blocks of L given as ``factor_blocks``: (m, B, B) with
-    B = TRIANGULAR_BLOCK, L_ii^-1; the last block's in the top left corner of its slot (zeros
+    B = ``block``, L_ii^-1; the last block's in the top left corner of its slot (zeros
     elsewhere). Formed once per factorisation (m small triangular solves, ~n B^2 flops)."""
-    B = TRIANGULAR_BLOCK
+    B = block
     if len(blocks) == 1:   # one block: solved with L itself (``triangular_pair``)
         return jnp.zeros((0, B, B), blocks[0].dtype)
     out = []
@@ -103,20 +93,17 @@ def triangular_pair(blocks, Dinv, b):
     (U_i, the row blocks of L^T), by block substitution in which every operation is a
     product with a block U_i or a diagonal block's inverse (``blocked_inverses``; U's lower
     triangle is zero). Why: XLA's CPU triangular solve (with L an argument, as in a solver
-    state) is several times slower than a product with the same matrix: at n = 2,400, one
-    right-hand side, same run (load average 6), cho_solve 89 ms, this 12 ms; cutting the
-    blocks and inverting the diagonal ones, once per factorisation, 21 ms (the Cholesky
-    factorisation ~1.5 s there).
+    state) is several times slower than a product with the same matrix
+    (``experiments/bench_cube3d.py``).
 
-    A single block (n <= TRIANGULAR_BLOCK) is solved by LAPACK's triangular solves with L
-    itself, and has no inverse (``blocked_inverses``): inverting it cost 2.7x its Cholesky
-    factorisation (n = 192, the needle phantom: 0.65 against 0.24 ms), and a solve with two
-    right-hand sides took 0.08 ms against 0.11 ms by the inverse."""
-    B = TRIANGULAR_BLOCK
+    A single block is solved by LAPACK's triangular solves with L itself, and has no inverse
+    (``blocked_inverses``): for a small factor, inverting it costs more than its Cholesky
+    factorisation (the needle phantom of ``experiments/bench_sweep.py``)."""
     n = b.shape[0]
     blocks = [Ui.reshape(-1, n) for Ui in blocks]
     if len(blocks) == 1:
         return _upper_pair(blocks[0], b)
+    B = blocks[0].shape[0]
     contract_rows = (((0,), (0,)), ((), ()))
     r = b
     y = []
@@ -158,13 +145,12 @@ def one_at_a_time(factorise):
     its two branches: ``lapack_dtrsm_ffi``, seen in gdb in a hung vmapped needle sweep) can
     occupy every pool thread (two on a 2-core machine) with waiting, and nothing is left to
     run the pieces: a deadlock
-    (tests/test_threads.py keeps the reduced pattern; experiments/vmap_deadlock.py measures
-    it). Unbatched calls never wait on the pool.
+    (tests/base/test_threads.py keeps the reduced pattern; experiments/vmap_deadlock.py
+    reproduces it). Unbatched calls never wait on the pool.
 
     Only on CPU: elsewhere (GPU) the batch goes to the native batched factorisation in one
     call (``lax.platform_dependent``), where a member-by-member loop would serialise the
-    batch (measured on an H100, 80 phantom configurations: the vmapped sweep's time grew
-    linearly with the batch)."""
+    batch (``experiments/bench_sweep.py`` on a GPU)."""
     batched = jax.custom_batching.custom_vmap(factorise)
 
     @batched.def_vmap
@@ -206,69 +192,66 @@ _upper_pair = one_at_a_time(lambda U, b: jax.lax.linalg.triangular_solve(
 
 
 @dataclass(frozen=True)
-class DenseSolver:
+class DenseSolver(LinearSolver):
     """Dense Cholesky of K_ff (LU where it is not positive definite): small systems. Both
     factorisations run one batch member at a time under vmap (``one_at_a_time``).
 
-    A solve is block substitution with the inverses of L's diagonal blocks, kept with the
-    factorisation (``triangular_pair``: matrix products only, ~7x faster than XLA's CPU
-    triangular solves at n = 2,400). ``inverse=True`` keeps all of L^-1 instead, so that a
-    solve is two matrix-vector products: for a factorisation reused over many solves (the
-    chord corrections and Jacobians of a control loop). Measured at n = 2,400 (one thread):
-    the two products 3.5 ms; forming L^-1 costs ~3 Cholesky factorisations (0.56 s against
-    0.2 s).
+    A solve is block substitution with the inverses of L's diagonal blocks (``block`` rows
+    each), kept with the factorisation (``triangular_pair``: matrix products only).
+    ``inverse=True`` keeps all of L^-1 instead, so that a solve is two matrix-vector
+    products: for a factorisation reused over many solves (the chord corrections and
+    Jacobians of a control loop), at the price of forming L^-1 once.
 
     ``mixed=True`` factorises in single precision and refines every solve in double
-    (``REFINEMENTS`` steps x <- x + M^-1 (b - K x) with the double K_ff; LAPACK's dsposv
-    idea): a single-precision Cholesky takes half the time (n = 2,400, one thread: 75 ms
-    against 168 ms) and its triangular solves move half the bytes, while the refined solve
-    keeps double accuracy wherever cond(K_ff) eps_single << 1 (the 10^3 cube: cond 373, each
-    step cuts the residual ~1e-6: two give 1e-12). Where the single-precision factorisation
-    fails, K_ff is factorised in double (near a critical point, where eps_single no longer
-    resolves the smallest eigenvalue); its inertia is then the double one. An eigenvalue of
-    K_ff within ~n eps_single |K_ff| of zero on the positive side of a single-precision
-    factorisation is not resolved: stability studies near critical points keep the default
-    ``mixed=False`` (``Model(precision="double")``)."""
+    (``refinements`` steps x <- x + M^-1 (b - K x) with the double K_ff; LAPACK's dsposv
+    idea): a single-precision Cholesky takes about half the time and its solves move half the
+    bytes (``experiments/bench_cube3d.py --precision``), while the refined solve keeps double
+    accuracy wherever cond(K_ff) eps_single << 1 (each step cuts the residual by about
+    cond(K_ff) eps_single: two give ~1e-12 on the 10^3 cube). Where the single-precision
+    factorisation fails, K_ff is factorised in double (near a critical point, where
+    eps_single no longer resolves the smallest eigenvalue); its inertia is then the double
+    one. An eigenvalue of K_ff within ~n eps_single |K_ff| of zero on the positive side of a
+    single-precision factorisation is not resolved: stability studies near critical points
+    keep the default ``mixed=False`` (``Model(precision="double")``)."""
 
     name: str = "dense"
     inverse: bool = False
     mixed: bool = False
-    tight_rtol = None     # solves are exact: no iteration to stop early (see SparseSolver)
-
-    def matrix(self, ops, blocks):
-        return dense_tangent(ops, blocks)
+    block: int = 256          # rows of L per block of the blocked triangular solves
+    refinements: int = 2      # refinement steps of a mixed-precision solve
+    modified_newton = True    # a factorisation serves later Newton iterations as it is
 
     def factor(self, K):
         """Cholesky factor of K_ff in the factorisation's precision, and whether it exists."""
         L = _mixed_cholesky(K) if self.mixed else _cholesky(K)
         return L, _usable(L)
 
-    def init(self, ops, blocks) -> DenseState:
-        return self.factorise(dense_tangent(ops, blocks))
+    def init(self, problem, blocks) -> DenseState:
+        return self.factorise(problem.dense_tangent(blocks))
 
     def factorise(self, K) -> DenseState:
         """The state of a dense K_ff (n, n) given as a matrix."""
         L, spd = self.factor(K)
         if not self.inverse:
-            rows = factor_blocks(L)
-            return DenseState(K.ravel(), spd, jnp.zeros((0,), L.dtype), rows, blocked_inverses(rows))
+            rows = factor_blocks(L, self.block)
+            return DenseState(K.ravel(), spd, jnp.zeros((0,), L.dtype), rows, blocked_inverses(rows, self.block))
         eye = jnp.eye(K.shape[0], dtype=L.dtype)
         # not positive definite (past a critical point): K^-1 itself, by LU, in its place
         Linv = jax.lax.cond(spd, lambda: _lower_solve(L, eye),
                             lambda: _lu_solve(K, eye.astype(K.dtype)).astype(L.dtype))
         return DenseState(K.ravel(), spd, Linv.ravel(), (), jnp.zeros((0, 0, 0), L.dtype))
 
-    def empty(self, ops, dtype) -> DenseState:
-        n = ops.free.shape[0] * ops.f_ext.shape[1]
+    def empty(self, problem, dtype) -> DenseState:
+        n = problem.n_free * problem.dim
         z = jnp.zeros(n * n, dtype)
         fdtype = jnp.float32 if self.mixed else dtype
         if self.inverse:
             return DenseState(z, jnp.array(False), jnp.zeros(n * n, fdtype), (), jnp.zeros((0, 0, 0), fdtype))
-        edges = _block_edges(n)
+        edges = _block_edges(n, self.block)
         rows = tuple(jnp.zeros(((c - a) * n,), fdtype) for a, c in zip(edges[:-1], edges[1:]))
         inverses = len(rows) if len(rows) > 1 else 0   # as ``blocked_inverses`` makes them
         return DenseState(z, jnp.array(False), jnp.zeros((0,), fdtype), rows,
-                          jnp.zeros((inverses, TRIANGULAR_BLOCK, TRIANGULAR_BLOCK), fdtype))
+                          jnp.zeros((inverses, self.block, self.block), fdtype))
 
     def solve(self, state: DenseState, rhs):
         n = state.K.shape[0]
@@ -276,12 +259,12 @@ class DenseSolver:
         if self.inverse:
             def apply(r):
                 # L^-T y as a contraction over L^-1's rows: ``Linv.T @ y`` copied the
-                # transpose first (32 ms against 3 ms for one right-hand side, n = 2,400).
-                # No LU branch: it made XLA copy K into LAPACK's layout at every call
+                # transpose first. No LU branch: it made XLA copy K into LAPACK's layout at
+                # every call
                 y = state.Linv @ r
                 x = jax.lax.dot_general(state.Linv, y, (((0,), (0,)), ((), ())))
                 return jnp.where(state.spd, x, y)
-            return self._refined(lambda r: by_columns(apply, r), state.K, b).reshape(rhs.shape)
+            return self._refined(lambda r: by_columns(apply, r, self.block), state.K, b).reshape(rhs.shape)
         chol = lambda: self._refined(lambda r: triangular_pair(state.rows, state.Dinv, r), state.K, b)
         lu = lambda: _lu_solve(state.K, b)
         x = jax.lax.cond(state.spd, chol, lu)   # under vmap: both, then a select
@@ -289,10 +272,10 @@ class DenseSolver:
 
     def _refined(self, apply, K, b):
         """``apply`` (an approximate K^-1 in the factorisation's precision) to b; with
-        ``mixed``, then refined in b's precision against K (``REFINEMENTS`` steps)."""
+        ``mixed``, then refined in b's precision against K (``refinements`` steps)."""
         if not self.mixed:
             return apply(b)
-        return refine(lambda r: apply(r.astype(jnp.float32)).astype(b.dtype), lambda x: K @ x, b, REFINEMENTS)
+        return refine(lambda r: apply(r.astype(jnp.float32)).astype(b.dtype), lambda x: K @ x, b, self.refinements)
 
     def stability(self, state: DenseState):
         return jnp.where(state.spd, Stability.STABLE, Stability.UNSTABLE)
@@ -303,7 +286,7 @@ class DenseSolver:
         count = lambda: jnp.sum(jnp.linalg.eigvalsh(state.K) < 0).astype(jnp.int64)
         return jax.lax.cond(state.spd, lambda: jnp.zeros((), jnp.int64), count)
 
-    def newton_solve(self, state, ops, blocks, rhs, rtol=None):
+    def newton_solve(self, state, problem, blocks, rhs, rtol=None):
         """Exact: the current tangent is factorised (``state`` and ``rtol`` are not needed)."""
-        new = self.init(ops, blocks)
+        new = self.init(problem, blocks)
         return self.solve(new, rhs), new, self.stability(new)

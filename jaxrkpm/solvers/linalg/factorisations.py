@@ -56,7 +56,7 @@ import scipy.sparse.linalg as spla
 
 from ...base.threads import sparse_threads
 from ...discretise.constraints import HostElimination
-from .refinement import REFINEMENTS, preconditioned_cg, refine
+from .refinement import preconditioned_cg, refine
 
 
 def nested_dissection(X: np.ndarray, indptr: np.ndarray, indices: np.ndarray, leaf: int = 64) -> np.ndarray:
@@ -380,7 +380,8 @@ class SaddlePointSystem:
     # a kept factorisation is replaced (the current tangent factorised after the solve) once
     # CG needs more than ``growth`` x the iterations per decade of its first solve with it
     growth = 2.0
-    refinements = REFINEMENTS   # of a direct solve with a single-precision factorisation
+    refinements = 2   # of a direct solve with a single-precision factorisation (each cuts the
+    #                   residual by about cond(K_ff) eps_single)
 
     def __init__(self, X: np.ndarray, rows: np.ndarray, cols: np.ndarray, C, free_dofs: np.ndarray,
                  bnd: np.ndarray, dim: int, factorisation: str = "auto", precision: str = "auto"):

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 
 from . import multigrid as krylov
-from .base import Stability
+from .base import LinearSolver, Stability
 from .host import host_callback
 
 
@@ -23,7 +23,7 @@ class KrylovState(NamedTuple):
 
 
 @dataclass(frozen=True, eq=False)
-class KrylovSolver:
+class KrylovSolver(LinearSolver):
     """Newton-Krylov for large systems: CG on K_ff = T^T K T with the assembled tangent,
     preconditioned by an algebraic multigrid hierarchy built rarely (``jaxrkpm.solvers.linalg.multigrid``), on
     the host through jax.pure_callback (CPU). No factorisation: stability is inferred from CG
@@ -38,20 +38,17 @@ class KrylovSolver:
         """CG's relative residual where ``newton_solve`` is given no other."""
         return self.system.rtol
 
-    def matrix(self, ops, blocks):
-        return blocks
-
     @property
     def _pool(self):
         return krylov.pool(self.system)
 
-    def init(self, ops, blocks) -> KrylovState:
+    def init(self, problem, blocks) -> KrylovState:
         i64 = jax.ShapeDtypeStruct((), jnp.int64)
         h, st = host_callback(self._pool.init, (i64, i64), blocks)
         return KrylovState(h, blocks, blocks, st)
 
-    def empty(self, ops, dtype) -> KrylovState:
-        P, d = ops.pair_i.shape[0], ops.f_ext.shape[1]
+    def empty(self, problem, dtype) -> KrylovState:
+        P, d = problem.n_pairs, problem.dim
         z = jnp.zeros((P, d, d), dtype)
         return KrylovState(jnp.zeros((), jnp.int64), z, z, jnp.asarray(krylov.KrylovStatus.NONE, jnp.int64))
 
@@ -71,7 +68,7 @@ class KrylovSolver:
         """0 where CG inferred K_ff positive definite, else -1 (CG does not count them)."""
         return jnp.where(state.outcome == krylov.KrylovStatus.CONVERGED, 0, -1).astype(jnp.int64)
 
-    def newton_solve(self, state: KrylovState, ops, blocks, rhs, rtol=None):
+    def newton_solve(self, state: KrylovState, problem, blocks, rhs, rtol=None):
         """CG with the current tangent to ``rtol`` (the inexact-Newton forcing term; default
         the system's rtol), preconditioned by the kept hierarchy (rebuilt when CG slows)."""
         rtol = jnp.asarray(self.system.rtol if rtol is None else rtol, rhs.dtype)

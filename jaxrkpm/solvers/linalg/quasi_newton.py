@@ -8,6 +8,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from .base import LinearSolver
 from .dense import DenseSolver
 
 
@@ -20,7 +21,7 @@ class QuasiNewtonState(NamedTuple):
 
 
 @dataclass(frozen=True)
-class QuasiNewton:
+class QuasiNewton(LinearSolver):
     """A kept factorisation of K_ff made better by secant pairs: L-BFGS (Nocedal & Wright,
     Algorithm 7.4, the two-loop recursion) with the factorisation's inverse as the initial
     inverse Hessian H_0. So chord corrections with a factorisation of an earlier state
@@ -35,25 +36,19 @@ class QuasiNewton:
 
     base: Any = DenseSolver(inverse=True)
     memory: int = 8
+    name = "quasi-newton"
     tight_rtol = None     # its solves are direct (the base's and the two-loop recursion)
 
-    @property
-    def name(self) -> str:
-        return "quasi-newton"
-
-    def matrix(self, ops, blocks):
-        return self.base.matrix(ops, blocks)
-
-    def _fresh(self, base_state, ops, dtype) -> QuasiNewtonState:
-        n = ops.free.shape[0] * ops.f_ext.shape[1]
+    def _fresh(self, base_state, problem, dtype) -> QuasiNewtonState:
+        n = problem.n_free * problem.dim
         z = jnp.zeros((self.memory, n), dtype)
         return QuasiNewtonState(base_state, z, z, jnp.zeros((), jnp.int32))
 
-    def init(self, ops, blocks) -> QuasiNewtonState:
-        return self._fresh(self.base.init(ops, blocks), ops, blocks.dtype)
+    def init(self, problem, blocks) -> QuasiNewtonState:
+        return self._fresh(self.base.init(problem, blocks), problem, blocks.dtype)
 
-    def empty(self, ops, dtype) -> QuasiNewtonState:
-        return self._fresh(self.base.empty(ops, dtype), ops, dtype)
+    def empty(self, problem, dtype) -> QuasiNewtonState:
+        return self._fresh(self.base.empty(problem, dtype), problem, dtype)
 
     def solve(self, state: QuasiNewtonState, rhs):
         n = state.S.shape[1]
@@ -81,7 +76,7 @@ class QuasiNewton:
         """With the secant pair (s, y) added (y = r(u + s) - r(u) at one load) where
         ``accept``, unless its curvature s.y is not clearly positive (then H would lose
         positive definiteness). A select, not a lax.cond: a cond over the whole state made
-        XLA copy the factorisation (3 n^2 doubles) at every correction."""
+        XLA copy the factorisation at every correction."""
         s, y = s.reshape(-1), y.reshape(-1)
         good = accept & (jnp.sum(s * y) > 1e-12 * jnp.linalg.norm(s) * jnp.linalg.norm(y))
         S = jnp.where(good, jnp.roll(state.S, -1, axis=0).at[-1].set(s), state.S)
@@ -94,7 +89,7 @@ class QuasiNewton:
     def negative_eigenvalues(self, state: QuasiNewtonState):
         return self.base.negative_eigenvalues(state.base)
 
-    def newton_solve(self, state, ops, blocks, rhs, rtol=None):
+    def newton_solve(self, state, problem, blocks, rhs, rtol=None):
         """A Newton step with the current tangent: a new factorisation, no pairs."""
-        x, base, stab = self.base.newton_solve(state.base, ops, blocks, rhs, rtol)
-        return x, self._fresh(base, ops, blocks.dtype), stab
+        x, base, stab = self.base.newton_solve(state.base, problem, blocks, rhs, rtol)
+        return x, self._fresh(base, problem, blocks.dtype), stab

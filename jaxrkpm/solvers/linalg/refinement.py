@@ -4,15 +4,15 @@ matrix. The one rule of each, shared by the solvers inside jit and on the host (
 both work on JAX and NumPy arrays alike."""
 from __future__ import annotations
 
+from typing import Any, NamedTuple
+
 import jax.numpy as jnp
 import numpy as np
 
-# refinement steps: each cuts the residual by ~cond(K_ff) eps_single (1e-6 measured on the
-# 10^3 cube), so two reach ~1e-12
-REFINEMENTS = 2
+from ..iterate import python_loop
 
 
-def refine(apply, matvec, b, steps: int = REFINEMENTS):
+def refine(apply, matvec, b, steps: int):
     """x ~ K^-1 b from ``apply`` (an approximate K^-1, e.g. a single-precision factorisation)
     and ``matvec`` (the exact K x): x = apply(b), then ``steps`` times x += apply(b - K x)."""
     x = apply(b)
@@ -21,14 +21,18 @@ def refine(apply, matvec, b, steps: int = REFINEMENTS):
     return x
 
 
-def _python_loop(cond, body, state):
-    while cond(state):
-        state = body(state)
-    return state
+class CGState(NamedTuple):
+    iteration: Any   # () iterations done
+    x: Any           # the iterate
+    r: Any           # the residual b - K x
+    p: Any           # the search direction
+    rz: Any          # r . z (z the preconditioned residual), per column
+    live: Any        # columns still iterating
+    curved: Any      # columns that met no direction of non-positive curvature
 
 
 def preconditioned_cg(matvec, precondition, b, rtol: float, maxiter: int, *, columns: bool = False,
-                      loop=_python_loop, x0=None):
+                      loop=python_loop, x0=None):
     """Conjugate gradients on K x = b (K symmetric positive definite) preconditioned by
     ``precondition`` (an approximate K^-1 that is symmetric positive definite, e.g. the
     factorisation of K at a nearby state), from x = ``x0`` (default 0: a guess, such as the
@@ -51,11 +55,10 @@ def preconditioned_cg(matvec, precondition, b, rtol: float, maxiter: int, *, col
     r = b if x0 is None else b - matvec(x0)
     z = precondition(r)
     rz = dot(r, z)
-    # state: iteration, x, r, p, r.z, live (columns still iterating), curved (no breakdown)
-    start = (0, x, r, z, rz, xp.sqrt(dot(r, r)) > goal, xp.ones_like(goal, dtype=bool))
+    start = CGState(0, x, r, z, rz, xp.sqrt(dot(r, r)) > goal, xp.ones_like(goal, dtype=bool))
 
     def cond(s):
-        return (s[0] < maxiter) & xp.any(s[5])
+        return (s.iteration < maxiter) & xp.any(s.live)
 
     def body(s):
         k, x, r, p, rz, live, curved = s
@@ -69,7 +72,7 @@ def preconditioned_cg(matvec, precondition, b, rtol: float, maxiter: int, *, col
         rz_new = dot(r, z)
         live = live & (xp.sqrt(dot(r, r)) > goal)
         p = z + xp.where(live, rz_new / xp.where(rz != 0, rz, 1.0), 0.0) * p
-        return k + 1, x, r, p, rz_new, live, curved
+        return CGState(k + 1, x, r, p, rz_new, live, curved)
 
-    k, x, r, _, _, live, curved = loop(cond, body, start)
-    return x, k, curved & ~live
+    s = loop(cond, body, start)
+    return s.x, s.iteration, s.curved & ~s.live

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 
 from . import factorisations as sparse
-from .base import Stability
+from .base import LinearSolver, Stability
 from .host import host_callback
 
 
@@ -27,7 +27,7 @@ def _sparse_stability(inertia):
 
 
 @dataclass(frozen=True, eq=False)
-class SparseSolver:
+class SparseSolver(LinearSolver):
     """Sparse path for large systems: the saddle-point form of the same transformation,
 
         [K  C^T] [dd]   [r]
@@ -48,20 +48,17 @@ class SparseSolver:
         direct solvers, whose solves are exact)."""
         return self.system.cg_rtol
 
-    def matrix(self, ops, blocks):
-        return blocks  # the factorisation happens on the host
-
     @property
     def _pool(self):
         return sparse.pool(self.system)
 
-    def init(self, ops, blocks) -> SparseState:
+    def init(self, problem, blocks) -> SparseState:
         i64 = jax.ShapeDtypeStruct((), jnp.int64)
         h, neg = host_callback(self._pool.init, (i64, i64), blocks)
         return SparseState(h, neg, blocks)
 
-    def empty(self, ops, dtype) -> SparseState:
-        P, d = ops.pair_i.shape[0], ops.f_ext.shape[1]
+    def empty(self, problem, dtype) -> SparseState:
+        P, d = problem.n_pairs, problem.dim
         return SparseState(jnp.zeros((), jnp.int64), jnp.asarray(sparse.NONE, jnp.int64),
                            jnp.zeros((P, d, d), dtype))
 
@@ -76,7 +73,7 @@ class SparseSolver:
         """Number of negative eigenvalues of K_ff: the factorisation's inertia (-1: unknown)."""
         return jnp.maximum(state.inertia, -1).astype(jnp.int64)
 
-    def newton_solve(self, state: SparseState, ops, blocks, rhs, rtol=None):
+    def newton_solve(self, state: SparseState, problem, blocks, rhs, rtol=None):
         """CG with the current tangent preconditioned by the held factorisation while it is
         positive definite and CG converges (to ``rtol``, default the system's tight cg_rtol;
         no negative curvature met counts as stable), else a new factorisation."""

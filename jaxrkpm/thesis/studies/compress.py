@@ -36,9 +36,8 @@ import numpy as np
 
 import jaxrkpm as jr
 from jaxrkpm.io import plot
-from jaxrkpm.solvers import newton as jsolve
 from jaxrkpm.solvers.minimise import stable_beyond
-from jaxrkpm.mechanics.assembly import coefficients, deformation_gradients
+from jaxrkpm.mechanics.assembly import deformation_gradients
 from jaxrkpm.thesis.studies import interface
 from jaxrkpm.thesis.data import PADDLE_HALF_WIDTH
 from jaxrkpm.thesis.scenarios import planar_square
@@ -70,7 +69,6 @@ def _diagnostics(model):
     the integration points, smallest acoustic-tensor eigenvalue min_q min_|n|=1 eig A(n),
     A_ik = dP_ij/dF_kl n_j n_l: it turns negative where the material itself loses strong
     ellipticity, i.e. admits a localised (shear band / kink) instability)."""
-    cfg = model.config()
     W = model.material.W
     theta = np.linspace(0, np.pi, 90, endpoint=False)
     normals = jnp.asarray(np.stack([np.cos(theta), np.sin(theta)], 1))   # 2D directions
@@ -79,9 +77,10 @@ def _diagnostics(model):
         return W(jr.green_lagrange(F), p)
 
     @jax.jit
-    def diag(ops, params, u, g):
-        K = jsolve.tangent(ops, params, cfg, u, g)
-        F = deformation_gradients(ops.idx, ops.dpsi, coefficients(ops, u, g))
+    def diag(prob, u, g):
+        ops, params = prob.ops, prob.params
+        K = prob.tangent(u, g)
+        F = deformation_gradients(ops.idx, ops.dpsi, prob.coefficients(u, g))
         axes = ({k: 0 for k in params.point}, {k: None for k in params.tensors})
         C = jax.vmap(lambda F, p, t: jax.hessian(psi)(F, {**p, **t}), in_axes=(0, axes[0], None))(
             F, params.point, params.tensors)                                # (Q, d, d, d, d)
@@ -114,7 +113,7 @@ def end_of_stable_path(model, sol, c_from: float, paddle_to, parts: int = 10) ->
     (d,). Tells a Newton failure (stable states go on) from the end of the stable path (the
     first minimisation past it runs into det F = 0: a collapse, or ends on no stable state)."""
     c_to = float(-np.asarray(paddle_to)[0])
-    end = stable_beyond(model, sol, model.prescribed({"paddle": jnp.asarray(paddle_to)}, base=sol.g),
+    end = stable_beyond(model.problem(), sol, model.prescribed({"paddle": jnp.asarray(paddle_to)}, base=sol.g),
                         fraction=1.0 / parts)
     out = {"compression": c_from + end["reached"] * (c_to - c_from), **{k: v for k, v in end.items()}}
     if end["full"]:
@@ -140,8 +139,9 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
     model = setup(n, integration, material, half_width)
     direction = np.array(MODES[mode])
     diag = _diagnostics(model)
+    prob = model.problem()
     sol = model.initial()
-    lam0, _, ac0 = (float(v) for v in diag(model.ops, model.params, sol.u, sol.g))
+    lam0, _, ac0 = (float(v) for v in diag(prob, sol.u, sol.g))
     rows, states, crits = [], {0.0: np.zeros_like(model.body.X)}, []
     reason, first_unstable, limit = "reached the requested maximum compression", None, None
     stable_end = None
@@ -162,7 +162,7 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
         if status != jr.Status.CONVERGED:
             # the solver keeps the last converged sub-step: look at the tangent there
             c_part = (k - 1) * step + float(new.t) * step
-            lam_p, det_p, _ = (float(v) for v in diag(model.ops, model.params, new.u, new.g))
+            lam_p, det_p, _ = (float(v) for v in diag(prob, new.u, new.g))
             crits += critical_points(model, new, (k - 1) * step, step, lam0)
             limit = {"compression": c_part, "min_eig_rel": lam_p / lam0, "min_detF": det_p}
             reason = (f"Newton failure in the step to {100 * c:.0f}% ({status.name}); at the last "
@@ -177,7 +177,7 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
             break
         crits += critical_points(model, new, (k - 1) * step, step, lam0)
         sol = new
-        lam, detmin, ac = (float(v) for v in diag(model.ops, model.params, sol.u, sol.g))
+        lam, detmin, ac = (float(v) for v in diag(prob, sol.u, sol.g))
         f = np.asarray(model.reaction(sol, "paddle")).tolist()
         rows.append({"compression": c, "status": status.name, "time_s": dt,
                      "newton_iterations": int(sol.iterations), "load_steps": int(sol.steps),

@@ -1,0 +1,112 @@
+"""The solver protocol: solver objects with named state run by one loop, their settings as
+validated fields (a test builds an object with another value instead of patching a global),
+the declared linear-solver interface, and the options of Model.solve checked where they
+become those objects."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxrkpm as jr
+from jaxrkpm.internal import (BranchSwitch, Chord, DenseSolver, LinearSolver, LoadPath, Newton, QuasiNewton,
+                              StableDescent, Tolerance, iterate)
+from jaxrkpm.solvers.linalg.krylov import KrylovSolver
+from jaxrkpm.solvers.linalg.sparse import SparseSolver
+from jaxrkpm.solvers.results import Limits
+from tests.problems import block
+
+
+@pytest.fixture(scope="module")
+def square():
+    _, _, model = block(5)
+    return model
+
+
+@pytest.mark.parametrize("option, value, match", [
+    ("stable_branch", [True], "stable_branch must be True, False or None"),
+    ("stable_branch", "no", "stable_branch must be True, False or None"),
+    ("check_stability", "False", "check_stability must be True or False"),
+    ("locate", "x", "locate must be an int >= 0"),
+    ("locate", -1, "locate must be an int >= 0"),
+    ("line_search", 2.5, "line_search must be an int >= 0"),
+    ("rtol", 0.0, "rtol must be a positive number"),
+    ("rtol", float("nan"), "rtol must be a positive number"),
+    ("armijo", True, "armijo must be a positive number"),
+    ("reuse", 1.0, r"reuse must be a number in \[0, 1\)"),
+    ("growth", -1.0, "growth must be a positive number"),
+    ("easy", "4", "easy must be an int >= 0"),
+    ("tolerance", 1e-8, "unknown solver option"),
+])
+def test_bad_solve_options_are_named_before_any_work(square, option, value, match):
+    with pytest.raises(ValueError, match=match):
+        square.solve({"right": [0.01, 0.0]}, **{option: value})
+
+
+def test_options_become_fields_of_the_solver_objects(square):
+    path = square.solver(rtol=1e-12, line_search=3, reuse=0.2, easy=2, locate=4, stable_branch=True)
+    assert isinstance(path, LoadPath) and isinstance(path.newton, Newton)
+    assert path.newton.tolerance == Tolerance(1e-12) and path.newton.line_search == 3 and path.newton.reuse == 0.2
+    assert path.easy == 2 and path.locate == 4 and path.switches
+    # the descent past a critical point uses the same tolerance and line search
+    assert path.branch.descent.tolerance == path.newton.tolerance and path.branch.descent.line_search == 3
+    assert square.solver() == LoadPath(Newton(square.linear))      # the defaults are the fields'
+    assert not square.solver(stable_branch=True, check_stability=False).switches
+
+
+def test_every_linear_solver_declares_the_interface():
+    """No name tests and no hasattr: every solver is a LinearSolver; only the quasi-Newton one
+    learns from secant pairs, only the dense one serves modified Newton as it is."""
+    for cls in (DenseSolver, SparseSolver, KrylovSolver, QuasiNewton):
+        assert issubclass(cls, LinearSolver)
+    assert DenseSolver().modified_newton and not QuasiNewton().modified_newton
+    assert not SparseSolver.modified_newton and not KrylovSolver.modified_newton
+    assert DenseSolver().update("state", 1, 2) == "state"       # the default: nothing learnt
+
+
+def test_newton_and_chord_differ_by_one_flag(square):
+    """A chord with the factorisation of the start lands on full Newton's equilibrium; it
+    needs the factorisation; with a stable factorisation it needs no line search."""
+    prob = square.problem()
+    start = square.initial()
+    g1 = square.prescribed({"right": [0.02, 0.01]})
+    newton = Newton(square.linear)
+    chord = Chord(square.linear)
+    assert not newton.chord and chord.chord and chord.halvings == 0 and newton.halvings == 8
+    full = jax.jit(lambda p: newton.solve(p, start.u, start.g, g1, 1.0, 1.0))(prob)
+    state = square.linear.state_at(prob, start.u, start.g)
+    quick = jax.jit(lambda p, st: chord.solve(p, start.u, start.g, g1, 1.0, 1.0, st, max_iter=30))(prob, state)
+    assert jr.Status.of(full.status) == jr.Status.CONVERGED == jr.Status.of(quick.status)
+    assert int(quick.iterations) > int(full.iterations)          # linear against quadratic
+    assert np.abs(np.asarray(quick.u - full.u)).max() < 1e-9 * np.abs(np.asarray(full.u)).max()
+    with pytest.raises(ValueError, match="a chord solve needs the factorisation"):
+        chord.solve(prob, start.u, start.g, g1, 1.0, 1.0)
+
+
+def test_one_loop_runs_every_solver(square):
+    """``iterate`` runs a solver's step until it terminates, with its named state; the load
+    path's own step/terminate give the same Solution as its solve."""
+    prob = square.problem()
+    start = square.initial()
+    g1 = square.prescribed({"right": [0.05, 0.0]})
+    lim = Limits.of(steps=2)
+    driver = square.solver()
+    path = driver.path(lim, start.g, g1, jnp.float64(1.0), jnp.float64(1.0))
+    s = jax.jit(lambda p: iterate(driver, p, path, driver.init(p, path, start.u)))(prob)
+    sol = jax.jit(lambda p: driver.solve(p, lim, start.u, start.g, g1, jnp.float64(1.0), jnp.float64(1.0)))(prob)
+    assert float(s.t) == 1.0 and int(s.steps) == int(sol.steps) == 2
+    assert np.array_equal(np.asarray(s.u), np.asarray(sol.u))
+
+
+def test_another_tolerance_is_another_object(square):
+    """A tighter tolerance is built, not patched: it asks for a smaller residual."""
+    loose = square.solve({"right": [0.05, 0.0]}, rtol=1e-6, reuse=0)
+    tight = square.solve({"right": [0.05, 0.0]}, rtol=1e-12, reuse=0)
+    assert float(tight.residual_norm) < float(loose.residual_norm)
+    with pytest.raises(ValueError, match="roundoff must be a positive number"):
+        Tolerance(1e-10, roundoff=0.0)
+    with pytest.raises(ValueError, match="newton must be a Newton solver"):
+        LoadPath(Chord(DenseSolver()))
+    with pytest.raises(ValueError, match="descent must be a StableDescent"):
+        BranchSwitch(descent=Newton())
+    with pytest.raises(ValueError, match="collapse_det must be a positive number"):
+        StableDescent(collapse_det=0.0)
