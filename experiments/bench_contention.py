@@ -8,17 +8,19 @@ BLAS threading that ``import jaxrkpm`` sets (``jaxrkpm.base.threads``; run with
 ``JAXRKPM_BLAS_THREADS=keep`` to measure the libraries' default threads instead).
 
 Workloads:
-- ``cholesky``: ``jnp.linalg.cholesky`` of a 1,152^2 SPD matrix (issue 20: 30 ms
-  single-threaded, 708 ms with OpenBLAS's default threads beside one busy process);
+- ``cholesky``: ``jnp.linalg.cholesky`` of a 1,152^2 SPD matrix (issue 20: with OpenBLAS's
+  default threads, beside one busy process, many times its single-threaded time);
 - ``cube6``: neo-Hookean 6^3 cube, 30% compression in 10 load steps (dense path);
 - ``needle``: the 2D phantom's 5 paddle positions x 5 increments (``needle.insert``);
 - ``box``: the 2D box path (Gauss, 9x9) of the tracking study;
 - ``cube10`` / ``cube10_control``: the 10^3 cube's full solve and one control step;
 - ``sweep20``: the needle sweep of experiments/bench_sweep.py, 20 configurations;
 - ``cube20``: the 20^3 cube's full solve on the sparse path (PARDISO and the CG products on
-  ``JAXRKPM_SPARSE_THREADS`` threads, every core by default; not in the default set: ~3 min
+  ``JAXRKPM_SPARSE_THREADS`` threads, every core by default; not in the default set: minutes
   a repeat pair).
-Prints JSON (also the load average before and after: other jobs on the machine skew both)."""
+Run from the repository root: ``python -m experiments.bench_contention``. Prints JSON (also
+the load average before and after: other jobs on the machine skew both) and writes a record
+(experiments/records.py)."""
 from __future__ import annotations
 
 import argparse
@@ -32,6 +34,7 @@ import time
 import numpy as np
 
 import jaxrkpm  # noqa: F401  (BLAS threads before JAX loads)
+from experiments import records
 import jax
 import jax.numpy as jnp
 
@@ -55,7 +58,7 @@ def cube6_workload():
 
 
 def needle_workload():
-    from jaxrkpm import needle as nd  # FIXME split
+    from jaxrkpm.thesis import needle as nd
     ph = nd.Phantom()
     models = [ph.model("none", p) for p in range(1, 6)]
     depths = ph.depths(5)
@@ -86,7 +89,7 @@ def cube10_workload():
 def cube10_control_workload():
     """One control step of the 10^3 cube at 30% (factorisation, Jacobian of the centre, a 1%
     paddle increment settled): what experiments/bench_cube3d.py times as ``control_step_s``."""
-    from jaxrkpm.control.tracking.tracking import ControlledModel
+    from jaxrkpm.control.tracking import ControlledModel
     from jaxrkpm.solvers.results import Limits
     model = cube10_models()
     sol = model.solve({"right": np.array([-0.3, 0.0, 0.0])}, steps=10)
@@ -104,8 +107,8 @@ def cube10_control_workload():
 
 def sweep_workload():
     """The needle sweep of experiments/bench_sweep.py at 20 configurations x 15 increments."""
-    from bench_sweep import batched, configurations   # beside this script (sys.path[0])
-    from jaxrkpm import needle as nd  # FIXME split
+    from experiments.bench_sweep import batched, configurations
+    from jaxrkpm.thesis import needle as nd
     ph = nd.Phantom()
     models, depths = configurations(ph, 20), ph.depths(15)
     return lambda: batched(models, depths, ph.target)
@@ -144,7 +147,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workloads", nargs="+", choices=list(WORKLOADS), default=DEFAULT)
     ap.add_argument("--repeats", type=int, default=5)
+    records.add_arguments(ap)
     args = ap.parse_args(argv)
+    run = records.start("bench_contention", args)
     result = {"blas_threads": os.environ.get(jaxrkpm.base.threads.ENV, str(jaxrkpm.base.threads.DEFAULT)),
               "sparse_threads": jaxrkpm.base.threads.sparse_threads(),
               "load_average_before": os.getloadavg(), "workloads": {}}
@@ -156,11 +161,13 @@ def main(argv=None):
             quiet.append(timed_call(fn, False))
             busy.append(timed_call(fn, True))
         q, b = statistics.median(quiet), statistics.median(busy)
-        result["workloads"][name] = {"quiet_median_s": q, "busy_median_s": b, "busy_over_quiet": b / q}
+        result["workloads"][name] = {"quiet_median_s": q, "busy_median_s": b, "busy_over_quiet": b / q,
+                                     "quiet_s": records.stats(quiet), "busy_s": records.stats(busy)}
         # progress on stderr: stdout holds only the final JSON (one document to parse)
         print(json.dumps({name: result["workloads"][name]}), file=sys.stderr, flush=True)
     result["load_average_after"] = os.getloadavg()
     print(json.dumps(result, indent=1))
+    records.finish(run, result, {f"busy_over_quiet {k}": v["busy_over_quiet"] for k, v in result["workloads"].items()})
 
 
 if __name__ == "__main__":

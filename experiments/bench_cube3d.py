@@ -22,7 +22,7 @@ dense matrix, factorisation, solve, energy and residual, force scale). --crossov
 Newton iteration's linear work dense against sparse (PARDISO where installed) at several
 sizes, the measurement behind ``jaxrkpm.model.model.DENSE_LIMIT``.
 Medians of warm repeats; each size runs in a fresh subprocess (its peak RSS is its own).
-Prints JSON; quote ratios within one run (the machine may be shared: the load average is
+Prints JSON and writes a record (experiments/records.py); quote ratios within one run (the machine may be shared: the load average is
 printed)."""
 from __future__ import annotations
 
@@ -36,10 +36,14 @@ import subprocess
 import sys
 import time
 
+from experiments import records
 
-def timed(f, repeats):
+SPREAD = {}   # label -> records.stats of the timings behind each median of a case
+
+
+def timed(f, repeats, label=None):
     """Median wall time of ``f()`` over ``repeats`` warm calls (after one untimed call), and
-    the last result."""
+    the last result; with ``label`` its spread goes to SPREAD (min, max, repeats)."""
     import jax
     out = jax.block_until_ready(f())
     times = []
@@ -47,6 +51,8 @@ def timed(f, repeats):
         t0 = time.perf_counter()
         out = jax.block_until_ready(f())
         times.append(time.perf_counter() - t0)
+    if label is not None:
+        SPREAD[label] = records.stats(times)
     return statistics.median(times), out
 
 
@@ -79,7 +85,7 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
     import numpy as np
 
     import jaxrkpm as jr
-    from jaxrkpm.control.tracking.tracking import ControlledModel, track_loop
+    from jaxrkpm.control.tracking import ControlledModel, track_loop
     from jaxrkpm.solvers.results import Limits
 
     body = jr.Body.grid((n, n, n), 1.0 / (n - 1))
@@ -89,12 +95,12 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
                      precision=precision)
     build_s = time.perf_counter() - t0
     g = jnp.array([-0.3, 0.0, 0.0])
-    solve_s, sol = timed(lambda: model.solve({"right": g}, steps=10, reuse=0), repeats)   # full Newton
+    solve_s, sol = timed(lambda: model.solve({"right": g}, steps=10, reuse=0), repeats, "full_newton_solve")   # full Newton
     # the default (modified Newton on the dense path: a kept factorisation while |r| contracts)
     reuse = model.newton_reuse if reuse is None else reuse
-    reuse_s, re = timed(lambda: model.solve({"right": g}, steps=10, reuse=reuse), repeats)
+    reuse_s, re = timed(lambda: model.solve({"right": g}, steps=10, reuse=reuse), repeats, "default_solve")
     centre = np.array([[0.5, 0.5, 0.5]])
-    jac_s, _ = timed(lambda: model.jacobian(sol, "right", centre), repeats)
+    jac_s, _ = timed(lambda: model.jacobian(sol, "right", centre), repeats, "jacobian")
 
     ctrl = ControlledModel.of(model, "right", centre)
     lim = Limits.of(steps=1)
@@ -117,7 +123,7 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
         state = c.problem.factorise(s.u, s.g)
         return c.jacobian(s, state), c.settle(s, state, s.g + dg, lim, 6)[0]
 
-    step_s, (J, moved) = timed(lambda: control_step(ctrl, sol), repeats)
+    step_s, (J, moved) = timed(lambda: control_step(ctrl, sol), repeats, "control_step")
     fact_s, state = timed(lambda: factorise(ctrl, sol), repeats)
     jfrom_s, _ = timed(lambda: jacobian_from(ctrl, sol, state), repeats)
     settle_s, _ = timed(lambda: settle(ctrl, sol, state), repeats)
@@ -131,7 +137,7 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
             return track_loop(side, side, True, lim, sol, sol, far, 0.5, 0.01, 1e-9, 0.0, 10**6,
                               loop_steps, 10**6)
 
-        t, (k, _, hist, *_) = timed(run_loop, max(1, repeats - 1))
+        t, (k, _, hist, *_) = timed(run_loop, max(1, repeats - 1), f"loop_reuse_{kept}")
         loop[kept] = {"s_per_iteration": t / int(k), "iterations": int(k),
                       "newton_per_iteration": np.asarray(hist["newton"])[1:int(k) + 1].tolist(),
                       "error_after": float(np.asarray(hist["error"])[int(k)])}
@@ -152,6 +158,7 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
             "newton_iteration_parts_s": parts,
             "control_step_newton": int(moved.iterations), "control_step_status": int(moved.status),
             "control_step_residual": float(moved.residual_norm),
+            "spread_s": dict(SPREAD),
             "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
 
 
@@ -178,10 +185,11 @@ def crossover_case(n, repeats, solver, dim=3, precision="auto"):
         state = p.factorise(u, g)
         return p.solve_linear(state, p.residual(u, g)), p.stability(state)
 
-    t, (x, stability) = timed(lambda: iteration(prob, u, g), repeats)
+    t, (x, stability) = timed(lambda: iteration(prob, u, g), repeats, "iteration")
     return {"n": n, "dim": dim, "solver": solver, "path": model.linear.name, "dof": int(len(model.sets.free) * dim),
             "mixed_precision": bool(getattr(model.linear, "mixed", False)),
-            "iteration_s": t, "finite": bool(jnp.all(jnp.isfinite(x))), "stability": int(stability),
+            "iteration_s": t, "iteration_spread_s": SPREAD["iteration"],
+            "finite": bool(jnp.all(jnp.isfinite(x))), "stability": int(stability),
             "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
 
 
@@ -230,19 +238,23 @@ def main(argv=None):
                    help="Model(precision=...) of the dense factorisation; several: each case with each")
     p.add_argument("--case", type=int, help=argparse.SUPPRESS)
     p.add_argument("--crossover-case", type=int, help=argparse.SUPPRESS)
+    records.add_arguments(p)
     a = p.parse_args(argv)
     if a.crossover_case:
         print(json.dumps(crossover_case(a.crossover_case, a.repeats, a.solver, a.dim, a.precision[0])))
         return
     if a.only_crossover:
+        run = records.start("bench_cube3d", a, variant="crossover")
         out = {"load_average_before": os.getloadavg(), "crossover": crossover(a.crossover, a.repeats, a.dim),
                "load_average_after": os.getloadavg()}
         print(json.dumps(out, indent=2))
+        records.finish(run, out, ratios_of(out))
         return
     if a.case:
         print(json.dumps(run_case(a.case, a.repeats, a.solver, a.reuse, a.integration[0], a.loop_steps, a.keep,
                                   a.precision[0])))
         return
+    run = records.start("bench_cube3d", a)
     out = {"load_average_before": os.getloadavg()}
     for n in a.n:
         for integration, precision in itertools.product(a.integration, a.precision):
@@ -261,6 +273,23 @@ def main(argv=None):
         out["crossover"] = crossover(a.crossover, a.repeats, a.dim)
     out["load_average_after"] = os.getloadavg()
     print(json.dumps(out, indent=2))
+    records.finish(run, out, ratios_of(out))
+
+
+def ratios_of(out: dict) -> dict:
+    """The same-run ratios of a bench_cube3d result: per case, kept over every-step control
+    loop and full over modified Newton; per crossover size, dense (auto precision) over
+    sparse and mixed over double."""
+    ratios = {}
+    for key, case in out.items():
+        if key.startswith("cube_") and "loop_ratio_kept_over_every_step" in case:
+            ratios[f"control_loop_kept_over_every_step {key}"] = case["loop_ratio_kept_over_every_step"]
+            ratios[f"full_newton_over_default_solve {key}"] = case["full_newton_over_default_solve"]
+    for row in out.get("crossover", {}).get("sizes", []):
+        for name in ("dense_over_sparse", "mixed_over_double"):
+            if name in row:
+                ratios[f"{name} n={row['n']} dim={row['dim']}"] = row[name]
+    return ratios
 
 
 if __name__ == "__main__":

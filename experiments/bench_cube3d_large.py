@@ -1,7 +1,7 @@
 """Benchmark of issue 20's large 3D cases: the neo-Hookean n^3 cube of ``bench_cube3d`` (left
 face immobile, right face pushed 30% in 10 load steps) at n >= 14, solved with each large-
 system linear solver ("sparse": PARDISO factorisations reused as CG preconditioners;
-"krylov": CG preconditioned by an algebraic multigrid hierarchy, ``jaxrkpm.solvers.linalg.multigrid``).
+"krylov": CG preconditioned by an algebraic multigrid hierarchy, ``Model(solver="krylov")``).
 
 Per case (a fresh subprocess each, so peak memory is its own): the model build, a cold solve
 (compile included) and a warm one, Newton iterations, the peak resident memory after the
@@ -16,7 +16,7 @@ A watchdog in this (parent) process kills a case whose resident memory passes --
 
     python -m experiments.bench_cube3d_large --n 14 20 --solver sparse krylov
 
-Prints JSON; quote ratios within one run (the load average is printed)."""
+Prints JSON and writes a record (experiments/records.py); quote ratios within one run (the load average is printed)."""
 from __future__ import annotations
 
 import argparse
@@ -28,6 +28,8 @@ import sys
 import tempfile
 import threading
 import time
+
+from experiments import records
 
 
 def rss_gb(pid: int) -> float:
@@ -96,7 +98,7 @@ def run_case(n, solver, repeats, out_npz, check_stability=True):
     np.savez(out_npz, u=np.asarray(sol.u))
     return {"n": n, "solver": solver, "path": model.linear.name, "dof": int(len(model.sets.free) * 3),
             "check_stability": check_stability,
-            "build_s": build_s, "cold_solve_s": cold_s, "warm_solve_s": solve_s, "warm_solves": times,
+            "build_s": build_s, "cold_solve_s": cold_s, "warm_solve_s": solve_s, "warm_solves": records.stats(times),
             "status": sol.outcome.name, "newton_iterations": its, "residual": float(sol.residual_norm),
             "profile": profile, "peak_rss_after_build_gb": build_peak, "peak_rss_gb": peak_gb()}
 
@@ -135,11 +137,13 @@ def main(argv=None):
     p.add_argument("--no-stability-check", action="store_true",
                    help="solve with check_stability=False (inexact Newton: early CG stops far from equilibrium)")
     p.add_argument("--case", nargs=3, help=argparse.SUPPRESS)
+    records.add_arguments(p)
     a = p.parse_args(argv)
     if a.case:
         n, solver, npz = a.case
         print(json.dumps(run_case(int(n), solver, a.repeats, npz, not a.no_stability_check)))
         return
+    run = records.start("bench_cube3d_large", a)
     out = {"load_average_before": os.getloadavg()}
     tmp = tempfile.mkdtemp(prefix="bench_cube3d_large_")
     for n in a.n:
@@ -173,6 +177,7 @@ def main(argv=None):
                                       if "warm_solve_s" in s and "warm_solve_s" in k}
     out["load_average_after"] = os.getloadavg()
     print(json.dumps(out, indent=2))
+    records.finish(run, out, {f"krylov_over_sparse_warm n={n}": r for n, r in out["krylov_over_sparse_warm"].items()})
 
 
 if __name__ == "__main__":

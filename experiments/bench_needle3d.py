@@ -17,50 +17,18 @@ BLAS is single-threaded (OPENBLAS/MKL/OMP_NUM_THREADS=1, set before numpy loads)
 timings compare like with like on a shared machine; ratios are taken within one run.
 Prints JSON.
 
-Measured 2026-11-24 (the phantom with its resolved needle; 4 increments, 1 repeat, machine
-shared, load ~6-8 on 2 cores, so indicative only):
-  598 particles (0.15):  build 4.3 s (mesh 0.7, body 0.02, model 3.9); warm solve 7.4 s per
-                         increment (dense, 1,197 DOF); peak 1.7 GB
-  2,089 particles (0.085): build 16.5 s (model 15.9); warm solve 23.3 s per increment
-                         (sparse, 4,740 DOF); peak 4.4 GB
-  7,875 particles (0.05, case resolution:8000; 1 increment, 1 repeat; load 1.1-2.8, the
-                         warm run beside a test run of ours):
-    {"spacing": 0.05, "particles": 7875, "tetrahedra": 38840, "free_dof": 19539,
-     "integration_points": 38840, "neighbours": 143, "solver": "sparse", "mesh_s": 1.46,
-     "body_s": 0.35, "model_s": 80.1, "build_s": 81.7, "first_insertion_s": 247.6,
-     "warm_insertion_s_median": 263.9, "warm_solve_s_median": 263.9, "increments": 1,
-     "final_deviation": 0.0063, "status": "CONVERGED", "peak_rss_gb": 11.79}
-                         resident peak per stage (polled every 3 s): build 9.5 GB, first
-                         insertion 9.9 GB, warm insertion 11.7 GB.
-  What limits it (bench_needle3d_memory.py: the peak per stage, the arrays held there,
-  PARDISO's own report; 6,197 particles, spacing 0.055, one increment):
-    - the (G, K, K) int32 pair-id table of the tangent assembly: 2.28 GB at 6,197 particles
-      (G = 29,960 tetrahedra, K = 138), ~3.2 GB at 7,875. It is the floor of every stage;
-      it grows as N K^2 (a dense N x N pair map would be 0.15 GB at 6,197, not yet done).
-    - the build's peak is in the sparse pattern (sparse.SaddlePointSystem._pattern: int64
-      row, column, source and value arrays of the 28-38 M tangent entries, sorted and
-      filtered to the lower triangle): 7.4 GB at 6,197 and 10.0 GB at 7,875 particles over
-      4.7 GB held after the build; the arrays its frames name are ~2.5 GB of that, the rest
-      was not traced to a Python frame (whether a host copy of the pair-id table is still
-      alive there was not settled: a 1 GB int32 jnp.asarray aliased its host array in one
-      probe and copied it in another). Not reduced here.
-    - the solve: the pair-block sweep used to pad the pair-id table to whole chunks inside
-      jit (a full copy, +2.3 GB); it now slices it in place: one increment's peak 9.9 ->
-      7.7 GB at 6,197 particles (147 s, converged in both). XLA's temporaries of
-      the jitted solve: 0.78 GB at 2,089 particles (compiled memory_analysis).
-    - PARDISO fill: 95 M factor entries at 6,197 particles (15,153 free DOF), 0.87 GB
-      factorisation + 0.47 GB permanent; the pool keeps up to two factorisations (and an
-      evicted spare) across solves (jaxrkpm.solvers.linalg.factorisations.FactorPool), the likely (not measured)
-      reason the warm insertion's peak is 1.8 GB above the first's at 7,875; left to the
-      factorisation-reuse work.
-    - time: the model build 80 s (not split further); one 3D increment ~4-4.5 min at 7,875
-      particles single-threaded (MKL/OpenBLAS/OMP threads 1), the first including compile.
-  sweep (20 patches x 2 increments, 231 particles; --case sweep:230 --increments 2 --repeats 2,
-  2026-11-24, quiet: nothing else running, load 1.4): batched 69.5 s warm (median of 2) against
-  77.2 s for the loop (1.11x); cold 73.1 against 112.3 s (1.54x: the loop compiles per call
-  shape); batched = loop to 7e-15; peak 6.0 GB. lax.map runs the patches one after another,
-  so batching saves only dispatch and compile: the per-solve work (assembly, factorisation)
-  is the same. (4 increments did not finish in 600 s under load 6-8.)
+What limits the largest resolutions (``bench_needle3d_memory.py`` reports the peak per stage,
+the arrays held there and PARDISO's own memory report):
+- the (G, K, K) int32 pair-id table of the tangent assembly, the floor of every stage (it
+  grows as N K^2);
+- the build's sparse pattern (int64 row, column, source and value arrays of every tangent
+  entry, sorted and filtered to the lower triangle), the build's peak;
+- PARDISO's fill, and the factorisation kept across solves.
+``lax.map`` runs the sweep's patches one after another, so batching saves dispatch and compile
+only: the per-solve work (assembly, factorisation) is the same as the loop's.
+
+Run from the repository root: ``python -m experiments.bench_needle3d``; writes a record
+(experiments/records.py).
 """
 from __future__ import annotations
 
@@ -76,6 +44,8 @@ import statistics  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+
+from experiments import records  # noqa: E402
 
 # mesh size -> target particle count (the mesher decides the exact count)
 RESOLUTIONS = {"230": 0.3, "500": 0.15, "2000": 0.085, "6000": 0.055, "8000": 0.05}
@@ -113,6 +83,7 @@ def run_resolution(spacing, increments, repeats):
             "mesh_s": t_mesh, "body_s": t_body, "model_s": t_model, "build_s": t_phantom + t_model,
             "first_insertion_s": first, "warm_insertion_s_median": statistics.median(warm),
             "warm_solve_s_median": statistics.median(warm) / increments, "increments": increments,
+            "warm_insertion_s": records.stats(warm),
             "final_deviation": dev, "status": sol.outcome.name,
             "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
 
@@ -133,7 +104,7 @@ def loop(models, ph, depths):
 def batched(models, ph, depths):
     import jax
     import numpy as np
-    from jaxrkpm import needle as nd  # FIXME split
+    from jaxrkpm.thesis import needle as nd
     out = nd.insert(models, depths, ph.target, direction=ph.needle_direction)
     jax.block_until_ready(out)
     return ph.deviation_of(np.asarray(out.target_u))
@@ -154,6 +125,7 @@ def run_sweep(spacing, patches, increments, repeats):
     return {"spacing": spacing, "particles": ph.body.n, "patches": patches, "increments": increments,
             "models_build_s": t_models, "batched_cold_s": cold_b, "loop_cold_s": cold_l,
             "batched_warm_median_s": statistics.median(tb), "loop_warm_median_s": statistics.median(tl),
+            "batched_warm_s": records.stats(tb), "loop_warm_s": records.stats(tl),
             "speedup_warm": statistics.median(tl) / statistics.median(tb),
             "max_abs_difference": float(np.max(np.abs(dev_b - dev_l))),
             "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
@@ -166,10 +138,11 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--patches", type=int, default=20)
     p.add_argument("--sweep-resolution", default="230", choices=list(RESOLUTIONS),
-                   help="the sweep's resolution (230: the tests' phantom; a 20-patch loop at 500 takes ~20 min)")
+                   help="the sweep's resolution (230: the tests' phantom; a 20-patch loop at 500 takes long)")
     p.add_argument("--no-sweep", action="store_true")
     p.add_argument("--timeout", type=float, default=3600, help="per subprocess, seconds")
     p.add_argument("--case", help=argparse.SUPPRESS)
+    records.add_arguments(p)
     a = p.parse_args(argv)
     if a.case:
         kind, res = a.case.split(":")
@@ -178,6 +151,7 @@ def main(argv=None):
         else:
             print(json.dumps(run_sweep(RESOLUTIONS[res], a.patches, a.increments, a.repeats)))
         return
+    run = records.start("bench_needle3d", a)
     cases = [f"resolution:{r}" for r in a.resolutions] + ([] if a.no_sweep else [f"sweep:{a.sweep_resolution}"])
     out = {"device": None, "increments": a.increments, "repeats": a.repeats}
     for case in cases:
@@ -193,6 +167,8 @@ def main(argv=None):
     import jax
     out["device"] = str(jax.devices()[0])
     print(json.dumps(out, indent=2))
+    records.finish(run, out, {f"loop_over_batched_warm {k}": v["speedup_warm"]
+                              for k, v in out.items() if isinstance(v, dict) and "speedup_warm" in v})
 
 
 if __name__ == "__main__":

@@ -4,7 +4,9 @@ peak, the Python stack (jaxrkpm frames) where that peak was reached, the sizes t
 assembly and the sparse solver work on, and PARDISO's own memory report. A watchdog stops
 the run at --limit-gb.
 
-    PYTHONPATH=. python experiments/bench_needle3d_memory.py 0.055 [--solve] [--limit-gb 13]
+    python -m experiments.bench_needle3d_memory 0.055 [--solve] [--limit-gb 13]
+
+Writes a record (experiments/records.py).
 """
 import os
 import resource
@@ -14,6 +16,8 @@ import time
 
 for _v in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
+
+from experiments import records  # noqa: E402
 
 
 def rss_gb():
@@ -79,30 +83,43 @@ class Sampler:
             print(f"  stage {self.stage}: peak {r:.2f} GB at {at}", flush=True)
 
 
-def pardiso_report(model):
+def pardiso_report(model) -> dict:
     """PARDISO's memory report of each held factorisation (iparm 15-18, 1-based)."""
     from jaxrkpm.solvers.linalg import factorisations as sparse
     pool = sparse.pool(model.linear.system)
     facs = [f for f, _ in pool.slots.values()] + ([pool.spare] if pool.spare is not None else [])
+    held = []
     for f in facs:
         ip = getattr(f, "iparm", None)
         if ip is not None:
+            held.append({"analysis_peak_gb": ip[14] / 1e6, "permanent_gb": ip[15] / 1e6,
+                         "factorisation_gb": ip[16] / 1e6, "factor_nonzeros": int(ip[17])})
             print(f"  PARDISO: analysis peak {ip[14] / 1e6:.2f} GB, permanent {ip[15] / 1e6:.2f} GB, "
                   f"factorisation {ip[16] / 1e6:.2f} GB, factor nonzeros {int(ip[17]):,}", flush=True)
     print(f"  factorisations held {len(facs)} (pool size {pool.size}, spare {pool.spare is not None})", flush=True)
+    return {"held": held, "pool_size": pool.size, "spare": pool.spare is not None}
 
 
-def main(argv):
-    spacing = float(argv[0])
-    limit = float(argv[argv.index("--limit-gb") + 1]) if "--limit-gb" in argv else 8.0
-    s = Sampler(limit)
+def main(argv=None):
+    import argparse
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("spacing", type=float, help="mesh size of the phantom (0.055: about 6,000 particles)")
+    p.add_argument("--solve", action="store_true", help="also run one insertion increment")
+    p.add_argument("--limit-gb", type=float, default=8.0, help="stop the run above this resident memory")
+    records.add_arguments(p)
+    a = p.parse_args(argv)
+    run = records.start("bench_needle3d_memory", a)
+    s = Sampler(a.limit_gb)
     from jaxrkpm.thesis.phantom3d import Phantom3D
     from jaxrkpm.mechanics.assembly import BLOCK_BUDGET
     s.enter("body")
     t0 = time.time()
-    ph = Phantom3D(spacing=spacing)
+    ph = Phantom3D(spacing=a.spacing)
     body = ph.body
-    print(f"particles {body.n}, tetrahedra {len(body.cells)}, body {time.time() - t0:.0f} s, rss {rss_gb():.2f} GB", flush=True)
+    fig = {"spacing": a.spacing, "particles": int(body.n), "tetrahedra": int(len(body.cells)),
+           "body_s": time.time() - t0, "rss_after_body_gb": rss_gb()}
+    print(f"particles {body.n}, tetrahedra {len(body.cells)}, body {fig['body_s']:.0f} s, rss {rss_gb():.2f} GB", flush=True)
     s.enter("model")
     t0 = time.time()
     model = ph.model("none", None)
@@ -111,22 +128,31 @@ def main(argv):
     pairs = int(ops.pair_i.shape[0])
     free = int(len(model.sets.free) * 3)
     chunk = max(1, BLOCK_BUDGET // (K * K * 9))
-    print(f"model {time.time() - t0:.0f} s, rss {rss_gb():.2f} GB; solver {model.linear.name}, free DOF {free}, "
+    fig.update(model_s=time.time() - t0, rss_after_model_gb=rss_gb(), solver=model.linear.name, free_dof=free,
+               integration_points=int(Q), neighbours=int(K), groups=list(ops.groups.shape),
+               pair_id_table_gb=ops.pair_id.size * 4 / 1e9, particle_pairs=pairs,
+               pair_blocks_gb=pairs * 9 * 8 / 1e9, assembly_chunk_groups=int(chunk),
+               assembly_intermediate_gb=chunk * K * K * 9 * 8 / 1e9, kff_nonzeros=pairs * 9)
+    print(f"model {fig['model_s']:.0f} s, rss {rss_gb():.2f} GB; solver {model.linear.name}, free DOF {free}, "
           f"integration points {Q}, neighbours per point K {K}, groups {ops.groups.shape}, "
           f"pair id table {ops.pair_id.size * 4 / 1e9:.2f} GB (int32), "
           f"particle pairs {pairs} ({pairs / body.n:.0f} per particle), pair blocks {pairs * 9 * 8 / 1e9:.2f} GB "
           f"per copy, assembly chunk {chunk} groups = (chunk, K, K, 3, 3) {chunk * K * K * 9 * 8 / 1e9:.2f} GB "
           f"per intermediate; nonzeros of K_ff ~ {pairs * 9:,} ({pairs * 9 * 12 / 1e9:.2f} GB as CSR)", flush=True)
-    if "--solve" in argv:
+    if a.solve:
         s.enter("solve")
         t0 = time.time()
         sol = model.solve({"needle": ph.needle_at(ph.insertion / 4)}, throw=False)
-        print(f"one increment {time.time() - t0:.0f} s, status {int(sol.status)}, rss {rss_gb():.2f} GB", flush=True)
+        fig.update(increment_s=time.time() - t0, increment_status=sol.outcome.name, rss_after_solve_gb=rss_gb())
+        print(f"one increment {fig['increment_s']:.0f} s, status {int(sol.status)}, rss {rss_gb():.2f} GB", flush=True)
         if model.linear.name == "sparse":
-            pardiso_report(model)
+            fig["pardiso"] = pardiso_report(model)
     s.enter("end")
-    print(f"peak rss {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6:.2f} GB", flush=True)
+    fig["peak_by_stage"] = {stage: {"peak_gb": r, "where": at} for stage, (r, at) in s.peaks.items()}
+    fig["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+    print(f"peak rss {fig['peak_rss_gb']:.2f} GB", flush=True)
+    records.finish(run, fig)
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    main()

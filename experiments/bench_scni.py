@@ -7,7 +7,7 @@ time one warm solve of each scheme in turn (interleaved, so a drifting machine l
 schemes alike); time per iteration = solve time / Newton iterations (median over
 the repeats). The assembly alone (residual + tangent, jitted) is timed too, since at 33x33 the
 dense LU of the tangent is shared by both schemes and dominates. Ratios are SCNI / Gauss.
-Prints JSON."""
+Prints JSON and writes a record (experiments/records.py)."""
 from __future__ import annotations
 
 import argparse
@@ -18,6 +18,7 @@ import time
 import jax
 import jax.numpy as jnp
 
+from experiments import records
 from jaxrkpm.thesis.studies.compress import setup
 
 SCHEMES = ("gauss", "scni", "mscni")
@@ -68,7 +69,8 @@ class Case:
                 "newton_iterations": self.iters, "warm_solve_s_median": med,
                 "time_per_iteration_s": med / self.iters,
                 "time_per_iteration_s_min": min(self.t_solve) / self.iters,
-                "assembly_s_median": statistics.median(self.t_asm)}
+                "assembly_s_median": statistics.median(self.t_asm),
+                "warm_solve_s": records.stats(self.t_solve), "assembly_s": records.stats(self.t_asm)}
 
 
 def bench(n, schemes, repeats, solver="auto"):
@@ -86,7 +88,9 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=7)
     p.add_argument("--schemes", nargs="*", default=list(SCHEMES))
     p.add_argument("--sparse", action="store_true", help="also time the sparse linear path")
+    records.add_arguments(p)
     a = p.parse_args(argv)
+    run = records.start("bench_scni", a)
     out = {"results": [], "ratios_vs_gauss": {}}
     solvers = ["auto"] + (["sparse"] if a.sparse else [])
     for n in a.sizes:
@@ -105,6 +109,7 @@ def main(argv=None):
                         "assembly": res[s]["assembly_s_median"] / res["gauss"]["assembly_s_median"],
                         "integration_points": res[s]["integration_points"] / res["gauss"]["integration_points"]}
     print(json.dumps(out, indent=2))
+    records.finish(run, out, out["ratios_vs_gauss"])
     return out
 
 

@@ -1,5 +1,6 @@
 """Benchmark: compile time, warm solve time (median) and peak memory for neo-Hookean blocks
-compressed 30% in 10 load steps (left face immobile, right face pushed).
+compressed 30% in 10 load steps (left face immobile, right face pushed). Run from the
+repository root: ``python -m experiments.bench_solve``; writes a record (experiments/records.py).
 
 Each case runs in a fresh subprocess so its peak RSS is its own. Every timed solve starts
 from a cold factorisation cache (the sparse solver otherwise reuses the last factorisation as
@@ -13,6 +14,8 @@ import statistics
 import subprocess
 import sys
 import time
+
+from experiments import records
 
 CASES = {"2d_9": (9, 9), "2d_101": (101, 101), "3d_20": (20, 20, 20)}
 
@@ -75,7 +78,7 @@ def run_case(shape, repeats, factorisation="auto"):
     return {"shape": list(shape), "dof": int(len(model.sets.free) * len(shape)),
             "solver": model.linear.name, "factorisation": getattr(system, "factorisation", None),
             "build_s": build, "compile_s": compile_s,
-            "first_solve_s": first, "warm_solve_s_median": warm, "warm_solve_s_all": times,
+            "first_solve_s": first, "warm_solve_s_median": warm, "warm_solve_s": records.stats(times),
             "newton_iterations": iterations, "linear": linear,
             "no_stability_check_solve_s": loose_s, "no_stability_check_newton_iterations": int(loose.iterations),
             "no_stability_check_max_du_difference": float(abs(loose.u - sol.u).max()), "load_steps": int(sol.steps),
@@ -90,10 +93,12 @@ def main(argv=None):
     p.add_argument("--factorisation", default="auto", choices=["auto", "pardiso", "superlu"],
                    help="of the sparse path (the large cases)")
     p.add_argument("--case", help=argparse.SUPPRESS)
+    records.add_arguments(p)
     a = p.parse_args(argv)
     if a.case:
         print(json.dumps(run_case(CASES[a.case], a.repeats, a.factorisation)))
         return
+    run = records.start("bench_solve", a)
     out = {}
     for name in a.cases:
         reps = a.repeats if name == "2d_9" else max(1, min(a.repeats, 2))
@@ -104,6 +109,7 @@ def main(argv=None):
             {"error": r.stderr.strip().splitlines()[-1] if r.stderr.strip() else f"exit {r.returncode}"}
         print(name, json.dumps(out[name]), file=sys.stderr)
     print(json.dumps(out, indent=2))
+    records.finish(run, out)
 
 
 if __name__ == "__main__":

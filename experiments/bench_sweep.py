@@ -18,7 +18,7 @@ in ``increments`` warm-started increments and takes the paddle Jacobian at each 
 Both are timed warm (after one untimed call that compiles) ``repeats`` times, interleaved,
 and the first (cold) call is reported separately. The two paths' deviations are compared
 (they agree to round-off). Prints JSON, with the load average before and after (quote the
-ratios of one run; the machine may be shared).
+ratios of one run; the machine may be shared) and writes a record (experiments/records.py).
 
 Both solve alike: with "map" batching (CPU) modified Newton, as an eager ``model.solve``
 does by default (``Model.newton_reuse``); with "vmap" full Newton (the loop is given reuse=0).
@@ -63,6 +63,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from experiments import records  # noqa: E402
 from jaxrkpm.control import batching  # noqa: E402
 from jaxrkpm.thesis import needle as nd  # noqa: E402
 from jaxrkpm.model.model import Model  # noqa: E402
@@ -170,6 +171,7 @@ def main(argv=None):
                     help="time the Python loop only up to this many configurations")
     ap.add_argument("--devices", type=int, default=1,
                     help="XLA host devices (cores) the batched call splits the configurations over")
+    records.add_arguments(ap)
     args = ap.parse_args(argv)
     args.batching = args.batching or batching.default_batching()
     if len(jax.devices()) < args.devices:
@@ -177,6 +179,7 @@ def main(argv=None):
                          "XLA_FLAGS=--xla_force_host_platform_device_count before JAX starts "
                          "(run this script directly)")
     load_before = os.getloadavg()
+    run = records.start("bench_sweep", args)
 
     phantom = nd.Phantom()
     depths = phantom.depths(args.increments)
@@ -202,9 +205,11 @@ def main(argv=None):
             tb.append(timed(batched, *run)[0])
             if do_loop:
                 tl.append(timed(loop, models, depths, phantom.target, reuse)[0])
+        row["batched_warm_s"] = records.stats(tb)
         row["batched_warm_median_s"] = statistics.median(tb)
         row["batched_warm_per_configuration_s"] = statistics.median(tb) / count
         if do_loop:
+            row["loop_warm_s"] = records.stats(tl)
             row["loop_warm_median_s"] = statistics.median(tl)
             row["speedup_warm"] = statistics.median(tl) / statistics.median(tb)
             row["speedup_cold"] = cold_l / cold_b
@@ -232,6 +237,11 @@ def main(argv=None):
     result["load_average_before"] = load_before
     result["load_average_after"] = os.getloadavg()
     print(json.dumps(result, indent=1))
+    ratios = {f"loop_over_batched_warm {r['configurations']}": r["speedup_warm"] for r in rows if "speedup_warm" in r}
+    if "floor" in result:
+        ratios["loop_over_floor"] = result["floor"]["ceiling_speedup"]
+        ratios["batched_over_floor"] = result["floor"]["batched_over_floor"]
+    records.finish(run, result, ratios)
 
 
 if __name__ == "__main__":

@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments import records
 from jaxrkpm.thesis.studies import track as T
 from jaxrkpm.control import tracking as C
 from jaxrkpm.thesis.data import TRACKING_MINUTES
@@ -73,7 +74,7 @@ def bench_tracking(paths, integrations, repeats):
             compiles0 = len(COMPILES)
             res, timing = T.execute(exp, repeats=repeats)
             w = timing["wall_s"]
-            r = {"wall_s_median": w, "wall_s_all": timing["warm_runs_s"], "compile_s": timing["compile_s"],
+            r = {"wall_s_median": w, "wall_s": records.stats(timing["warm_runs_s"]), "compile_s": timing["compile_s"],
                  "status": res.status.name, "max_waypoint_error": res.max_waypoint_error,
                  "iterations": int(len(res.error) - 1), "newton_iterations": int(np.sum(res.newton)),
                  "ms_per_iteration": 1e3 * w / max(len(res.error) - 1, 1),
@@ -130,10 +131,11 @@ def bench_jacobian(sizes, repeats, mp=(0.05, 0.05), eps=1e-5):
         resolve_its = int(model.solve_g(g, initial=sol, loads=sol.load).iterations)
         out[f"{n}x{n}"] = {
             "particles": int(model.body.n), "free_dof": int(sol.u.size), "linear_solver": model.linear.name,
-            "implicit_ms": 1e3 * t_imp, "implicit_kernel_ms": 1e3 * t_kernel, "central_fd_ms": 1e3 * t_fd,
+            "implicit_ms_median": 1e3 * t_imp, "implicit_kernel_ms": 1e3 * t_kernel, "central_fd_ms_median": 1e3 * t_fd,
             "ratio_fd_over_implicit": t_fd / t_imp, "ratio_fd_over_implicit_kernel": t_fd / t_kernel,
             "implicit_first_call_s": first_imp, "fd_first_call_s": first_fd,
-            "implicit_ms_all": [1e3 * t for t in all_imp], "central_fd_ms_all": [1e3 * t for t in all_fd],
+            "implicit_ms": records.stats([1e3 * t for t in all_imp]),
+            "central_fd_ms": records.stats([1e3 * t for t in all_fd]),
             "tracking_loop_jacobian_ms": 1e3 * t_loop, "ratio_fd_over_tracking_loop_jacobian": t_fd / t_loop,
             "in_loop_marginal_ms": 1e3 * t_marg, "ratio_fd_over_in_loop_marginal": t_fd / t_marg,
             "fd_solves_per_jacobian": 2 * 2, "newton_iterations_per_resolve": resolve_its,
@@ -172,9 +174,11 @@ def main(argv=None):
     p.add_argument("--sizes", nargs="*", type=int, default=[9, 17, 33])
     p.add_argument("--skip-tracking", action="store_true")
     p.add_argument("--skip-jacobian", action="store_true")
+    records.add_arguments(p)
     a = p.parse_args(argv)
-    if a.repeats < 3:
-        p.error("--repeats must be >= 3 (a median of at least three warm runs)")
+    if a.repeats < 3 and not a.smoke:
+        p.error("--repeats must be >= 3 (a median of at least three warm runs; --smoke allows fewer)")
+    run = records.start("bench_tracking", a)
     res = {"machine": {"platform": platform.platform(), "processor": platform.processor(),
                        "jax": jax.__version__, "devices": [str(d) for d in jax.devices()]},
            "settings": {"gain": 0.05, "clamp": 0.01, "tol": 1e-4, "repeats": a.repeats},
@@ -184,6 +188,13 @@ def main(argv=None):
     if not a.skip_jacobian:
         res["jacobian"], res["jacobian_summary"] = bench_jacobian(a.sizes, a.repeats)
     print(json.dumps(res, indent=2))
+    ratios = {f"thesis_gauss_over_ours {k}": v["speedup_vs_thesis_gauss"]
+              for k, v in res.get("tracking", {}).items() if "speedup_vs_thesis_gauss" in v}
+    for k, v in res.get("jacobian", {}).items():
+        for key in ("ratio_fd_over_implicit", "ratio_fd_over_tracking_loop_jacobian", "ratio_fd_over_in_loop_marginal"):
+            if key in v:
+                ratios[f"{key.removeprefix('ratio_')} {k}"] = v[key]
+    records.finish(run, res, ratios)
     return res
 
 

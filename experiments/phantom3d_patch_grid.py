@@ -37,7 +37,7 @@ import time
 
 import numpy as np
 
-from jaxrkpm import needle as nd  # FIXME split
+from jaxrkpm.thesis import needle as nd
 from jaxrkpm.thesis.phantom3d import Phantom3D
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])

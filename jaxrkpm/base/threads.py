@@ -4,9 +4,11 @@ Why. jaxlib's CPU LAPACK kernels (Cholesky, LU, ...) call SciPy's OpenBLAS, and 
 independent operations of one program on its own thread pool at the same time. With
 OpenBLAS's default threads, several XLA threads call the threaded OpenBLAS at once: its
 worker threads spin-wait for each other, and a vmapped batch of Newton solves livelocks
-(tests/test_threads.py keeps the reduced pattern; measured here: a 30 s timeout against 3 s
-single-threaded). Beside another CPU-bound process the same oversubscription makes a 1,152^2
-Cholesky 24x slower than single-threaded (issue 20). The small and medium dense systems of
+(tests/test_threads.py keeps the reduced pattern; ``experiments/vmap_deadlock.py`` runs it
+with threaded and single-threaded BLAS). Beside another CPU-bound process the same
+oversubscription makes a dense Cholesky many times slower than single-threaded (issue 20;
+``experiments/bench_contention.py --workloads cholesky``, with ``JAXRKPM_BLAS_THREADS=keep``
+for the libraries' own threads). The small and medium dense systems of
 this library do not gain from BLAS threads anyway; parallelism comes from XLA's own pool and
 from batching configurations (vmap).
 
@@ -21,13 +23,14 @@ The host-side sparse linear algebra of large (3D) models is the exception: PARDI
 factorisations and triangular solves, and the conjugate-gradient products with the sparse
 tangent, run on ``JAXRKPM_SPARSE_THREADS`` threads (default: every core this process may
 use). They are large, run one at a time (never from several XLA threads at once) and do pay:
-a 14^3 cube's tangent on the 2-core machine, quiet, factorises in 0.29 s against 0.53 s and
-solves in 4.4 ms against 7.8 ms; the sparse products take half the time. What made threads
-collapse is spin-waiting for a core that another process holds. PARDISO's threads are
-OpenMP's (Intel's runtime, libiomp5), so ``configure`` sets KMP_BLOCKTIME=0 where unset: a
-thread that waits sleeps at once instead of spinning 200 ms. Measured beside one busy
-process: with the default block time the triangular solve took 14-16 ms on 2 threads
-against 8-10 ms on one (the collapse); with KMP_BLOCKTIME=0, 8.0-8.2 ms against 7.2-7.5 ms.
+the factorisation, the triangular solves and the sparse products of a 3D cube's tangent all
+take less time on every core than on one (``experiments/bench_cube3d_large.py``, against
+``JAXRKPM_SPARSE_THREADS=1``). What made threads collapse is spin-waiting for a core that
+another process holds. PARDISO's threads are OpenMP's (Intel's runtime, libiomp5), so
+``configure`` sets KMP_BLOCKTIME=0 where unset: a thread that waits sleeps at once instead of
+spinning for the runtime's default block time. Beside one busy process, with the default
+block time, a triangular solve on two threads was slower than on one (the collapse); with
+KMP_BLOCKTIME=0 it is not (``experiments/bench_contention.py --workloads cube20``).
 The products run on a Python thread pool (SciPy's sparse kernels release the GIL), whose
 waits are blocking. ``JAXRKPM_SPARSE_THREADS=1`` keeps all of it on one thread.
 """

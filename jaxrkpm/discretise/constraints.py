@@ -136,7 +136,7 @@ def elimination_layout(A, pair_i, pair_j, free, bnd) -> EliminationLayout:
     A couples each essential particle only to the free ones near its own piece of boundary
     (a cube's two clamped faces are two blocks of A, half of it zero), so the products and
     scatters of one component involve only its free rows and coupled columns (at the 10^3
-    cube ~5x fewer flops than the dense Kfb A). No essential particles: C = 0."""
+    cube a fraction of the flops of the dense Kfb A). No essential particles: C = 0."""
     A = np.asarray(A, float)
     Nb, Nf = A.shape
     pair_i, pair_j = np.asarray(pair_i, np.int64), np.asarray(pair_j, np.int64)

@@ -19,15 +19,16 @@ def pair_keys(lists, N):
     return np.unique(P.row.astype(np.int64) * N + P.col)
 
 
-KEY_CHUNK = 2**22   # pair keys looked up at once (int64 temporaries of 32 MB each)
+KEY_CHUNK = 2**22   # pair keys looked up at once (one int64 temporary of this many keys)
 
 
 def pair_ids(uniq, lists, N):
     """Positions in ``uniq`` of the keys lists[r, k] * N + lists[r, m]: (R, K, K) int32.
 
     Looked up a few rows at a time straight into the int32 table: the int64 keys of all
-    rows at once are R K^2 x 8 bytes (1.3 GB per temporary for a 2,000-particle tetrahedral
-    body with K ~ 133), and they set the peak memory of a 3D model build."""
+    rows at once are R K^2 x 8 bytes (over a gigabyte per temporary for a 2,000-particle
+    tetrahedral body with K ~ 133), and they set the peak memory of a 3D model build
+    (``experiments/bench_needle3d_memory.py`` reports it per stage)."""
     R, K = lists.shape
     out = np.empty((R, K, K), np.int32)
     rows = max(1, KEY_CHUNK // max(K * K, 1))

@@ -258,8 +258,8 @@ def pivot_calibration(rotations, translations_m, *, rank_rtol: float = 1e-8) -> 
 
     Raises:
       ValueError: fewer than 3 poses, bad shapes/non-rotations, or a degenerate pose set
-      (rank < 6: e.g. all rotations about one axis leave the tip's component along that
-      axis undetermined).
+        (rank < 6: e.g. all rotations about one axis leave the tip's component along that
+        axis undetermined).
     """
     Rs = np.asarray(rotations, dtype=np.float64)
     ts = np.asarray(translations_m, dtype=np.float64)

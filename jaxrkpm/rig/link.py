@@ -56,7 +56,10 @@ __all__ = [
 ]
 
 PROTOCOL_VERSION = 1
+"""The protocol version this side speaks (``hello`` negotiates it)."""
 MAX_LINE_BYTES = 64 * 1024
+"""The longest message line, in bytes, that the server and the client accept by default (the
+server answers a longer one with ``too_long``)."""
 OPS = ("hello", "move_paddle", "read_pose", "read_force")
 _LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
