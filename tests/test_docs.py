@@ -96,14 +96,7 @@ def package_sources():
 # Files whose owners are scrubbing their figures (issue 34) while this test lands: each is
 # expected to fail, strictly, so that the entry must go once the file is clean.
 BEING_SCRUBBED = {
-    "jaxrkpm/control/batching.py", "jaxrkpm/control/tracking.py",
     "jaxrkpm/mechanics/assembly.py", "jaxrkpm/mechanics/materials.py",
-    "jaxrkpm/model/model.py",
-    "jaxrkpm/solvers/config.py", "jaxrkpm/solvers/continuation.py", "jaxrkpm/solvers/implicit.py",
-    "jaxrkpm/solvers/loops.py", "jaxrkpm/solvers/newton.py",
-    "jaxrkpm/solvers/linalg/dense.py", "jaxrkpm/solvers/linalg/factorisations.py",
-    "jaxrkpm/solvers/linalg/host.py", "jaxrkpm/solvers/linalg/multigrid.py",
-    "jaxrkpm/thesis/needle.py", "jaxrkpm/thesis/studies/reproduce.py", "jaxrkpm/thesis/studies/rig_sim.py",
 }
 
 

@@ -25,8 +25,8 @@ def stack_models(models: Sequence[Model]) -> tuple[Problem, tuple]:
     are zero, so they contribute nothing). The leaves every model shares (integration
     table, pair structure, tensors) are kept once: vmapped, they stay unbatched operands
     (``batch_axes``), so gathers and scatters over the table are not repeated per member
-    on a stacked copy (measured: a vmapped assembly over a stacked table cost 7x the
-    unbatched one per member, 20 phantom configurations)."""
+    on a stacked copy (a vmapped assembly over a stacked table cost several times the
+    unbatched one per member: ``experiments/bench_sweep.py``)."""
     ref = models[0]
     for m in models[1:]:
         if m.body is not ref.body or m.ops.idx.shape != ref.ops.idx.shape:

@@ -340,11 +340,9 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
     def step(s, e):
         state = factorisation(ctrl, s.c, s.c_state)
         # with a kept factorisation the response is refined by CG: it starts from the one
-        # predicted for this state (the last one plus its trend; measured at the 10^3 cube, a
-        # 20-iteration loop, starting from the last response instead of 0: 0.251 -> 0.205 s an
-        # iteration; at the 9x9 box path, from the predicted one instead of the last: CG
-        # iterations 2-4 -> 0-1 a step) (one that is not finite, after a failed solve, is no
-        # guess: CG starts from 0)
+        # predicted for this state (the last one plus its trend), which saves most of CG's
+        # iterations (``experiments/bench_tracking.py``, ``experiments/bench_cube3d.py``);
+        # one that is not finite, after a failed solve, is no guess: CG starts from 0
         guess = jnp.where(jnp.all(jnp.isfinite(s.du_next)), s.du_next, 0.0) if ctrl.keeps else None
         du = ctrl.response(s.c, state, guess)
         dmp = control_increment(ctrl.jacobian(s.c, state, du), e, gain, clamp, damping)

@@ -463,8 +463,8 @@ class Model:
         of a bifurcated branch; ``Solution.critical`` records the point); its compile is paid
         only then, and only in eager calls. False: stop there; True: always (also under jit).
         ``reuse`` None (default): ``newton_reuse`` in eager calls (modified Newton on the dense
-        path: ~2x faster, the same residual tolerance), 0 (full Newton) under jit/vmap; a
-        number sets the Newton solver's ``reuse``.
+        path: fewer factorisations, the same residual tolerance), 0 (full Newton) under
+        jit/vmap; a number sets the Newton solver's ``reuse``.
 
         Differentiable (jax.jacfwd / jax.grad) in the prescribed values, ``loads`` and
         ``params`` by implicit differentiation of the converged equilibrium. The derivative
@@ -539,7 +539,7 @@ class Model:
         """Device arrays (idx, psi) of the shape functions at ``points``, cached per point
         set: a repeated ``displacement`` or ``jacobian`` at the same points would otherwise
         re-evaluate the RK shape functions (a KD-tree query and moment matrices in NumPy)
-        each call (measured: 3.6 ms of a needle-loop increment's ~30 ms)."""
+        each call, a large share of a needle-loop increment (``experiments/bench_sweep.py``)."""
         X = np.asarray(points, np.float64)
         key = (X.shape, X.tobytes())
         cache = self.__dict__.setdefault("_point_cache", {})

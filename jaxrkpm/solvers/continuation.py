@@ -41,8 +41,7 @@ Design choices (and why):
   path, and its points would reach the host only when the whole loop returns. Here every
   accepted point is copied to the host as it is accepted, so a failure (or Ctrl-C) loses
   none, the path stops at once on its target or a failure, and the one dispatch per step
-  costs far less than the step's factorisations (measured: 40 steps of a 246-DOF arch in
-  0.4 s after a 7 s compile).
+  costs far less than the step's factorisations.
 """
 from __future__ import annotations
 

@@ -14,20 +14,19 @@ Two factorisations of the symmetric indefinite saddle-point matrix:
 
 * ``pardiso`` (default where Intel MKL is installed: x86-64): PARDISO's supernodal LDL^T
   with Bunch-Kaufman pivoting, weighted matching and scaling (the zero multiplier block needs
-  2x2 pivots), METIS ordering, on ``jaxrkpm.base.threads.sparse_threads()`` threads. A 20^3 grid
-  in 3D: 7e7 factor entries, about 6 s on one thread.
+  2x2 pivots), METIS ordering, on ``jaxrkpm.base.threads.sparse_threads()`` threads
+  (``experiments/bench_cube3d_large.py``).
 * ``superlu``: SciPy's SuperLU with static pivoting on a geometric nested-dissection order
   in which each essential particle's multipliers follow its own coefficients (every
   multiplier pivot is preceded by the coefficient pivot it constrains). Portable, but it
   fills several times more in 3D.
 
-JAX-native alternatives (issue 20) measured on a 14^3 cube's tangent, in one process (load
-about 7): ``sparsax`` 0.9 (SuiteSparse through XLA FFI, no Python callback) cannot factorise
-the indefinite saddle-point matrix with CHOLMOD (SPD only); its KLU LU of it did not finish
-in 10 minutes (PARDISO: 5.6 s, solve 47 ms). CHOLMOD of the SPD free-free block K_nn took
-7.4 s and 80 ms a solve, PARDISO 4.7 s and 38 ms on the same matrix, and K_nn alone is not
-K_ff (it would need CG for the transformation, as ``jaxrkpm.solvers.linalg.multigrid`` does). ``klujax`` is the
-same KLU. So PARDISO stays, through the callback.
+JAX-native alternatives were measured on a 14^3 cube's tangent (issue 20): ``sparsax``
+(SuiteSparse through XLA FFI, no Python callback) cannot factorise the indefinite
+saddle-point matrix with CHOLMOD (SPD only), and its KLU LU of it did not finish; CHOLMOD of
+the SPD free-free block K_nn was slower than PARDISO on the same matrix, and K_nn alone is not
+K_ff (it would need CG for the transformation, as ``jaxrkpm.solvers.linalg.multigrid`` does).
+``klujax`` is the same KLU. So PARDISO stays, through the callback.
 
 Factorisations are reused: the last positive definite one preconditions a conjugate-gradient
 solve of K_ff x = r (matrix-vector products with the current K and T); only when CG stalls or
@@ -323,7 +322,7 @@ def block_matrix(blocks, indptr, indices) -> sp.bsr_matrix:
     return sp.bsr_matrix((np.asarray(blocks, np.float64), indices, indptr), shape=(n, n))
 
 
-PARALLEL_MIN_BLOCKS = 1 << 16   # below this a product is too short to share out (~1 ms)
+PARALLEL_MIN_BLOCKS = 1 << 16   # below this a product is too short to share out among threads
 _executors: dict = {}           # worker count -> the thread pool of the product parts
 _executors_lock = threading.Lock()
 
@@ -339,7 +338,7 @@ def _threads_pool(n: int):
 def row_parts_product(K: sp.bsr_matrix, threads: int | None = None):
     """x -> K @ x with K's block rows cut into ``threads`` parts of about equal nonzeros,
     multiplied side by side (SciPy's sparse kernels release the GIL; the product is memory-
-    bound, and two cores move about twice the bytes: a 14^3 cube's tangent 11 -> 5.6 ms).
+    bound, and two cores move about twice the bytes: ``experiments/bench_cube3d_large.py``).
     The parts are views of K's arrays (no copy). One part, the product as it is, where
     ``threads`` (default ``jaxrkpm.base.threads.sparse_threads()``) is 1 or K is small."""
     threads = sparse_threads() if threads is None else threads
@@ -388,8 +387,8 @@ class SaddlePointSystem:
         self.Backend = factoriser(factorisation)
         # single precision where the backend has it, unless "double" is asked for: the
         # factorisation is a CG preconditioner and direct solves are refined in double
-        # (``exact``); measured at the 20^3 cube (PARDISO, quiet): factorisation 14.9 -> 9.3 s,
-        # triangular solves 28.0 -> 16.0 s, CG iterations 411 -> 412, solve 95.5 -> 77.6 s
+        # (``exact``), so the factorisation and its triangular solves cost less at the same CG
+        # iterations (``experiments/bench_cube3d_large.py``)
         self.single = precision != "double" and self.Backend.has_single
         N = X.shape[0]
         d = dim
@@ -642,10 +641,9 @@ class FactorPool:
         the step: a CG solve that needed more than ``system.growth`` x the iterations per
         decade of the held factorisation's first one (the tangent has moved away from it)
         factorises ``blocks`` after it, for the steps to come (kept where its inertia is
-        known). Measured at the 20^3 cube, 30% in 10 steps: one factorisation for the whole
-        path took CG from 7 to 24 iterations a solve; with the refresh, 5 factorisations and
-        213 CG iterations against 1 and 412, 65.2 s against 71.8 s. A replaced factorisation
-        is dropped first, so one is held at a time (the 30^3 cube's takes ~3.5 GB)."""
+        known): one factorisation for a whole path let CG's iterations grow several-fold
+        along it (``experiments/bench_cube3d_large.py``). A replaced factorisation is dropped
+        first, so one is held at a time (a large 3D factorisation takes gigabytes)."""
         rhs = np.asarray(rhs, np.float64)
         b = rhs.reshape(len(self.system.free_dofs), -1)
         h = int(handle)

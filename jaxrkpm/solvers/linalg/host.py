@@ -19,9 +19,9 @@ def host_callback(fn, result_shape_dtypes, *args):
     it must copy (the factorisations and multigrid hierarchies do).
 
     Why not jax.pure_callback: it copies every operand onto a new device array before the
-    call, and a Newton step passes two tangents (the current one and the factorised one):
-    at the 20^3 cube two 150 MB copies, 0.21 s a call against 13 us without them (same
-    process); at the 30^3 cube 560 MB each. (pure_callback remains the fallback on JAX
+    call, and a Newton step passes two tangents (the current one and the factorised one),
+    each hundreds of megabytes for a large 3D model: the copies cost far more than the call
+    (``experiments/bench_cube3d_large.py``). (pure_callback remains the fallback on JAX
     versions without buffer_callback.)"""
     if buffer_callback is None:
         return jax.pure_callback(fn, result_shape_dtypes, *args, vmap_method="sequential")

@@ -7,9 +7,9 @@ made; each note once, below the table) and ``DIR/report.json``.
 script's ``main(argv)`` (the same options as its own command) into ``DIR/<id>/``; its printed
 output goes to ``DIR/<id>/log.txt``. ``--quick`` runs a small subset at reduced sizes (5x5
 instead of 9x9, a few compression steps): a smoke test of the pipeline, not the thesis'
-numbers. A progress bar tracks the experiments (on a terminal). The full run took about 10
-minutes on an idle 2-core machine and 23 with one other job running beside it. An
-experiment that fails is reported as failed; the others still run (exit code 1).
+numbers. A progress bar tracks the experiments (on a terminal); the full run takes minutes
+(``jaxrkpm reproduce`` prints its wall time). An experiment that fails is reported as failed;
+the others still run (exit code 1).
 """
 from __future__ import annotations
 

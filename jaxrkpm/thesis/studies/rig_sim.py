@@ -3,7 +3,7 @@ in software. ``jaxrkpm rig-sim --path setpoint|box [--calibrate] [--broyden] --o
 
 The 9x9 Fung controller model (alpha 1, beta 0.02: the thesis' hand-tuned value) tracks
 the path on a "physical" object it does not know: a finer grid (``--physical-n``, 17 by
-default; 33 is closer to a real object but ~10x slower per solve), beta twice the model's and a stiff
+default; 33 is closer to a real object but much slower per solve), beta twice the model's and a stiff
 inclusion (x10 in a disc of radius 0.15 at (0.3, 0.7)). The control point is seen through
 synthetic noisy stereo images (Bumblebee-like rig at 0.45 m, object 0.2 m wide) and the
 paddle moves through the JSON-lines robot link over loopback TCP.
