@@ -99,7 +99,7 @@ def cube10_control_workload():
 
     @jax.jit
     def control_step(c, s):
-        state = c.problem.factorise(s.u, s.g)
+        state = c.factorise(s)
         return c.jacobian(s, state), c.settle(s, state, s.g + dg, lim, 6)[0]
 
     return lambda: jax.block_until_ready(control_step(ctrl, sol))

@@ -13,14 +13,14 @@ a factorisation of an earlier state, refactorised only where a correction cuts |
 --reuse; both to the solver's residual tolerance rtol = 1e-10 x the internal force scale); the
 loop includes its one initial factorisation (``loop_*_s`` / iterations is the amortised cost).
 The full solve is timed as ``model.solve`` gives it by default (eager, dense: modified Newton,
-``Config.reuse`` = ``Model.newton_reuse``, a kept factorisation while the residual contracts;
+the Newton solver's ``reuse`` = ``Model.newton_reuse``, a kept factorisation while the residual contracts;
 --reuse sets another) and with full Newton (reuse=0); both to the same tolerance. --integration runs each case
 with Gauss and/or nodal (SCNI) integration and reports the displacement of a probe point (the
 top edge's midpoint, which bulges), so that integrations and sizes can be compared against the
 finest case run. "newton_iteration_parts_s" profiles one Newton iteration (pair blocks,
 dense matrix, factorisation, solve, energy and residual, force scale). --crossover times one
 Newton iteration's linear work dense against sparse (PARDISO where installed) at several
-sizes, the measurement behind ``jaxrkpm.model.model.DENSE_LIMIT``.
+sizes, the measurement behind ``SolverChoice.dense_3d`` (``jaxrkpm.internal.SolverChoice``).
 Medians of warm repeats; each size runs in a fresh subprocess (its peak RSS is its own).
 Prints JSON and writes a record (experiments/records.py); quote ratios within one run (the machine may be shared: the load average is
 printed)."""
@@ -56,7 +56,7 @@ def timed(f, repeats, label=None):
     return statistics.median(times), out
 
 
-def newton_iteration_parts(prob, sol, repeats):
+def newton_iteration_parts(prob, linear, sol, repeats):
     """The parts of one Newton iteration at ``sol``, each timed alone (medians): the tangent's
     pair blocks, the linear solver's matrix from them (dense: K_ff), the factorisation (blocks,
     matrix and Cholesky together), one solve with it, the energy with its gradient (a line
@@ -64,16 +64,16 @@ def newton_iteration_parts(prob, sol, repeats):
     import jax
 
     blocks = jax.jit(lambda p, s: p.tangent_blocks(s.u, s.g))
-    matrix = jax.jit(lambda p, b: p.config.linear.matrix(p.ops, b))
-    factorise = jax.jit(lambda p, s: p.factorise(s.u, s.g))
-    solve = jax.jit(lambda p, st, r: p.solve_linear(st, r))
-    energy = jax.jit(lambda p, s: jax.value_and_grad(lambda u: p.energy(u, s.g))(s.u))
-    scale = jax.jit(lambda p, s: p.force_scale(s.u, s.g))
+    matrix = jax.jit(lambda p, b: p.dense_tangent(b) if linear.modified_newton else b)
+    factorise = jax.jit(lambda p, s: linear.state_at(p, s.u, s.g))
+    solve = jax.jit(lambda st, r: linear.solve(st, r))
+    energy = jax.jit(lambda p, s: jax.value_and_grad(lambda u: p.energy(u, s.g)[0])(s.u))
+    scale = jax.jit(lambda p, s: p.force_scale(p.energy_residual(s.u, s.g)[3]))
     out = {}
     out["pair_blocks"], B = timed(lambda: blocks(prob, sol), repeats)
     out["matrix_from_blocks"], _ = timed(lambda: matrix(prob, B), repeats)
     out["factorise"], state = timed(lambda: factorise(prob, sol), repeats)
-    out["solve"], _ = timed(lambda: solve(prob, state, sol.u), repeats)
+    out["solve"], _ = timed(lambda: solve(state, sol.u), repeats)
     out["energy_and_residual"], _ = timed(lambda: energy(prob, sol), repeats)
     out["force_scale"], _ = timed(lambda: scale(prob, sol), repeats)
     return out
@@ -108,7 +108,7 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
 
     @jax.jit
     def factorise(c, s):
-        return c.problem.factorise(s.u, s.g)
+        return c.factorise(s)
 
     @jax.jit
     def jacobian_from(c, s, state):
@@ -120,14 +120,14 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
 
     @jax.jit
     def control_step(c, s):
-        state = c.problem.factorise(s.u, s.g)
+        state = c.factorise(s)
         return c.jacobian(s, state), c.settle(s, state, s.g + dg, lim, 6)[0]
 
     step_s, (J, moved) = timed(lambda: control_step(ctrl, sol), repeats, "control_step")
     fact_s, state = timed(lambda: factorise(ctrl, sol), repeats)
     jfrom_s, _ = timed(lambda: jacobian_from(ctrl, sol, state), repeats)
     settle_s, _ = timed(lambda: settle(ctrl, sol, state), repeats)
-    parts = newton_iteration_parts(ctrl.problem, sol, repeats)
+    parts = newton_iteration_parts(ctrl.problem, ctrl.linear, sol, repeats)
     loop = {}
     for kept in (0.0, keep):
         side = ControlledModel.of(model, "right", centre, reuse=kept)
@@ -180,10 +180,12 @@ def crossover_case(n, repeats, solver, dim=3, precision="auto"):
     u = jnp.zeros((len(model.sets.free), dim))
     prob = model.problem()
 
+    linear = model.linear
+
     @jax.jit
     def iteration(p, u, g):
-        state = p.factorise(u, g)
-        return p.solve_linear(state, p.residual(u, g)), p.stability(state)
+        state = linear.state_at(p, u, g)
+        return linear.solve(state, p.residual(u, g)), linear.stability(state)
 
     t, (x, stability) = timed(lambda: iteration(prob, u, g), repeats, "iteration")
     return {"n": n, "dim": dim, "solver": solver, "path": model.linear.name, "dof": int(len(model.sets.free) * dim),
@@ -197,7 +199,8 @@ def crossover(sizes, repeats, dim=3):
     """Dense (double and mixed precision) against sparse per Newton iteration at each size,
     interleaved (each case in a fresh subprocess); the crossover is the first size where
     sparse is faster than the dense path's precision="auto"."""
-    from jaxrkpm.model.model import MIXED_MIN
+    from jaxrkpm.internal import SolverChoice
+    mixed_min = SolverChoice().mixed_min
 
     rows = []
     for n in sizes:
@@ -212,7 +215,7 @@ def crossover(sizes, repeats, dim=3):
         if all("iteration_s" in row[k] for k in ("dense", "dense_mixed", "sparse")):
             row["dof"] = row["dense"]["dof"]
             row["mixed_over_double"] = row["dense_mixed"]["iteration_s"] / row["dense"]["iteration_s"]
-            auto = row["dense_mixed" if row["dof"] >= MIXED_MIN else "dense"]["iteration_s"]
+            auto = row["dense_mixed" if row["dof"] >= mixed_min else "dense"]["iteration_s"]
             row["dense_over_sparse"] = auto / row["sparse"]["iteration_s"]
         print(json.dumps(row), file=sys.stderr)
         rows.append(row)
@@ -226,7 +229,7 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--solver", default="auto", choices=["auto", "dense", "sparse"])
     p.add_argument("--reuse", type=float, default=None,
-                   help="Config.reuse of the default solve (default: the model's newton_reuse)")
+                   help="the Newton reuse of the default solve (default: the model's newton_reuse)")
     p.add_argument("--keep", type=float, default=0.5, help="track(reuse=...) of the kept-factorisation control loop")
     p.add_argument("--integration", nargs="*", default=["gauss"], choices=["gauss", "scni", "mscni"])
     p.add_argument("--loop-steps", type=int, default=10, help="control loop iterations timed")

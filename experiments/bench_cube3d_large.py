@@ -55,7 +55,6 @@ def run_case(n, solver, repeats, out_npz, check_stability=True):
     import jaxrkpm as jr
     from jaxrkpm.solvers.linalg import multigrid as krylov
     from jaxrkpm.solvers.linalg import factorisations as sparse
-    from jaxrkpm.mechanics.assembly import coefficients, pair_blocks
 
     body = jr.Body.grid((n, n, n), 1.0 / (n - 1))
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
@@ -85,7 +84,7 @@ def run_case(n, solver, repeats, out_npz, check_stability=True):
     # assembly: the pair blocks at the converged state, alone, times the assemblies made
     # (one per Newton iteration: the sparse and Krylov paths assemble at every iteration)
     prob = model.problem()
-    blocks = jax.jit(lambda u, gg: pair_blocks(prob.ops, prob.params, prob.config.W, coefficients(prob.ops, u, gg)))
+    blocks = jax.jit(lambda u, gg: prob.tangent_blocks(u, gg))
     jax.block_until_ready(blocks(sol.u, sol.g))
     t0 = time.perf_counter()
     for _ in range(3):

@@ -67,6 +67,7 @@ from experiments import records  # noqa: E402
 from jaxrkpm.control import batching  # noqa: E402
 from jaxrkpm.thesis import needle as nd  # noqa: E402
 from jaxrkpm.model.model import Model  # noqa: E402
+from jaxrkpm.solvers.implicit import response  # noqa: E402
 from jaxrkpm.solvers.results import Status  # noqa: E402
 
 
@@ -96,7 +97,7 @@ def batched(models, depths, target, batching="map", n_devices=1):
 
 
 def loop(models, depths, target, reuse):
-    """The same solves one call at a time; ``reuse``: the batched path's Config.reuse (map:
+    """The same solves one call at a time; ``reuse``: the batched path's Newton reuse (map:
     modified Newton, as an eager solve's default; vmap: full Newton)."""
     target = np.atleast_2d(target)
     dev = np.zeros((len(models), len(depths)))
@@ -142,14 +143,15 @@ def floor(model, phantom, depths, iterations: int, jacobians: int, factorisation
     us = jnp.asarray(np.asarray(sol.u) + noise)
     g = sol.g
     dG = model.directions("paddle")
-    state = prob.factorise(sol.u, g)
+    linear = model.linear
+    state = linear.state_at(prob, sol.u, g)
     rhs = prob.residual(sol.u, g)
     piece = {
-        "factorise_s": per_member(lambda u: prob.factorise(u, g), us),
-        "triangular_solves_s": per_member(lambda r: prob.solve_linear(state, r), us * 0 + rhs),
-        "energy_and_gradient_s": per_member(lambda u: jax.value_and_grad(lambda v: prob.energy(v, g))(u), us),
-        "force_scale_s": per_member(lambda u: prob.force_scale(u, g), us),
-        "jacobian_rhs_s": per_member(lambda u: prob.response(sol._replace(u=u), dG, state=state), us),
+        "factorise_s": per_member(lambda u: linear.state_at(prob, u, g), us),
+        "triangular_solves_s": per_member(lambda r: linear.solve(state, r), us * 0 + rhs),
+        "energy_and_gradient_s": per_member(lambda u: jax.value_and_grad(lambda v: prob.energy(v, g)[0])(u), us),
+        "force_scale_s": per_member(lambda u: prob.force_scale(prob.energy_residual(u, g)[3]), us),
+        "jacobian_rhs_s": per_member(lambda u: response(prob, linear, u, g, sol.load, dG, state), us),
     }
     iteration = piece["triangular_solves_s"] + piece["energy_and_gradient_s"] + piece["force_scale_s"]
     jacobian = piece["factorise_s"] + piece["jacobian_rhs_s"]
@@ -186,9 +188,9 @@ def main(argv=None):
     rows, last_loop = [], None
     for count in args.counts:
         models = configurations(phantom, count)
-        run = (models, depths, phantom.target, args.batching, args.devices)
+        sweep = (models, depths, phantom.target, args.batching, args.devices)
         reuse = models[0].newton_reuse if args.batching == "map" else 0.0   # what insert solves with
-        cold_b, (dev_b, st_b, its_b) = timed(batched, *run)
+        cold_b, (dev_b, st_b, its_b) = timed(batched, *sweep)
         row = {"configurations": count, "increments": args.increments,
                "solves": count * args.increments,
                "converged_fraction": float(np.mean(st_b == Status.CONVERGED)),
@@ -202,7 +204,7 @@ def main(argv=None):
             row["status_agree"] = bool(np.all(st_b == st_l))
         tb, tl = [], []
         for _ in range(args.repeats):
-            tb.append(timed(batched, *run)[0])
+            tb.append(timed(batched, *sweep)[0])
             if do_loop:
                 tl.append(timed(loop, models, depths, phantom.target, reuse)[0])
         row["batched_warm_s"] = records.stats(tb)

@@ -69,7 +69,7 @@ def run_case(n: int, integration: str, case: str, steps: int = 10, warm: bool = 
     crit = np.asarray(sol.critical.t_unstable)
     row.update({"status": sol.outcome.name, "t": float(sol.t), "compression": float(sol.t) * -push[0],
                 "branch": int(sol.branch), "critical_t": crit[np.isfinite(crit)].tolist(),
-                "min_eig": float(np.linalg.eigvalsh(K)[0]), "min_detF": float(prob.min_det_f(sol.u, sol.g)),
+                "min_eig": float(np.linalg.eigvalsh(K)[0]), "min_detF": float(prob.energy(sol.u, sol.g)[1]),
                 "iterations": int(sol.iterations), "cuts": int(sol.cuts), "time_cold_s": cold})
     if check and float(sol.t) < 1.0:
         # minima every dt of the whole load, from the last stable state to the full load
