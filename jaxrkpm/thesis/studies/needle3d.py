@@ -34,6 +34,7 @@ from jaxrkpm.io import output
 from jaxrkpm.io import plot
 from jaxrkpm.thesis.phantom3d import Phantom3D, ellipsoid_point
 from jaxrkpm.thesis.studies import interface
+from jaxrkpm.thesis.studies.needle import optimize_result
 
 
 def object_size(phantom: Phantom3D) -> float:
@@ -92,7 +93,8 @@ def final_state(phantom, inclusion, paddle, increments):
 
 
 def write_vtu(out: Path, name: str, model, sol) -> str:
-    return str(output.write_solution(out / f"{name}.vtu", model, sol))
+    """Write ``out/name.vtu``; returns its name (relative to the results folder)."""
+    return output.write_solution(out / f"{name}.vtu", model, sol).name
 
 
 def run_static(phantom, inclusion, increments, out: Path, n_devices=1):
@@ -268,33 +270,31 @@ def result(s: dict) -> tuple[bool, str]:
                  f"{s['status']}: {s['message']}")
         return bool(s["held"]), words
     o = s["optimum"]
-    words = (f"needle3d optimize ({inc}, {n} particles): patch at theta {o['theta']:.3f}, phi {o['phi']:.3f}, "
-             f"deviation {abs(o['deviation']):.1e}, {s['improvement_over_discrete']:.1f}x below the best "
-             f"discrete patch {s['best_discrete']}; {s['status']}: {s['message']}")
-    return s["status"] == "converged", words
+    return optimize_result(s, "needle3d optimize", f"{n} particles, patch at theta {o['theta']:.3f}, phi {o['phi']:.3f}", "patch")
 
 
 def main(argv=None):
     a = interface.parse("needle3d", argv)
-    t0 = time.time()
-    out = interface.output_folder(a.out)
-    stages = interface.progress(total=2, desc=f"needle3d {a.mode} {a.inclusion}", unit="stage")
-    stages.set_postfix_str("mesh and models")
     phantom = Phantom3D(spacing=a.spacing)
-    if a.paddle is not None and a.paddle > len(phantom.paddles):
-        interface.needle3d_parser().error(f"argument --paddle: must be an integer in [1, {len(phantom.paddles)}] "
+    patches = len(phantom.patch_coordinates)          # the angle grid: no mesh needed yet
+    if a.paddle is not None and a.paddle > patches:   # refused before any folder is made
+        interface.needle3d_parser().error(f"argument --paddle: must be an integer in [1, {patches}] "
                                           f"(the candidate patches), got {a.paddle}")
-    phantom.body
-    stages.update()
-    stages.set_postfix_str("sweep and solves")
-    if a.mode == "static":
-        summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
-    elif a.mode == "dynamic":
-        summary = run_dynamic(phantom, a.inclusion, a.increments, out, a.paddle, a.tol, a.devices)
-    else:
-        summary = run_optimize(phantom, a.inclusion, a.increments, out, a.iterations, n_devices=a.devices)
-    stages.update()
-    stages.close()
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    interface.finish(out, t0, summary, result(summary)[1], a.json)
+    results = interface.results("needle3d", a, a.out or f"results/needle3d/{a.mode}_{a.inclusion}")
+    with results as out:
+        stages = interface.progress(total=2, desc=f"needle3d {a.mode} {a.inclusion}", unit="stage")
+        stages.set_postfix_str("mesh and models")
+        phantom.body
+        stages.update()
+        stages.set_postfix_str("sweep and solves")
+        if a.mode == "static":
+            summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
+        elif a.mode == "dynamic":
+            summary = run_dynamic(phantom, a.inclusion, a.increments, out, a.paddle, a.tol, a.devices)
+        else:
+            summary = run_optimize(phantom, a.inclusion, a.increments, out, a.iterations, n_devices=a.devices)
+        stages.update()
+        stages.close()
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        results.finish(summary, *result(summary), a.json)
     return summary
