@@ -329,8 +329,9 @@ def optimize_figures(phantom, model, sw, summary, out: Path):
     sd = np.array([np.nan if d is None else abs(d) for d in summary["scan"]["deviation"]])
     a1.semilogy(sq, sd, "-", color="0.5", label="spring paddle, scan")
     failed = np.isnan(sd)
-    if failed.any():
-        a1.plot(sq[failed], np.full(failed.sum(), np.nanmin(sd)), "rx", label="insertion fails (det F <= 0)")
+    if failed.any():   # no deviation there to plot: marked on the q axis (axes-fraction height)
+        a1.plot(sq[failed], np.full(failed.sum(), 0.03), "rx", transform=a1.get_xaxis_transform(), clip_on=False,
+                label="insertion fails at this q (no deviation; det F <= 0)")
     idx = np.arange(1, len(sw.final) + 1)
     ok = np.asarray(summary["discrete_converged"])
     a1.plot(idx[ok], np.abs(sw.final[ok]), "s", ms=8, mfc="none", label="essential paddle (Table 6.2)")

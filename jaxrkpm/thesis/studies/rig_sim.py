@@ -229,7 +229,9 @@ def fig_calibration(cal, rec, out: Path):
     r.add_patch(plot.plt.Circle((0.3, 0.7), 0.15, fill=False, color="w", ls="--", label="true inclusion"))
     r.set_title("fitted stiffness multiplier (3x3 map; one marker:\nfits the kinematics, does not locate the inclusion)", fontsize=10)
     r.legend(fontsize=8, loc="lower right")
-    fig.colorbar(im, ax=r)
+    r.set_xlabel(f"x ({plot.UNITS})")
+    r.set_ylabel(f"y ({plot.UNITS})")
+    fig.colorbar(im, ax=r, label="stiffness multiplier (x the model's, -)")
     fig.tight_layout()
     plot.save(fig, out / "calibration.png")
 

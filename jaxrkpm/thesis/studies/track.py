@@ -419,9 +419,7 @@ def fig_layers_3d(exp, res, snaps, out, sub: int = 4):
         ax.set_ylim(bl[1], bh[1])
         ax.set_zlim(bl[2], bh[2])
         ax.set_box_aspect(bh - bl)
-        ax.set_xlabel(f"x ({UNITS})")
-        ax.set_ylabel(f"y ({UNITS})")
-        ax.set_zlabel(f"z ({UNITS})")
+        plot.tidy_3d_axes(ax)
         ax.view_init(elev=24, azim=-55)
         if a == 0:
             handles, labels = ax.get_legend_handles_labels()
