@@ -13,9 +13,10 @@ import os
 from pathlib import Path
 
 OFF = ("0", "off", "false", "no")
-# programs that compile faster than this are not worth a disk read (JAX's default, 1 s, would
-# leave out most of a tracking run's programs, which compile in 0.1-1 s each)
-MIN_COMPILE_S = 0.1
+# every program is kept: JAX's default (only those compiling in over 1 s) leaves out most of a
+# tracking run's many small programs, and a second demo run was faster keeping all of them than
+# keeping those over 0.1 s (experiments/bench_compile_cache.py); they take a few MB
+MIN_COMPILE_S = 0.0
 MAX_BYTES = 2 * 2**30   # least recently used entries go past 2 GiB
 
 
@@ -47,5 +48,9 @@ def use_compilation_cache() -> Path | None:
         return None                   # a read-only home: run without the cache
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_S)
-    jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+    try:                              # JAX bounds the cache's size only with filelock (a dependency)
+        import filelock  # noqa: F401
+        jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+    except ImportError:
+        pass
     return folder

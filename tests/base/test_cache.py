@@ -21,9 +21,9 @@ def probe(**env) -> list:
 
 def test_on_by_default_in_the_users_cache_folder(tmp_path):
     folder = tmp_path / "jaxrkpm"
-    assert probe(XDG_CACHE_HOME=str(tmp_path)) == [str(folder), str(folder), "0.1"]
+    assert probe(XDG_CACHE_HOME=str(tmp_path)) == [str(folder), str(folder), "0.0"]
     assert folder.is_dir()
-    assert probe(HOME=str(tmp_path)) == [str(tmp_path / ".cache" / "jaxrkpm")] * 2 + ["0.1"]
+    assert probe(HOME=str(tmp_path)) == [str(tmp_path / ".cache" / "jaxrkpm")] * 2 + ["0.0"]
     assert probe(JAXRKPM_CACHE_DIR=str(tmp_path / "mine"))[0] == str(tmp_path / "mine")
 
 
