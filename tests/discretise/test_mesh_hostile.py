@@ -168,3 +168,27 @@ def test_surface_input_is_checked_before_meshing(tmp_path, monkeypatch):
 def test_refining_past_the_bound_is_refused(box):
     with pytest.raises(ValueError, match=r"refine=6 would split the .* cells into .* more than the bound"):
         jr.Body.from_mesh(box, refine=6)
+
+
+def test_the_default_integration_of_a_mesh_body_is_the_accurate_one(tmp_path):
+    """Why Model's default stays "gauss" for mesh bodies (experiments/bench_mesh_integration.py
+    measures it with timings): on the tetrahedral box, a smooth large deformation (the
+    manufactured solution of test_mesh.py) is several times more accurate with Gauss points
+    than with SCNI, which is exact only for affine fields."""
+    pytest.importorskip("skfem")
+    from tests.discretise.test_mesh import _body_force, u_exact
+
+    body = jr.Body.from_mesh(skfem_box(tmp_path / "box.vtu"))
+    surface = body.surface_particles()
+    errors = {}
+    for integration in (None, "scni"):
+        kw = {} if integration is None else {"integration": integration}
+        model = jr.Model(body, MAT, essential={"surface": surface},
+                         body_force=lambda X: np.asarray(_body_force(X)), **kw)
+        sol = model.solve({"surface": np.asarray(u_exact(body.X[surface]))})
+        e = np.asarray(model.particle_displacements(sol)) - np.asarray(u_exact(body.X))
+        ref = np.asarray(u_exact(body.X))
+        errors[model.integration] = np.sqrt(np.sum(body.volumes[:, None] * e ** 2)
+                                            / np.sum(body.volumes[:, None] * ref ** 2))
+    print(f"manufactured solution on the {body.n}-particle box: relative errors {errors}")
+    assert set(errors) == {"gauss", "scni"} and errors["gauss"] < 3e-3 and errors["scni"] > 5 * errors["gauss"]
