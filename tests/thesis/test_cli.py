@@ -259,6 +259,10 @@ def test_sizes_past_the_memory_are_refused_before_allocating(capsys):
     one_line_usage(capsys, ["compress", "--step", "1e-6"], "makes 900,000 compression steps, more than 1,000")
     one_line_usage(capsys, ["rig-sim", "--path", "setpoint", "--waypoints", "9"],
                    "argument --waypoints: the setpoint path has 2 waypoints, got 9")
+    import jax
+    many = str(len(jax.devices()) + 1)
+    for command in ("needle", "needle3d"):
+        one_line_usage(capsys, [command, "--devices", many], f"argument --devices: {many} asked, but JAX sees")
 
 
 @pytest.mark.parametrize("command", list(cli.COMMANDS))

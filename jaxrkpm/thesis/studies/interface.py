@@ -103,6 +103,19 @@ def iterations(high=ITERATIONS_MAX):
     return number(int, 1, high)
 
 
+def devices_error(requested) -> str | None:
+    """A usage message when --devices asks for more devices than JAX sees (the sweep would
+    silently use fewer); None when it fits or is not given."""
+    if requested is None:
+        return None
+    import jax
+    visible = len(jax.devices())
+    if requested > visible:
+        return (f"argument --devices: {requested} asked, but JAX sees {visible} device(s) "
+                f"({jax.devices()[0].platform}); give at most {visible}")
+    return None
+
+
 def out_dir(text: str) -> str:
     """An argparse ``type`` for --out: a folder name, not empty (an empty one would write into
     the current folder)."""

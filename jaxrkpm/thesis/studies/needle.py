@@ -396,6 +396,8 @@ def optimize_result(s: dict, what: str, where: str, unit: str) -> tuple[bool, st
 
 def main(argv=None):
     a = interface.parse("needle", argv)
+    if too_many := interface.devices_error(a.devices):
+        interface.needle_parser().error(too_many)
     results = interface.results("needle", a, a.out or f"results/needle/{a.mode}_{a.inclusion}")
     with results as out:
         phantom = nd.Phantom()

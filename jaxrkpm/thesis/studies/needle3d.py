@@ -276,6 +276,8 @@ def result(s: dict) -> tuple[bool, str]:
 
 def main(argv=None):
     a = interface.parse("needle3d", argv)
+    if too_many := interface.devices_error(a.devices):
+        interface.needle3d_parser().error(too_many)
     phantom = Phantom3D(spacing=a.spacing)
     patches = len(phantom.patch_coordinates)          # the angle grid: no mesh needed yet
     if a.paddle is not None and a.paddle > patches:   # refused before any folder is made
