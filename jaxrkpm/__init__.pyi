@@ -3,6 +3,7 @@
 # (``from m import X as X``: an explicit re-export).
 from . import internal as internal, rig as rig
 from .base.outcome import Outcome as Outcome
+from .base.cache import use_compilation_cache as use_compilation_cache
 from .base.programs import release_if_crowded as release_if_crowded
 from .control.tracking import (
     TrackResult as TrackResult,

@@ -32,3 +32,22 @@ def _programs_per_module():
 def _mapping_headroom():
     yield
     release_if_crowded()
+
+
+# Two workers (JAX compiles are single-threaded; the machine has 2 cores), one per test file
+# (module-scoped compiled models are built once), where pytest-xdist is installed and the command
+# line chose no distribution itself (-n, --dist, -p no:xdist); a plain pytest without the test
+# extra runs serially. No worker restart: pytest-xdist 3.8's loadfile scheduler deadlocks after
+# replacing a crashed worker (it re-queues the dead worker's finished files as empty work units:
+# pytest-xdist issues #784, #1378), which turned one crashed worker into a CI run that never
+# ended; a crash now fails the run at once.
+@pytest.hookimpl(tryfirst=True)
+def pytest_cmdline_main(config):
+    if not config.pluginmanager.has_plugin("xdist") or hasattr(config, "workerinput"):
+        return
+    option = config.option
+    if option.numprocesses is None and option.dist == "no" and not option.tx:
+        option.numprocesses, option.dist = 2, "loadfile"
+    if option.maxworkerrestart is None:
+        option.maxworkerrestart = 0
+

@@ -188,3 +188,36 @@ def snap(arch: Arch, model: jr.Model, ds: float = 0.03, steps: int = 40):
     """The load-driven arch followed by arc length (cylindrical constraint, ds fixed)."""
     return arc_length(model, ds, steps=steps, ds_max=ds, load_pattern=crown_load(model, arch),
                       points=[arch.crown_point])
+
+
+# ------------------------------------------------------------------ tetrahedral boxes of other tools
+BOX = (2.0, 1.0, 1.0)       # the 225-vertex box of issue 35: 9 x 5 x 5 vertices at spacing 0.25
+
+
+def skfem_box(path) -> str:
+    """scikit-fem's ``MeshTet.init_tensor`` box (9 x 5 x 5 vertices, 768 tetrahedra, half of
+    them with the opposite vertex order), written with meshio to ``path`` (.vtu)."""
+    import skfem
+    m = skfem.MeshTet.init_tensor(*(np.linspace(0.0, L, n) for L, n in zip(BOX, (9, 5, 5))))
+    meshio.write(path, meshio.Mesh(m.p.T, [("tetra", m.t.T)]))
+    return str(path)
+
+
+def scipy_box(n_inside: int = 120, n_face: int = 12, seed: int = 1) -> meshio.Mesh:
+    """A box triangulated by ``scipy.spatial.Delaunay`` (qhull, which orders the vertices of
+    about half its simplices the other way): its corners, ``n_face`` random points on each
+    face and ``n_inside`` random points inside."""
+    from itertools import product
+
+    from scipy.spatial import Delaunay
+    rng = np.random.default_rng(seed)
+    L = np.asarray(BOX)
+    pts = [np.array(list(product(*[(0.0, x) for x in L])))]
+    for axis in range(3):
+        for side in (0.0, 1.0):
+            p = rng.uniform(0.1, 0.9, (n_face, 3)) * L
+            p[:, axis] = side * L[axis]
+            pts.append(p)
+    pts.append(rng.uniform(0.1, 0.9, (n_inside, 3)) * L)
+    P = np.concatenate(pts)
+    return meshio.Mesh(P, [("tetra", Delaunay(P).simplices)])

@@ -165,27 +165,38 @@ class Body:
     def from_mesh(source, dim: int | None = None, refine: int = 0) -> "Body":
         """Body from a tetrahedral (3D) or triangular (2D) volume mesh: a path to any file
         meshio reads (VTU/VTK, Gmsh .msh, Abaqus .inp, Medit .mesh, ...) or a meshio.Mesh
-        (e.g. from ``jaxrkpm.discretise.mesh.half_ellipsoid``). ``dim`` 3 or 2 (default: 3 if the mesh
+        (e.g. from ``jaxrkpm.half_ellipsoid``). ``dim`` 3 or 2 (default: 3 if the mesh
         has tetrahedra). Particles at the mesh vertices; volumes are each vertex's share
         of its cells (summing to the mesh volume); ``tags`` from the mesh's named groups
         (cell sets, point sets, Gmsh physical groups); spacing = mean edge length.
         ``refine`` > 0 first splits every cell uniformly that many times (Gmsh,
         ``jaxrkpm.refine_mesh``: particles at the edge midpoints too, tags carried). The
-        mesh is checked: see ``jaxrkpm.discretise.mesh.volume_mesh``."""
+        mesh is checked before any geometry (finite coordinates, at least one cell, integer
+        connectivity within the points), then as geometry (zero-volume cells, coincident
+        vertices, faces of more than two cells, cells folded over a neighbour), each
+        failure a ValueError naming it; cells with the opposite vertex order are reordered
+        (a mesher's convention: scipy's Delaunay and scikit-fem mix both) and points that
+        no cell uses dropped, said in one line of the ``jaxrkpm.discretise.mesh`` logger."""
         vm = mesh.volume_mesh(mesh.refine_mesh(source, refine) if refine else source, dim)
         X = vm.points
         return Body(X, mesh.vertex_volumes(X, vm.cells), mesh.mean_edge_length(X, vm.cells),
                     X.min(0), X.max(0), None, False, cKDTree(X), vm.cells, vm.tags)
 
     @staticmethod
-    def from_surface(source, spacing: float) -> "Body":
+    def from_surface(source, spacing: float, max_cells: int = mesh.MAX_TETRAHEDRA) -> "Body":
         """3D body inside a closed triangle surface (STL, OBJ, PLY or any meshio format, or a
-        meshio.Mesh), tetrahedralised by Gmsh at ``spacing`` (``jaxrkpm.discretise.mesh.tetrahedralise``).
-        A surface that is open, not manifold, inconsistently oriented or self-intersecting,
-        or a spacing too coarse for it, raises a ValueError naming the problem. Tags:
+        meshio.Mesh), tetrahedralised by Gmsh at ``spacing`` (``jaxrkpm.tetrahedralise``).
+        A surface that is open, not manifold, inconsistently oriented or self-intersecting
+        or has non-finite points, a spacing too coarse for it, or one so fine that Gmsh would
+        make more than ``max_cells`` tetrahedra (estimated before meshing), raises a
+        ValueError naming the problem; a spacing that is not a number, a TypeError. Tags:
         "volume" (every particle) and "surface"."""
+        spacing = _check_spacing(spacing)
+        if isinstance(max_cells, (bool, np.bool_)) or not isinstance(max_cells, (int, np.integer)) or max_cells < 1:
+            raise ValueError(f"max_cells must be a positive int, got {max_cells!r}")
         points, triangles = mesh.read_surface(source)
-        return Body.from_mesh(mesh.tetrahedralise(points, triangles, spacing, mesh.source_name(source)))
+        return Body.from_mesh(mesh.tetrahedralise(points, triangles, spacing, mesh.source_name(source),
+                                                  int(max_cells)))
 
     @cached_property
     def _mesh_boundary(self):

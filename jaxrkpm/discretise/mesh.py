@@ -5,8 +5,13 @@ NumPy, outside jit, run once per body. The pieces:
 - ``read_mesh(source)``: any format meshio reads (VTU/VTK, Gmsh .msh, Abaqus .inp, Medit .mesh,
   ...) or a ``meshio.Mesh`` as it is.
 - ``volume_mesh(source, dim)``: the tetrahedra (3D) or triangles (2D) of a mesh, checked
-  (zero-volume, inverted, coincident vertices, faces shared by more than two cells), with
-  its named vertex sets (tags) from cell sets, point sets and Gmsh physical groups.
+  before any geometry (finite coordinates, at least one cell, integer connectivity within
+  the points) and then as geometry (zero-volume cells, coincident vertices, faces shared by
+  more than two cells, cells folded over a neighbour), each cell reordered to a positive
+  orientation (the vertex order of a reference mesh is a convention: qhull and scikit-fem
+  mix both), with its named vertex sets (tags) from cell sets, point sets and Gmsh physical
+  groups. What was repaired (cells reordered, points no cell uses dropped) is said in one
+  log line (logger ``jaxrkpm.discretise.mesh``) and in ``VolumeMesh.report``.
 - ``refine_mesh(source, times)``: every cell split uniformly by Gmsh, named groups carried.
 - ``tetrahedralise(points, triangles, spacing)``: a closed, manifold, non-self-intersecting
   triangle surface (checked here) meshed into tetrahedra by Gmsh at the requested spacing.
@@ -22,6 +27,9 @@ thread).
 """
 from __future__ import annotations
 
+import contextlib
+import io
+import logging
 import math
 import os
 import tempfile
@@ -41,7 +49,15 @@ SIMPLEX = {2: "triangle", 3: "tetra"}          # body dimension -> meshio cell t
 # second-order simplices are used through their corner nodes (straight-sided cells)
 CORNERS = {"triangle": 3, "triangle6": 3, "triangle7": 3, "tetra": 4, "tetra10": 4}
 VOLUME_TOLERANCE = 0.05   # a mesh that misses more of its shape's volume: spacing too coarse
+# the most tetrahedra a spacing may ask gmsh for: a million make a body of ~170,000 particles,
+# past what a 3D solve on one machine does, and a finer spacing only meshes for minutes before
+# that shows (0.2% of a body's size asked for ~1e9): refused before meshing, estimate in the message
+MAX_TETRAHEDRA = 1_000_000
+# tetrahedra per spacing^3 of volume at a uniform gmsh size (unit cube at spacings 0.2, 0.1,
+# 0.05: 6.4, 5.0, 4.7; cylinder: 6.1, 5.1); the estimate takes the upper end
+TETRAHEDRA_PER_CUBE = 6.5
 _GMSH_LOCK = threading.RLock()
+log = logging.getLogger(__name__)
 
 
 # ======================================================================== gmsh state
@@ -95,8 +111,15 @@ def read_mesh(source) -> meshio.Mesh:
     path = Path(source)
     if not path.is_file():
         raise ValueError(f"mesh file {str(path)!r} does not exist")
+    said = io.StringIO()      # meshio prints its reasons, then may call sys.exit(1)
     try:
-        return meshio.read(path)
+        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+            return meshio.read(path)
+    except SystemExit:        # e.g. a text file named .vtu: meshio ends the process
+        why = [line.strip() for line in said.getvalue().splitlines()
+               if line.strip() and "Couldn't read file" not in line]   # its own reasons, if any
+        raise ValueError(f"meshio cannot read {str(path)!r}: not a valid {path.suffix or 'mesh'} file"
+                         + (f" ({'; '.join(why)})" if why else "")) from None
     except Exception as err:   # meshio raises ReadError, KeyError, ValueError by format
         raise ValueError(f"meshio cannot read {str(path)!r}: {err}") from err
 
@@ -104,11 +127,14 @@ def read_mesh(source) -> meshio.Mesh:
 @dataclass(frozen=True)
 class VolumeMesh:
     """points (V, d); cells (C, d+1) simplices, positively oriented; tags name -> vertex
-    indices (sorted)."""
+    indices (sorted); report: what loading repaired ("reoriented": cells whose vertex order
+    was reversed, "dropped": indices of the source's points that no cell uses, removed, so
+    the particles are the remaining points in their order)."""
 
     points: np.ndarray
     cells: np.ndarray
     tags: dict
+    report: dict = None
 
     @property
     def dim(self) -> int:
@@ -117,8 +143,12 @@ class VolumeMesh:
 
 def volume_mesh(source, dim: int | None = None) -> VolumeMesh:
     """The simplices of a mesh (tetrahedra for ``dim`` 3, triangles for 2; default: 3 if
-    the mesh has tetrahedra), validated, unused vertices dropped, with its tags."""
+    the mesh has tetrahedra), validated, each positively oriented, unused vertices dropped,
+    with its tags. Raises a ValueError naming the defect: non-finite coordinates, no cells,
+    connectivity that is not integer or indexes past the points (a -1 included), zero-volume
+    cells, coincident vertices, a face of more than two cells, cells folded over each other."""
     mesh = read_mesh(source)
+    name = source_name(source)
     kinds = {b.type for b in mesh.cells}
     if dim is None:
         dim = 3 if kinds & {"tetra", "tetra10"} else 2
@@ -130,21 +160,92 @@ def volume_mesh(source, dim: int | None = None) -> VolumeMesh:
         what = ("is a 2D or surface mesh (triangles, no tetrahedra)" if dim == 3 and "triangle" in kinds
                 else f"has {', '.join(sorted(kinds)) or 'no'} cells")
         raise ValueError(f"a {dim}D body needs {SIMPLEX[dim]} cells, but the mesh {what}")
-    cells = np.concatenate([np.asarray(mesh.cells[i].data)[:, :dim + 1] for i in blocks]).astype(np.int64)
-    points = _coordinates(np.asarray(mesh.points, float), dim)
+    points = _finite_points(mesh.points, name)
+    cells = np.concatenate([_connectivity(mesh.cells[i], len(points), name)[:, :dim + 1] for i in blocks])
+    if not len(cells):
+        raise ValueError(f"the mesh {name} has no {SIMPLEX[dim]} cells: its {SIMPLEX[dim]} blocks are empty")
+    points = _coordinates(points, dim)
     used, cells = np.unique(cells, return_inverse=True)
     cells = cells.reshape(-1, dim + 1)
+    dropped = np.setdiff1d(np.arange(len(mesh.points)), used)
     points = points[used]
-    cells = _checked_cells(points, cells)
+    cells, reoriented = _checked_cells(points, cells)
     renumber = -np.ones(len(mesh.points), np.int64)
     renumber[used] = np.arange(len(used))
     tags = {}
-    for name, vertices in _vertex_tags(mesh).items():
+    for tag, vertices in _vertex_tags(mesh).items():
         kept = renumber[vertices]
         kept = np.unique(kept[kept >= 0])
         if kept.size:
-            tags[name] = kept
-    return VolumeMesh(points, cells, tags)
+            tags[tag] = kept
+    report = {"reoriented": reoriented, "dropped": dropped}
+    _say(name, SIMPLEX[dim], len(cells), reoriented, dropped, mesh)
+    return VolumeMesh(points, cells, tags, report)
+
+
+def _say(name, kind, n_cells, reoriented, dropped, mesh):
+    """One log line for what loading repaired: INFO for reordered cells (a convention) and
+    for the mid-edge nodes of second-order cells; WARNING where points that no cell at all
+    uses were dropped (the file holds stray points: particle indices differ from its own)."""
+    notes = []
+    if reoriented:
+        notes.append(f"{reoriented} of {n_cells} {kind} cells had the opposite vertex order and were "
+                     "reordered (orientation is a convention of the mesher)")
+    stray = dropped
+    if len(dropped):
+        listed = np.unique(np.concatenate([np.asarray(b.data, np.int64).ravel() for b in mesh.cells]
+                                          or [np.zeros(0, np.int64)]))
+        stray = np.setdiff1d(dropped, listed)
+        notes.append(f"{len(dropped)} of {len(mesh.points)} points are no {kind} vertex and were dropped"
+                     + (f" ({len(stray)} belong to no cell at all, e.g. point {int(stray[0])}; the "
+                        "particles are the remaining points in their order)" if len(stray) else
+                        " (mid-edge nodes or vertices of lower-dimensional cells)"))
+    if notes:
+        log.log(logging.WARNING if len(stray) else logging.INFO, "mesh %s: %s", name, "; ".join(notes))
+
+
+def _finite_points(points, name) -> np.ndarray:
+    """The mesh points as a float (V, 2|3) array; a ValueError for non-numbers or non-finite
+    coordinates (before any geometry: NaN makes every later check meaningless)."""
+    try:
+        P = np.asarray(points, float)
+    except (TypeError, ValueError):
+        raise ValueError(f"the points of mesh {name} are not numbers") from None
+    if P.ndim != 2 or P.shape[1] not in (2, 3):
+        raise ValueError(f"the points of mesh {name} must have shape (V, 2) or (V, 3), got {P.shape}")
+    bad = ~np.all(np.isfinite(P), axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"mesh {name}: {int(bad.sum())} points have non-finite coordinates (NaN or inf), "
+                         f"e.g. point {i} at {P[i].tolist()}")
+    return P
+
+
+def _connectivity(block, n_points: int, name) -> np.ndarray:
+    """A cell block's vertex indices as int64 (C, k), checked: integers (a float index would
+    be truncated), each in 0..n_points-1 (a -1, a padding or missing vertex, would index the
+    last point)."""
+    data = np.asarray(block.data)
+    if data.ndim != 2:
+        raise ValueError(f"mesh {name}: the {block.type} connectivity must be a (cells, vertices) table, "
+                         f"got shape {data.shape}")
+    if data.dtype.kind not in "iu":
+        flat = data.ravel()
+        try:
+            frac = np.flatnonzero(np.asarray(flat, float) % 1 != 0)
+        except (TypeError, ValueError):
+            frac = np.zeros(0, int)
+        detail = (f": cell {int(frac[0]) // data.shape[1]} holds {flat[frac[0]]!r}" if len(frac) else "")
+        raise ValueError(f"mesh {name}: the {block.type} connectivity must be integer vertex indices, "
+                         f"got {data.dtype}{detail}")
+    data = data.astype(np.int64)
+    bad = np.flatnonzero(np.any((data < 0) | (data >= n_points), axis=1))
+    if len(bad):
+        c = int(bad[0])
+        raise ValueError(f"mesh {name}: {len(bad)} {block.type} cells index past the {n_points} points "
+                         f"(valid 0..{n_points - 1}), e.g. cell {c} with vertices {data[c].tolist()}"
+                         + (" (a negative index: a missing vertex)" if data[c].min() < 0 else ""))
+    return data
 
 
 def _coordinates(points: np.ndarray, dim: int) -> np.ndarray:
@@ -168,9 +269,11 @@ def simplex_volumes(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
 
 
 def _checked_cells(points, cells):
-    """Cells with positive volumes: a mesh whose cells all have the opposite vertex order is
-    reordered (a convention, not a defect); zero-volume or inverted cells, coincident
-    vertices and faces of more than two cells are errors."""
+    """(cells with positive volumes, how many were reordered). Each negatively oriented cell
+    has two vertices swapped: in a reference mesh the vertex order is a convention (qhull
+    and scikit-fem mix both), not a deformation. Errors: coincident vertices, zero-volume
+    cells, faces of more than two cells, and cells folded over a neighbour (the two cells of
+    an interior face on the same side of it: a tangled mesh, which reordering cannot mend)."""
     d = points.shape[1]
     extent = np.ptp(points, axis=0).max()
     pairs = cKDTree(points).query_pairs(1e-12 * extent, output_type="ndarray")
@@ -186,15 +289,35 @@ def _checked_cells(points, cells):
         c = int(np.flatnonzero(flat)[0])
         raise ValueError(f"{int(flat.sum())} zero-volume {name} cells, e.g. cell {c} with vertices "
                          f"{cells[c].tolist()} (volume {vol[c]:.3g})")
-    if np.all(vol < 0):
-        cells = cells[:, [1, 0, *range(2, d + 1)]]
-    elif np.any(vol < 0):
-        bad = np.flatnonzero(vol < 0)
-        raise ValueError(f"{len(bad)} of {len(vol)} {name} cells are inverted (negative volume, "
-                         f"vertex order opposite to the rest), e.g. cell {int(bad[0])} with vertices "
-                         f"{cells[bad[0]].tolist()}")
-    face_counts(cells)            # raises on a face of more than two cells
-    return cells
+    negative = vol < 0
+    cells = cells.copy()
+    cells[negative] = cells[negative][:, [1, 0, *range(2, d + 1)]]
+    _, face_id, counts = face_counts(cells)            # raises on a face of more than two cells
+    _check_folds(points, cells, face_id, counts)
+    return cells, int(negative.sum())
+
+
+def _check_folds(points, cells, face_id, counts):
+    """Raise if the two cells of an interior face lie on the same side of it (one folded over
+    the other: they overlap). With every cell positively oriented, the face seen from its two
+    cells has opposite orientations exactly when they lie on opposite sides."""
+    d = points.shape[1]
+    cell, local = np.nonzero(counts[face_id] == 2)
+    if not len(cell):
+        return
+    order = np.argsort(face_id[cell, local], kind="stable")
+    cell, local = cell[order].reshape(-1, 2).T, local[order].reshape(-1, 2).T
+    F = np.sort(_faces(cells)[cell[0], local[0]], axis=1)         # the shared face, one vertex order
+    base = points[F]                                               # (M, d, d)
+    side = [np.linalg.det(np.concatenate([base[:, 1:] - base[:, :1],
+                                          (points[cells[c, l]] - base[:, 0])[:, None]], axis=1))
+            for c, l in ((cell[0], local[0]), (cell[1], local[1]))]
+    folded = np.flatnonzero(side[0] * side[1] > 0)
+    if len(folded):
+        k = int(folded[0])
+        raise ValueError(f"{len(folded)} interior faces have both their {SIMPLEX[d]} cells on the same side "
+                         f"(the cells overlap: a tangled mesh), e.g. cells {int(cell[0, k])} and "
+                         f"{int(cell[1, k])} across the face with vertices {F[k].tolist()}")
 
 
 # ------------------------------------------------------------------------ tags
@@ -266,6 +389,10 @@ def refine_mesh(source, times: int = 1) -> meshio.Mesh:
     dim = 3 if {b.type for b in mesh.cells} & {"tetra", "tetra10"} else 2
     blocks = [b for b, blk in enumerate(mesh.cells) if CORNERS.get(blk.type) == dim + 1]
     sizes = [len(mesh.cells[b].data) for b in blocks]
+    made = sum(sizes) * float(2 ** dim) ** times
+    if made > MAX_TETRAHEDRA:
+        raise ValueError(f"refine={times} would split the {sum(sizes):,} cells into {made:.3g} (x{2 ** dim} each "
+                         f"time), more than the bound of {MAX_TETRAHEDRA:,}: refine fewer times")
     first = dict(zip(blocks, np.cumsum([0] + sizes[:-1])))
     simplices = np.concatenate([np.asarray(mesh.cells[b].data)[:, :dim + 1] for b in blocks])
     groups = _cell_groups(mesh)
@@ -412,10 +539,12 @@ def read_surface(source):
     if not tris:
         raise ValueError(f"the surface {source_name(source)} has no triangles (cell types: "
                          f"{sorted({b.type for b in mesh.cells})})")
-    P = np.asarray(mesh.points, float)
+    P = _finite_points(mesh.points, source_name(source))
     if P.shape[1] != 3:
         raise ValueError(f"the surface {source_name(source)} must have 3D points, got {P.shape[1]} coordinates")
-    T = np.concatenate(tris).astype(np.int64)
+    T = np.concatenate([_connectivity(b, len(P), source_name(source)) for b in mesh.cells if b.type == "triangle"])
+    if not len(T):
+        raise ValueError(f"the surface {source_name(source)} has no triangles: its triangle blocks are empty")
     used, T = np.unique(T, return_inverse=True)
     P, T = P[used], T.reshape(-1, 3)
     P, merged = np.unique(P, axis=0, return_inverse=True)
@@ -505,12 +634,27 @@ def enclosed_volume(points: np.ndarray, triangles: np.ndarray) -> float:
     return abs(float(np.einsum("ti,ti->t", V[:, 0], np.cross(V[:, 1], V[:, 2])).sum() / 6))
 
 
-def _check_spacing(spacing: float, extent: np.ndarray, name: str):
+def _check_spacing(spacing, extent: np.ndarray, name: str, volume: float | None = None,
+                   max_cells: int = MAX_TETRAHEDRA) -> float:
+    """The spacing as a float, refused before any meshing when it is not a positive number,
+    too coarse for the shape's thinnest extent, or so fine that gmsh would make more than
+    ``max_cells`` tetrahedra (estimated from ``volume``, default the bounding box's)."""
+    if isinstance(spacing, (bool, np.bool_)) or not isinstance(spacing, (int, float, np.integer, np.floating)):
+        raise TypeError(f"spacing must be a positive number, got {spacing!r} ({type(spacing).__name__})")
     if not (np.isfinite(spacing) and spacing > 0):
         raise ValueError(f"spacing must be positive and finite, got {spacing}")
+    spacing = float(spacing)
     if spacing > extent.min() / 2:
         raise ValueError(f"spacing {spacing:g} is too coarse for {name}: it is only "
                          f"{extent.min():.3g} thick; use a spacing below {extent.min() / 4:.3g}")
+    volume = float(np.prod(extent)) if volume is None else float(volume)
+    estimate = TETRAHEDRA_PER_CUBE * volume / spacing ** 3
+    if estimate > max_cells:
+        finest = (TETRAHEDRA_PER_CUBE * volume / max_cells) ** (1 / 3)
+        raise ValueError(f"spacing {spacing:g} is too fine for {name}: gmsh would make about {estimate:.2g} "
+                         f"tetrahedra (volume {volume:.4g} / spacing^3 x {TETRAHEDRA_PER_CUBE}), more than the "
+                         f"bound of {max_cells:,} (max_cells); use a spacing of at least {finest:.3g}")
+    return spacing
 
 
 def _check_volume(mesh: meshio.Mesh, expected: float, spacing: float, name: str):
@@ -535,15 +679,21 @@ def _generate(gmsh, spacing: float, name: str, finest: float | None = None) -> m
     return _gmsh_to_meshio(gmsh)
 
 
-def tetrahedralise(points, triangles, spacing: float, name: str = "surface") -> meshio.Mesh:
+def tetrahedralise(points, triangles, spacing: float, name: str = "surface",
+                   max_cells: int = MAX_TETRAHEDRA) -> meshio.Mesh:
     """Tetrahedra filling a closed triangle surface (points (V, 3), triangles (T, 3)) at the
     given spacing, by Gmsh: the triangles become a discrete surface, re-parametrised
     (classifySurfaces / createGeometry), remeshed at ``spacing`` and filled. Physical
-    groups: "volume" (the tetrahedra) and "surface"."""
-    P = np.asarray(points, float)
-    T = np.asarray(triangles, np.int64)
+    groups: "volume" (the tetrahedra) and "surface". A spacing that would make more than
+    ``max_cells`` tetrahedra is refused before meshing (the estimate is in the message)."""
+    import meshio
+
+    P = _finite_points(points, name)
+    if P.shape[1] != 3:
+        raise ValueError(f"the surface {name} must have 3D points, got {P.shape[1]} coordinates")
+    T = _connectivity(meshio.CellBlock("triangle", np.asarray(triangles)), len(P), name)
     check_surface(P, T, name)
-    _check_spacing(spacing, np.ptp(P, axis=0), name)
+    spacing = _check_spacing(spacing, np.ptp(P, axis=0), name, enclosed_volume(P, T), max_cells)
     with gmsh_session("surface") as gmsh:
         s = gmsh.model.addDiscreteEntity(2)
         gmsh.model.mesh.addNodes(2, s, np.arange(1, len(P) + 1), P.ravel())
@@ -585,8 +735,8 @@ def _occ_shape(build, spacing: float, name: str, embed_segments=(), segment_spac
         occ.synchronize()
         xmin, ymin, zmin, xmax, ymax, zmax = gmsh.model.getBoundingBox(3, volume)
         extent = np.array([xmax - xmin, ymax - ymin, zmax - zmin])
-        _check_spacing(spacing, extent, name)
         expected = occ.getMass(3, volume)
+        spacing = _check_spacing(spacing, extent, name, expected)
         plane = None if symmetric is None else (AXES[symmetric], float(centre[AXES[symmetric]]))
         _check_inside(gmsh, volume, segments, name, plane)
         if plane is not None:

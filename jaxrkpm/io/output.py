@@ -11,6 +11,12 @@ von Mises value, det F, the particle volumes and one 0/1 mask per essential set.
 tensors of 2D bodies are padded with zeros to 3 components / 3x3 (VTK's vectors are 3D, so
 ParaView's *Warp By Vector* works on ``displacement``).
 
+Every ``.vtu`` of a solution carries the solve's outcome as VTK field data (``solve_status``:
+the ``jaxrkpm.Status`` code, ``converged``: 1 or 0, ``t``: the fraction of the increment
+reached, ``load``): a failed solve's last converged state is written, and says so. Fields that
+are not finite are refused (a NaN field views as a blank body). A series is validated whole
+before its first frame is written and lands atomically (:func:`write_series`).
+
 Why ``.pvd`` for series (not meshio's XDMF ``TimeSeriesWriter``): every frame stays a
 self-contained ``.vtu`` that meshio, ParaView and PyVista open on its own; frames may carry
 deformed points (XDMF time series share one geometry); and the index is a few lines of XML
@@ -19,14 +25,17 @@ with no HDF5 dependency.
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 import xml.etree.ElementTree as ET
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import meshio
 import numpy as np
 from scipy.spatial import Delaunay
 
 from ..discretise.mesh import simplex_volumes
+from ..solvers.results import Status
 
 # meshio cell type of the viewing cells, by (dimension, vertices per cell)
 CELL_TYPES = {(2, 3): "triangle", (2, 4): "quad", (3, 4): "tetra", (3, 8): "hexahedron"}
@@ -139,6 +148,36 @@ def point_fields(model, sol) -> dict:
     return fields
 
 
+def solve_record(sol) -> dict:
+    """The field data of a solution's file: ``solve_status`` (the ``jaxrkpm.Status`` code),
+    ``converged`` (1: an equilibrium was reached, 0: the solve failed and this is its last
+    converged state), ``t`` (the fraction of the increment reached) and ``load``."""
+    code = int(np.asarray(sol.status))
+    converged = Status.of(code).equilibrium
+    return {"solve_status": np.array([code], np.int32), "converged": np.array([int(converged)], np.uint8),
+            "t": np.array([float(np.asarray(sol.t))]), "load": np.array([float(np.asarray(sol.load))])}
+
+
+def _checked(model, sol, what: str = "solution"):
+    """(point fields, field data) of one solve of ``model``; a ValueError for a Solution of
+    another model or a batch, or for fields that are not finite (named, with a particle)."""
+    if np.ndim(getattr(sol, "status", None)) != 0:
+        raise ValueError(f"{what} is a batch of {np.size(sol.status)} solves (status shape "
+                         f"{np.shape(sol.status)}): write one at a time (index the batch)")
+    model.check_solution(sol, what)
+    fields = point_fields(model, sol)
+    bad = {k: np.flatnonzero(~np.all(np.isfinite(np.asarray(v, float).reshape(len(v), -1)), axis=1))
+           for k, v in fields.items()}
+    bad = {k: v for k, v in bad.items() if len(v)}
+    if bad:
+        k, idx = next(iter(bad.items()))
+        raise ValueError(f"{what} has non-finite fields ({', '.join(f'{f}: {len(i)} particles' for f, i in bad.items())}; "
+                         f"e.g. {k} at particle {int(idx[0])}): nothing written (status "
+                         f"{int(np.asarray(sol.status))}; a failed solve keeps its last converged state, "
+                         "which is finite: this state was not made by a solve of this model)")
+    return fields, solve_record(sol)
+
+
 # --------------------------------------------------------------------------- writers
 def _check_suffix(path, suffix: str, what: str) -> Path:
     path = Path(os.fspath(path))
@@ -147,10 +186,11 @@ def _check_suffix(path, suffix: str, what: str) -> Path:
     return path
 
 
-def write_vtu(path, points, cells, point_data: dict | None = None) -> Path:
+def write_vtu(path, points, cells, point_data: dict | None = None, field_data: dict | None = None) -> Path:
     """Write points (N, 2|3), cells ``(meshio type, (C, k) indices)`` and point data arrays
     with N rows ((N,), (N, k); (N, a, b) is flattened row-major) to the ``.vtu`` ``path``
-    (binary, zlib). Returns the path."""
+    (binary, zlib); ``field_data``: name -> a small numeric array, written as the grid's VTK
+    FieldData. Returns the path."""
     path = _check_suffix(path, ".vtu", "a VTK XML unstructured grid")
     P = np.asarray(points, float)
     if P.ndim != 2 or P.shape[1] not in (2, 3):
@@ -171,18 +211,45 @@ def write_vtu(path, points, cells, point_data: dict | None = None) -> Path:
             raise ValueError(f"point data {name!r} has shape {a.shape}; it needs one row per point ({n})")
         data[name] = a.reshape(n, -1) if a.ndim > 2 else a
     meshio.write(path, meshio.Mesh(_pad(P, (3,)), [(kind, conn)], point_data=data), file_format="vtu")
+    if field_data:
+        _add_field_data(path, field_data)
     return path
+
+
+VTK_TYPES = {"i": "Int32", "u": "UInt8", "f": "Float64"}
+
+
+def _add_field_data(path: Path, field_data: dict):
+    """Insert a VTK ``<FieldData>`` block (ASCII arrays) into the .vtu at ``path`` (meshio's
+    VTU writer does not write field data; its reader and VTK's read it)."""
+    tree = ET.parse(path)
+    grid = tree.getroot().find("UnstructuredGrid")
+    block = ET.Element("FieldData")
+    for name, value in field_data.items():
+        a = np.atleast_1d(np.asarray(value))
+        kind = VTK_TYPES[a.dtype.kind]
+        array = ET.SubElement(block, "DataArray", type=kind, Name=name, NumberOfTuples=str(a.size), format="ascii")
+        array.text = " ".join(repr(float(x)) if kind == "Float64" else str(int(x)) for x in a.ravel())
+    grid.insert(0, block)
+    tree.write(path, xml_declaration=True, encoding="utf-8")
 
 
 def write_solution(path, model, sol, *, deformed: bool = False) -> Path:
     """Write a solution to the ``.vtu`` ``path``: the viewing cells of the model's body
     (:func:`body_cells`), its particles at their reference positions (``deformed=True``: at
-    X + u) and :func:`point_fields`. Returns the path."""
+    X + u), :func:`point_fields`, and the solve's outcome as field data
+    (:func:`solve_record`: a failed solve's last converged state is marked ``converged`` 0).
+    A Solution of another model, a batch, or fields that are not finite raise a ValueError
+    and write nothing. Returns the path."""
     path = _check_suffix(path, ".vtu", "a VTK XML unstructured grid")
-    fields = point_fields(model, sol)
+    fields, record = _checked(model, sol)
+    return _write_checked(path, model, fields, record, deformed)
+
+
+def _write_checked(path, model, fields, record, deformed):
     X = np.asarray(model.body.X, float)
     points = X + fields["displacement"][:, :X.shape[1]] if deformed else X
-    return write_vtu(path, points, body_cells(model.body), fields)
+    return write_vtu(path, points, body_cells(model.body), fields, record)
 
 
 def write_series(path, model, solutions, times, *, deformed: bool = False) -> Path:
@@ -190,7 +257,11 @@ def write_series(path, model, solutions, times, *, deformed: bool = False) -> Pa
     ``.vtu`` per frame in the folder next to it named after it (``run.pvd`` ->
     ``run/frame_0000.vtu``, ...; the index refers to them by relative paths). ``times``
     (strictly increasing, one per solution) are the frames' time values, e.g. control steps.
-    Returns the index path."""
+
+    Every solution is checked (of this model, finite fields) before anything is written, and
+    the series is written into a temporary folder beside ``path`` that then replaces the old
+    folder and index: a bad frame leaves an earlier series at ``path`` as it was, never an
+    index mixing old and new frames. Returns the index path."""
     path = _check_suffix(path, ".pvd", "a ParaView collection of .vtu frames")
     solutions = list(solutions)
     t = np.asarray(times, float)
@@ -200,24 +271,62 @@ def write_series(path, model, solutions, times, *, deformed: bool = False) -> Pa
         raise ValueError("solutions is empty: a series needs at least one frame")
     if not (np.all(np.isfinite(t)) and np.all(np.diff(t) > 0)):
         raise ValueError(f"times must be finite and strictly increasing, got {t.tolist()}")
+    frames = [_checked(model, sol, f"solutions[{k}]") for k, sol in enumerate(solutions)]
     folder = path.with_suffix("")
-    folder.mkdir(parents=True, exist_ok=True)
-    root = ET.Element("VTKFile", type="Collection", version="0.1", byte_order="LittleEndian")
-    collection = ET.SubElement(root, "Collection")
-    for k, (sol, tk) in enumerate(zip(solutions, t)):
-        frame = write_solution(folder / f"frame_{k:04d}.vtu", model, sol, deformed=deformed)
-        ET.SubElement(collection, "DataSet", timestep=repr(float(tk)), group="", part="0",
-                      file=frame.relative_to(path.parent).as_posix())
-    ET.indent(root)
-    ET.ElementTree(root).write(path, xml_declaration=True, encoding="utf-8")
+    if path.is_dir() or (folder.exists() and not folder.is_dir()):
+        raise ValueError(f"cannot write the series {str(path)!r}: {str(path if path.is_dir() else folder)!r} "
+                         "is in the way (a folder for the index, or a file for the frames' folder)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{path.stem}.", dir=path.parent))
+    try:
+        root = ET.Element("VTKFile", type="Collection", version="0.1", byte_order="LittleEndian")
+        collection = ET.SubElement(root, "Collection")
+        (staging / "frames").mkdir()
+        for k, ((fields, record), tk) in enumerate(zip(frames, t)):
+            _write_checked(staging / "frames" / f"frame_{k:04d}.vtu", model, fields, record, deformed)
+            ET.SubElement(collection, "DataSet", timestep=repr(float(tk)), group="", part="0",
+                          file=f"{folder.name}/frame_{k:04d}.vtu")
+        ET.indent(root)
+        ET.ElementTree(root).write(staging / "index.pvd", xml_declaration=True, encoding="utf-8")
+        old = staging / "old"
+        if folder.exists():
+            folder.rename(old)                       # the earlier frames, out of the way
+        (staging / "frames").rename(folder)
+        os.replace(staging / "index.pvd", path)      # the index last: it names only new frames
+    except BaseException:
+        if (staging / "old").exists() and not folder.exists():
+            (staging / "old").rename(folder)         # put the earlier series back
+        raise
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     return path
 
 
 def read_series(path) -> list[tuple[float, Path]]:
-    """The frames of a ``.pvd`` index: [(time, absolute .vtu path)] in file order."""
+    """The frames of a ``.pvd`` index: [(time, absolute .vtu path)] in file order. A file
+    that is not a VTK collection, a frame without a finite time, or a frame path that is
+    absolute or leaves the index's folder (``../``) raises a ValueError naming it."""
     path = _check_suffix(path, ".pvd", "a ParaView collection of .vtu frames")
-    root = ET.parse(path).getroot()
-    if root.get("type") != "Collection":
-        raise ValueError(f"{path}: not a VTK collection file (type={root.get('type')!r})")
-    return [(float(ds.get("timestep")), path.parent / ds.get("file"))
-            for ds in root.iter("DataSet")]
+    if not path.is_file():
+        raise ValueError(f"series index {str(path)!r} does not exist")
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as err:
+        raise ValueError(f"{str(path)!r} is not a ParaView collection: not XML ({err})") from None
+    if root.tag != "VTKFile" or root.get("type") != "Collection":
+        raise ValueError(f"{str(path)!r} is not a VTK collection file (<{root.tag} type={root.get('type')!r}>)")
+    frames = []
+    for k, ds in enumerate(root.iter("DataSet")):
+        step, name = ds.get("timestep"), ds.get("file")
+        try:
+            time = float(step)
+        except (TypeError, ValueError):
+            time = None
+        if time is None or not np.isfinite(time):
+            raise ValueError(f"{str(path)!r}: frame {k} has no finite time (timestep={step!r})")
+        rel = PurePosixPath(name or "")
+        if not name or rel.is_absolute() or Path(name).is_absolute() or ".." in rel.parts:
+            raise ValueError(f"{str(path)!r}: frame {k} file={name!r} must be a path relative to the index's "
+                             "folder and inside it (no absolute path, no '..')")
+        frames.append((time, path.parent / rel))
+    return frames

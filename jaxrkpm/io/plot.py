@@ -67,9 +67,22 @@ def deformed_surface(ax, model, sol, *, norm=None, cmap="viridis", show_referenc
     lo, hi = both.min(axis=0), both.max(axis=0)
     pad = 0.02 * float((hi - lo).max())
     ax.set(xlim=(lo[0] - pad, hi[0] + pad), ylim=(lo[1] - pad, hi[1] + pad),
-           zlim=(lo[2] - pad, hi[2] + pad), xlabel="x", ylabel="y", zlabel="z")
+           zlim=(lo[2] - pad, hi[2] + pad))
     ax.set_box_aspect(hi - lo + 2 * pad)
+    tidy_3d_axes(ax)
     return polys
+
+
+def tidy_3d_axes(ax, units: str = UNITS, ticks: int = 4):
+    """Readable mplot3d axes: at most ``ticks`` ticks per axis (the default crowds a short
+    axis until its labels collide), small tick labels, and the axis labels with units set
+    off from them."""
+    from matplotlib.ticker import MaxNLocator
+    for axis, name in ((ax.xaxis, "x"), (ax.yaxis, "y"), (ax.zaxis, "z")):
+        axis.set_major_locator(MaxNLocator(ticks))
+        axis.set_tick_params(labelsize=7, pad=0)
+        axis.set_label_text(f"{name} ({units})", fontsize=8)
+        axis.labelpad = 2
 
 
 def feature_edges(X, faces, angle: float = 30.0) -> np.ndarray:
@@ -99,7 +112,7 @@ def deformed_body_png(path, model, sol, *, title=None, stress_unit=None, view=(2
     polys = deformed_surface(ax, model, sol)
     ax.view_init(*view)
     unit = stress_unit or "units of the material constants"
-    fig.colorbar(polys, ax=ax, shrink=0.7, pad=0.1, label=f"von Mises (Cauchy) stress [{unit}]")
+    fig.colorbar(polys, ax=ax, shrink=0.7, pad=0.1, label=f"von Mises (Cauchy) stress ({unit})")
     if title:
         ax.set_title(title, fontsize=10)
     save(fig, path)

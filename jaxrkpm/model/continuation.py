@@ -60,8 +60,9 @@ def arc_length(model, ds: float, *, steps: int = 50, initial: Solution | None = 
     ``max_cuts`` times in a row), stopping early once lambda >= ``load_max``. ``psi`` 0:
     cylindrical constraint; > 0: spherical (Riks), the load term weighted by psi^2 |q|^2.
     ``direction`` -1 starts with a decreasing load factor. ``points`` (P, d): reference
-    points whose displacement is recorded per point. ``options``: solver settings of
-    ``Model.solve`` (the corrector takes ``rtol``). Returns an EquilibriumPath (never raises for a failed step: its status
+    points whose displacement is recorded per point (checked inside the body before the path
+    is computed). ``options``: solver settings of ``Model.solve`` (the corrector takes
+    ``rtol``). Returns an EquilibriumPath (never raises for a failed step: its status
     says why the path stopped, every accepted point is kept)."""
     if not isinstance(model, Model):
         raise TypeError(f"model must be a jaxrkpm Model, got {type(model).__name__}")
@@ -96,6 +97,10 @@ def arc_length(model, ds: float, *, steps: int = 50, initial: Solution | None = 
     if not (np.any(np.asarray(problem.ops.f_ext)) or np.any(np.asarray(dg))):
         raise ValueError("nothing drives the path: the model has no dead load (tractions, body force), "
                          "and neither load_pattern nor prescribed is given")
+    probes = None
+    if points is not None:   # checked (inside the body, finite) before the path, not after it
+        sf = model.shape_functions(model.body.check_inside(points, "probe point"), gradients=False)
+        probes = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
     newton = model.solver(**options).newton   # the options checked as a solve's
     arc = ArcLength(newton.linear, newton.tolerance)
     # explicit dtypes: a weakly typed Python scalar would compile arc_step a second time
@@ -137,9 +142,8 @@ def arc_length(model, ds: float, *, steps: int = 50, initial: Solution | None = 
 
     U, G, L, R, ST, NEG, A, IT = (np.asarray(c) for c in zip(*rows))
     disp = None
-    if points is not None:
-        sf = model.shape_functions(points, gradients=False)
-        idx, psi_p = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
+    if probes is not None:
+        idx, psi_p = probes
         # one point at a time: a compiled function of the path's length would recompile per length
         disp = np.stack([np.asarray(_point_values(problem, idx, psi_p, u_k, g_k)) for u_k, g_k in zip(U, G)])
     return EquilibriumPath(L, U, G, disp, R, ST, NEG, A, IT, cuts, int(status), start)

@@ -124,7 +124,12 @@ class Model:
     material    a Material (strain energy W(E, p))
     integration "gauss" (background cells, ``order`` points per direction) | "scni" (stabilized
                 conforming nodal integration, ``order`` points per cell facet) | "mscni"
-                (SCNI + sub-cell stabilisation); see jaxrkpm.discretise.scni
+                (SCNI + sub-cell stabilisation); see jaxrkpm.discretise.scni. "gauss" is the
+                default for mesh bodies too (points in each tetrahedron / triangle): on a
+                tetrahedral box it is the most accurate per unit of solve time, where SCNI
+                solves faster but is exact only for affine fields and far less accurate for a
+                smooth large deformation, at every refinement measured
+                (experiments/bench_mesh_integration.py)
     essential   name -> particle indices (or boolean mask) of each essential set
     support     kernel dilation a = support x spacing (eq 3.20)
     body_force  (d,) or X -> (Q, d): dead load per unit reference volume

@@ -154,6 +154,9 @@ class EquilibriumPath:
         output). Its status is CONVERGED (or STABILITY_UNKNOWN) whatever the stability: that
         is in ``stability[k]``, as with ``model.solve(..., check_stability=False)``."""
         n = len(self)
+        if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)):
+            raise TypeError(f"a path point is a whole index, got {k!r} ({type(k).__name__}); "
+                            f"the path has points 0..{n - 1}")
         if not -n <= k < n:
             raise IndexError(f"point {k} of a path of {n} points")
         status = Status.STABILITY_UNKNOWN if self.stability[k] == Stability.UNKNOWN else Status.CONVERGED

@@ -20,6 +20,7 @@ from .data import (
     TABLE_6_2 as TABLE_6_2,
     TRACKING_MINUTES as TRACKING_MINUTES,
 )
+# the application turns JAX's persistent compilation cache on (its CLI and notebooks call it)
 from .needle import (
     DynamicRun as DynamicRun,
     HoldStatus as HoldStatus,

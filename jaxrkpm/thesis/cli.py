@@ -9,6 +9,7 @@ import importlib
 import sys
 
 from jaxrkpm import __version__
+from jaxrkpm.base.cache import cache_dir, use_compilation_cache
 from jaxrkpm.thesis.studies import interface
 
 # command -> (module with main(argv) and result(summary), what it does in a line)
@@ -33,9 +34,11 @@ def help_text() -> str:
     return (f"usage: jaxrkpm [-h] [--version] COMMAND [options]\n\n"
             f"jaxrkpm {__version__}: a differentiable meshfree (RKPM) solver in JAX and the thesis studies "
             f"built on it.\nEach command writes summary.json and figures to its --out folder and ends "
-            f"with one line: wrote DIR/: files; the result.\n\n"
+            f"with one line: wrote DIR/: files; the result (and [goal missed] where the exit code is 1).\n"
+            f"A folder holding another run's results is not written over without --overwrite.\n\n"
             f"commands:\n{cmds}\n\n"
-            f"jaxrkpm COMMAND --help lists a command's options.\n\n"
+            f"jaxrkpm COMMAND --help lists a command's options.\n"
+            f"Compiled programs are cached in {cache_dir()} (JAXRKPM_COMPILATION_CACHE=off: no cache).\n\n"
             f"exit codes:\n{codes}\n")
 
 
@@ -61,12 +64,13 @@ def main(argv=None) -> int:
         return interface.EXIT_USAGE
     try:
         interface.parse(command, rest)   # --help and bad options end here, before JAX loads
+        use_compilation_cache()          # a second run loads its programs instead of compiling
         study = importlib.import_module(COMMANDS[command][0])
         summary = study.main(rest)
     except SystemExit as e:              # argparse: --help (0) or a bad option (2)
         return e.code if isinstance(e.code, int) else interface.EXIT_USAGE
     except interface.OutputError as e:
-        print(f"jaxrkpm {command}: error: {e}", file=sys.stderr)
+        print(f"jaxrkpm {command}: error: {' '.join(str(e).split())}", file=sys.stderr)
         return interface.EXIT_OUTPUT
     reached, _ = study.result(summary)
     return interface.EXIT_OK if reached else interface.EXIT_GOAL

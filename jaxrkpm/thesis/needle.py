@@ -68,7 +68,11 @@ class NeedleTrack:
         return lateral_deviation(self.lateral_components(u))
 
     def depths(self, increments: int) -> np.ndarray:
-        """Needle depth after each of ``increments`` equal increments: (increments,)."""
+        """Needle depth after each of ``increments`` equal increments: (increments,), the last
+        at ``insertion`` (a fractional count would step past it)."""
+        if isinstance(increments, (bool, np.bool_)) or not isinstance(increments, (int, np.integer)):
+            raise TypeError(f"increments must be a whole number of insertion increments, got {increments!r} "
+                            f"({type(increments).__name__})")
         if increments < 1:
             raise ValueError(f"increments must be >= 1, got {increments}")
         return self.insertion * np.arange(1, increments + 1) / increments
@@ -108,6 +112,11 @@ class Phantom(NeedleTrack):
             raise ValueError(f"unknown immobile edge {self.immobile!r}: choose {list(IMMOBILE)}")
         if self.needle_particles < 1:
             raise ValueError(f"needle_particles must be >= 1, got {self.needle_particles}")
+        ratio = self.stiffness_ratio
+        if isinstance(ratio, (bool, np.bool_)) or not isinstance(ratio, (int, float, np.integer, np.floating)) \
+                or not (np.isfinite(ratio) and ratio > 0):
+            raise ValueError(f"stiffness_ratio must be a positive factor (the inclusion's stiffness over "
+                             f"the phantom's), got {ratio!r}")
 
     @property
     def body(self) -> Body:

@@ -49,6 +49,12 @@ __all__ = ["Phantom3D", "ellipsoid_point", "ball_field", "MATERIALS_3D"]
 MATERIALS_3D = ("neohookean", "fung")
 
 
+def _is_number(v) -> bool:
+    """A finite real number (not a bool, not a string)."""
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_)) \
+        and bool(np.isfinite(v))
+
+
 def ellipsoid_point(semi_axes, theta, phi, scale=1.0):
     """The point at polar angle theta (from +z) and azimuth phi (from +x) on the ellipsoid
     (x/a)^2 + (y/b)^2 + (z/c)^2 = scale^2: (..., 3), JAX (differentiable in the angles)."""
@@ -121,6 +127,12 @@ class Phantom3D(NeedleTrack):
         if self._crossing() is None:
             raise ValueError(f"the needle line through {self.needle_point} along {self.needle_axis} "
                              "must cross the phantom above the base (z > 0)")
+        if not (_is_number(self.needle_length) and self.needle_length > 0):
+            raise ValueError(f"needle_length must be a positive length (the needle's part inside the "
+                             f"phantom, whose particles it moves), got {self.needle_length!r}")
+        if not (_is_number(self.stiffness_ratio) and self.stiffness_ratio > 0):
+            raise ValueError(f"stiffness_ratio must be a positive factor (the inclusion's stiffness over "
+                             f"the phantom's), got {self.stiffness_ratio!r}")
         if not 0 < self.target_depth < 1:
             raise ValueError(f"target_depth must be a fraction of the chord in (0, 1), got {self.target_depth}")
         if not (np.isfinite(self.insertion) and self.insertion > 0):
@@ -130,8 +142,15 @@ class Phantom3D(NeedleTrack):
                              f"would reach the target at {self.target_depth * self.chord:.3f} along the track")
         if self.material_law not in MATERIALS_3D:
             raise ValueError(f"unknown material_law {self.material_law!r}: choose {list(MATERIALS_3D)}")
-        if not (np.isfinite(self.needle_radius) and self.needle_radius > 0):
-            raise ValueError(f"needle_radius must be a positive length, got {self.needle_radius}")
+        if not (_is_number(self.needle_radius) and self.needle_radius > 0):
+            raise ValueError(f"needle_radius must be a positive length, got {self.needle_radius!r}")
+        for e in self.lateral:
+            for sign in (1, -1):
+                if self._line_crossing(self.entry + sign * self.needle_radius * e) is None:
+                    raise ValueError(f"needle_radius {self.needle_radius:g} is too large for the phantom: the "
+                                     f"needle's surface {(sign * e).round(3).tolist()} off its axis misses the "
+                                     f"body (semi-axes {tuple(self.semi_axes)}, entry height "
+                                     f"{self.entry[2]:.3g} above the base)")
         if not (np.isfinite(self.patch_radius) and self.patch_radius > 0):
             raise ValueError(f"patch_radius must be a positive length, got {self.patch_radius}")
         n = len(self.patch_coordinates)
@@ -292,6 +311,9 @@ class Phantom3D(NeedleTrack):
     def patch(self, paddle: int) -> np.ndarray:
         """Particle indices of paddle patch ``paddle`` (1-based): the patch_size skin
         particles nearest its centre."""
+        if isinstance(paddle, (bool, np.bool_)) or not isinstance(paddle, (int, np.integer)):
+            raise TypeError(f"paddle must be a 1-based int index into the {len(self.paddles)} patches, "
+                            f"got {paddle!r} ({type(paddle).__name__})")
         if not 1 <= paddle <= len(self.paddles):
             raise ValueError(f"paddle index {paddle} out of range 1..{len(self.paddles)}")
         skin = self.skin

@@ -2,6 +2,8 @@
 arrays on the right points; a .pvd series lists its frames; the 3D PNG view is drawn."""
 import dataclasses
 
+import jax
+
 import jax.numpy as jnp
 import matplotlib.image
 import meshio
@@ -210,3 +212,74 @@ def test_deformed_body_png(solved3d, solved2d, tmp_path):
     assert len(plot.feature_edges(model.body.X, faces)) == 24
     with pytest.raises(ValueError, match="3D bodies"):
         plot.deformed_body_png(tmp_path / "sq.png", *solved2d)
+
+
+# --------------------------------------------------------------------------- hostile input (issue 35)
+def test_the_file_says_whether_the_solve_converged(solved2d, tmp_path):
+    """The solve's outcome is field data of the .vtu: a failed solve's last converged state is
+    written and marked (meshio and VTK both read it)."""
+    model, sol = solved2d
+    ok = meshio.read(output.write_solution(tmp_path / "ok.vtu", model, sol)).field_data
+    assert ok["solve_status"].tolist() == [0] and ok["converged"].tolist() == [1] and ok["t"].tolist() == [1.0]
+    failed = sol._replace(status=jnp.asarray(int(jr.Status.INVERTED), jnp.int32), t=jnp.asarray(0.4))
+    back = meshio.read(output.write_solution(tmp_path / "failed.vtu", model, failed))
+    assert back.field_data["solve_status"].tolist() == [int(jr.Status.INVERTED)]
+    assert back.field_data["converged"].tolist() == [0] and back.field_data["t"].tolist() == [0.4]
+    np.testing.assert_allclose(back.point_data["displacement"][:, :2], np.asarray(model.particle_displacements(sol)))
+    pv = pytest.importorskip("pyvista")
+    assert pv.read(tmp_path / "failed.vtu").field_data["converged"].tolist() == [0]
+
+
+def test_non_finite_fields_and_foreign_solutions_write_nothing(solved2d, solved3d, tmp_path):
+    model, sol = solved2d
+    broken = sol._replace(u=sol.u.at[3, 0].set(jnp.nan))
+    with pytest.raises(ValueError, match=r"non-finite fields \(displacement: \d+ particles.*nothing written"):
+        output.write_solution(tmp_path / "nan.vtu", model, broken)
+    with pytest.raises(ValueError, match="does not belong to this model"):
+        output.write_solution(tmp_path / "other.vtu", model, solved3d[1])
+    batch = jax.tree_util.tree_map(lambda a: jnp.stack([a, a]), sol)
+    with pytest.raises(ValueError, match="a batch of 2 solves"):
+        output.write_solution(tmp_path / "batch.vtu", model, batch)
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_bad_series_leaves_the_earlier_one_as_it_was(solved2d, solved3d, tmp_path):
+    model, sol = solved2d
+    index = output.write_series(tmp_path / "run.pvd", model, [model.initial(), sol, sol], [0, 1, 2])
+    before = {p.relative_to(tmp_path): p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    assert len(before) == 4
+    for bad in ([sol, solved3d[1]], [sol, sol._replace(u=sol.u * jnp.nan)]):
+        with pytest.raises(ValueError, match=r"solutions\[1\]"):
+            output.write_series(index, model, bad, [0, 1])
+        after = {p.relative_to(tmp_path): p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+        assert after == before                                 # index and frames untouched, no temporaries
+    output.write_series(index, model, [sol], [7.0])              # a shorter series replaces it whole
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["frame_0000.vtu"]
+    assert [t for t, _ in output.read_series(index)] == [7.0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run", "run.pvd"]
+
+
+@pytest.mark.parametrize("body, error", [
+    ('<DataSet timestep="0" file="/etc/passwd"/>', "must be a path relative to the index's folder"),
+    ('<DataSet timestep="0" file="../elsewhere/frame.vtu"/>', r"no absolute path, no '\.\.'"),
+    ('<DataSet timestep="nan" file="run/frame_0000.vtu"/>', "frame 0 has no finite time"),
+    ('<DataSet file="run/frame_0000.vtu"/>', "frame 0 has no finite time"),
+])
+def test_read_series_refuses_what_it_would_return_wrongly(body, error, tmp_path):
+    index = tmp_path / "run.pvd"
+    index.write_text(f'<VTKFile type="Collection"><Collection>{body}</Collection></VTKFile>')
+    with pytest.raises(ValueError, match=error):
+        output.read_series(index)
+
+
+def test_read_series_names_a_garbage_index(tmp_path):
+    garbage = tmp_path / "garbage.pvd"
+    garbage.write_bytes(b"\x00\x01 not xml at all")
+    with pytest.raises(ValueError, match="is not a ParaView collection: not XML"):
+        output.read_series(garbage)
+    other = tmp_path / "other.pvd"
+    other.write_text('<VTKFile type="UnstructuredGrid"/>')
+    with pytest.raises(ValueError, match=r"not a VTK collection file \(<VTKFile type='UnstructuredGrid'>\)"):
+        output.read_series(other)
+    with pytest.raises(ValueError, match="does not exist"):
+        output.read_series(tmp_path / "missing.pvd")

@@ -176,3 +176,28 @@ def test_sparse_solver_follows_the_same_path_with_its_inertia(arch, snap):
     assert path.completed, path.message
     np.testing.assert_allclose(path.load, snap.load[:13], rtol=1e-7, atol=1e-12)
     assert path.negative.tolist() == snap.negative[:13].tolist()
+
+
+def test_probe_points_outside_the_body_fail_before_the_path(model, monkeypatch):
+    """A probe point outside the body is refused before any step is computed (it used to fail
+    after the whole path, losing it)."""
+    from jaxrkpm.model import continuation
+
+    def no_step(*args):
+        raise AssertionError("a path step was computed")
+    monkeypatch.setattr(continuation, "arc_step", no_step)
+    monkeypatch.setattr(continuation, "start_point", no_step)
+    outside = model.body.upper + 1.0
+    with pytest.raises(ValueError, match=r"probe point 1 at .* is outside the body"):
+        arc_length(model, 0.03, steps=5, points=[model.body.X[0], outside])
+    with pytest.raises(ValueError, match="probe points contain non-finite coordinates"):
+        arc_length(model, 0.03, steps=5, points=[[np.nan, 0.0]])
+
+
+def test_a_path_point_is_a_whole_index(model):
+    path = arc_length(model, 0.03, steps=1)
+    assert len(path) == 2 and path.solution(-1).load == path.load[-1]
+    with pytest.raises(TypeError, match=r"a path point is a whole index, got 1.5 \(float\); the path has points 0..1"):
+        path.solution(1.5)
+    with pytest.raises(IndexError, match="point 2 of a path of 2 points"):
+        path.solution(2)

@@ -63,7 +63,7 @@ def test_unknown_command_says_so(capsys):
     (["track", "--n", "1"], "--n", "an integer >= 3"),
     (["compress", "--step", "0"], "--step", "a number in (0, 0.5]"),
     (["compress", "--max", "nan"], "--max", "a number in (0, 1)"),
-    (["needle", "--increments", "-3"], "--increments", "an integer >= 1"),
+    (["needle", "--increments", "-3"], "--increments", "an integer in [1, 1000]"),
     (["needle", "--paddle", "6"], "--paddle", "an integer in [1, 5]"),
     (["rig-sim", "--gain", "inf"], "--gain", "a number > 0"),
     (["track", "--tol", "abc"], "--tol", "a number > 0"),
@@ -99,8 +99,8 @@ def test_one_summary_line_and_the_exit_code_of_a_missed_goal(tmp_path, monkeypat
     monkeypatch.setattr(cantilever, "convergence", lambda hs: fake)
     assert cli.main(["cantilever", "--out", str(tmp_path)]) == interface.EXIT_GOAL
     out = capsys.readouterr().out.strip().splitlines()
-    assert out == [f"wrote {tmp_path}/: convergence.png, summary.json; Timoshenko cantilever: relative L2 "
-                   "errors 1.00e-02, 5.00e-03; rates 1.00 (expected >= 2, linear basis)"]
+    assert out == [f"wrote {tmp_path}/: convergence.png, run.json, summary.json; Timoshenko cantilever: relative "
+                   "L2 errors 1.00e-02, 5.00e-03; rates 1.00 (expected >= 2, linear basis) [goal missed]"]
     assert json.loads((tmp_path / "summary.json").read_text()) == fake
     monkeypatch.setattr(cantilever, "convergence", lambda hs: {**fake, "rates": [2.0]})
     assert cli.main(["cantilever", "--json", "--out", str(tmp_path)]) == interface.EXIT_OK
@@ -141,7 +141,11 @@ def test_rig_budget_cap_is_explained():
          "runs": {"uncorrected": {"tracking": run, "budget": budget}}}
     ok, words = rig_sim.result(s)
     assert ok and "2/2 waypoints within 0.3 mm (camera) in 5 iterations" in words
-    assert "with 1 iteration(s) per waypoint (budget run): mean physical error 9.10 mm" in words
+    assert "budget run, 1 iteration(s) per waypoint (a measure of the Jacobian, not a settling): mean physical " \
+           "error 9.10 mm" in words
+    run["physical_error_mm"] = {"mean": 3.0, "max": 9.08}       # tracked, but not settled within 1 mm
+    ok, words = rig_sim.result(s)
+    assert not ok and "physical error max 9.08 mm (thesis: settles within 1 mm)" in words
 
 
 # ------------------------------------------------------------------ report.md of reproduce
@@ -215,3 +219,177 @@ def test_phantom_drawing_keeps_particles_in_view_and_the_legend_off_them():
     assert xy[:, 0].max() == pytest.approx(0.7 * 1.3) and xy[:, 1].max() == pytest.approx(0.4 * 1.25)  # deformed
     assert "model units" in ax.get_xlabel() and "model units" in ax.get_ylabel()
     plot.plt.close(fig)
+
+
+# ------------------------------------------------------------------ hostile command lines (issue 35)
+def one_line_usage(capsys, argv, *fragments):
+    """The command exits 2 with one stderr line holding every fragment, and prints nothing."""
+    assert cli.main(argv) == interface.EXIT_USAGE
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert "Traceback" not in captured.err and captured.out == "" and len(lines) == 1, lines
+    assert lines[-1].startswith(f"jaxrkpm {argv[0]}: error: "), lines
+    for f in fragments:
+        assert f in lines[-1], (f, lines[-1])
+    return lines[-1]
+
+
+@pytest.mark.parametrize("argv, fragments", [
+    (["track", "--max-iter", "1e20"], ["argument --max-iter: must be an integer in [1, 1e+06], got '1e20'"]),
+    (["track", "--max-iter", "100000000000000000000"], ["argument --max-iter: must be an integer in [1, 1e+06]"]),
+    (["track", "--max-steps", "10000000"], ["argument --max-steps: must be an integer in [1, 1e+06]"]),
+    (["track", "--repeats", "1000"], ["argument --repeats: must be an integer in [1, 100]"]),
+    (["cantilever", "--levels", "40"], ["argument --levels: must be an integer in [2, 6], got 40"]),
+    (["needle", "--increments", "100000000"], ["argument --increments: must be an integer in [1, 1000]"]),
+    (["needle", "--iterations", "1000000"], ["argument --iterations: must be an integer in [1, 10000]"]),
+    (["needle3d", "--increments", "5000"], ["argument --increments: must be an integer in [1, 100]"]),
+    (["rig-sim", "--seed", "-1"], ["argument --seed: must be an integer in [0, 4.29497e+09], got -1"]),
+    (["rig-sim", "--noise", "1e9"], ["argument --noise: must be a number in [0, 255]"]),
+])
+def test_counts_are_bounded(argv, fragments, capsys):
+    one_line_usage(capsys, argv, *fragments)
+
+
+def test_sizes_past_the_memory_are_refused_before_allocating(capsys):
+    line = one_line_usage(capsys, ["track", "--n", "100000"], "argument --n: 100000 makes 10,000,000,000 particles",
+                          "GiB available", "the largest --n that fits is about")
+    assert 3 <= int(line.rsplit("about ", 1)[1].split()[0]) < 100000
+    one_line_usage(capsys, ["compress", "--n", "100000"], "argument --n: 100000 makes")
+    one_line_usage(capsys, ["rig-sim", "--physical-n", "100000"], "argument --physical-n: 100000 makes")
+    one_line_usage(capsys, ["compress", "--step", "1e-6"], "makes 900,000 compression steps, more than 1,000")
+    one_line_usage(capsys, ["rig-sim", "--path", "setpoint", "--waypoints", "9"],
+                   "argument --waypoints: the setpoint path has 2 waypoints, got 9")
+    import jax
+    many = str(len(jax.devices()) + 1)
+    for command in ("needle", "needle3d"):
+        one_line_usage(capsys, [command, "--devices", many], f"argument --devices: {many} asked, but JAX sees")
+
+
+@pytest.mark.parametrize("command", list(cli.COMMANDS))
+def test_an_empty_out_is_refused(command, capsys):
+    one_line_usage(capsys, [command, "--out", ""], "argument --out: must name a folder, got ''")
+    one_line_usage(capsys, [command, "--out", "  "], "argument --out: must name a folder")
+
+
+def test_an_option_of_the_other_dimension_is_refused_not_ignored(capsys):
+    one_line_usage(capsys, ["track", "--dim", "2", "--model", "refined"],
+                   "--model applies to --dim 3 only (this run is --dim 2)")
+    one_line_usage(capsys, ["track", "--dim", "2", "--mod", "refined", "--scheme", "self"],
+                   "--model, --scheme apply to --dim 3 only")
+    one_line_usage(capsys, ["track", "--dim", "3", "--n", "5"], "--n applies to --dim 2 only (this run is --dim 3)")
+
+
+def test_a_patch_out_of_range_is_refused_before_any_folder(tmp_path, capsys):
+    out = tmp_path / "never"
+    one_line_usage(capsys, ["needle3d", "--paddle", "99", "--out", str(out)],
+                   "argument --paddle: must be an integer in [1, 20] (the candidate patches), got 99")
+    assert not out.exists() and not list(tmp_path.iterdir())
+
+
+def test_every_option_shows_its_default():
+    for command, make in interface.PARSERS.items():
+        p = make()
+        formatter = p._get_formatter()
+        for action in p._actions:
+            if not action.option_strings or action.nargs == 0:    # -h and on/off flags
+                continue
+            text = formatter._get_help_string(action)
+            assert "default" in text, f"jaxrkpm {command} {action.option_strings[0]}: {text!r}"
+    text = interface.track_parser().format_help()
+    assert "(default 2000)" in " ".join(text.split()) and "(default 0.05)" in text
+
+
+def fake_cantilever(monkeypatch, rates=(2.0,)):
+    from jaxrkpm.thesis.studies import cantilever
+    fake = {"h": [0.25, 0.125], "relative_l2_error": [1e-2, 2.5e-3], "rates": list(rates)}
+    monkeypatch.setattr(cantilever, "convergence", lambda hs: fake)
+    return cantilever
+
+
+def test_a_folder_of_another_run_is_not_written_over(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "res"
+    fake_cantilever(monkeypatch)
+    assert cli.main(["cantilever", "--out", str(out)]) == interface.EXIT_OK
+    assert cli.main(["cantilever", "--out", str(out)]) == interface.EXIT_OK       # the same run: replaced
+    assert json.loads((out / "run.json").read_text())["options"] == {"levels": 3}
+    capsys.readouterr()
+    assert cli.main(["cantilever", "--levels", "2", "--out", str(out)]) == interface.EXIT_OUTPUT
+    err = capsys.readouterr().err.strip()
+    assert err == (f"jaxrkpm cantilever: error: {out}/ holds the results of another run (cantilever --levels 3; "
+                   "this run: cantilever --levels 2): choose another --out, or pass --overwrite to replace them")
+    assert cli.main(["cantilever", "--levels", "2", "--overwrite", "--out", str(out)]) == interface.EXIT_OK
+    assert json.loads((out / "run.json").read_text())["options"] == {"levels": 2}
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "summary.json").write_text("my own notes")
+    assert cli.main(["cantilever", "--out", str(mine)]) == interface.EXIT_OUTPUT
+    assert "holds files that no jaxrkpm run wrote" in capsys.readouterr().err
+    assert (mine / "summary.json").read_text() == "my own notes"
+    (mine / "keep.txt").write_text("kept")
+    assert cli.main(["cantilever", "--overwrite", "--out", str(mine)]) == interface.EXIT_OK
+    assert (mine / "keep.txt").read_text() == "kept" and json.loads((mine / "summary.json").read_text())["rates"]
+
+
+def test_a_failed_run_leaves_the_earlier_results(tmp_path, monkeypatch, capsys):
+    cantilever = fake_cantilever(monkeypatch)
+    out = tmp_path / "res"
+    assert cli.main(["cantilever", "--out", str(out)]) == interface.EXIT_OK
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    def broken(out, s):
+        (out / "convergence.png").write_text("half a figure")
+        raise RuntimeError("the figure failed")
+    monkeypatch.setattr(cantilever, "figure", broken)
+    with pytest.raises(RuntimeError, match="the figure failed"):
+        cli.main(["cantilever", "--out", str(out)])
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]                  # no temporary folder left
+
+
+def test_needle_modes_write_their_own_folders(tmp_path, monkeypatch, capsys):
+    from jaxrkpm.thesis.studies import needle
+    static = {"mode": "static", "inclusion": "none", "best": 3, "deviation": [0.02, 0.01, 0.001, 0.004, 0.006],
+              "no_paddle_deviation": 0.014, "best_reduction": 14.0, "thesis": {"best": 4},
+              "status": [["converged"]] * 5, "no_paddle_status": ["converged"]}
+    optimum = {"mode": "optimize", "inclusion": "none", "optimum": {"q": 3.2, "deviation": 2e-3},
+               "best_discrete": 3, "improvement_over_discrete": 0.5, "status": "max_iterations",
+               "message": "the iteration budget ran out; the best iterate is returned"}
+    monkeypatch.setattr(needle, "run_static", lambda *a: static)
+    monkeypatch.setattr(needle, "run_optimize", lambda *a: optimum)
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["needle"]) == interface.EXIT_OK
+    assert cli.main(["needle", "--mode", "optimize"]) == interface.EXIT_GOAL
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert line.startswith("wrote results/needle/optimize_none/: run.json, summary.json; needle optimize (none)")
+    assert "2.0x ABOVE the best discrete paddle 3; Adam max_iterations" in line and line.endswith("[goal missed]")
+    assert json.loads(Path("results/needle/static_none/summary.json").read_text())["mode"] == "static"
+    assert json.loads(Path("results/needle/optimize_none/summary.json").read_text())["mode"] == "optimize"
+
+
+def test_compress_says_why_it_stopped_in_one_short_line():
+    from jaxrkpm.thesis.studies import compress
+    s = {"mode": "straight", "integration": "gauss", "particles": [9, 9], "material": {"name": "Fung"},
+         "max_compression": 0.43, "max_stable_compression": 0.43, "critical_points": [],
+         "reason": "Newton failure in the step to 44% (INVERTED); at the last converged sub-step, 43.20%, the "
+                   "smallest tangent eigenvalue is ...; stable states (trust-region energy minima) end at\n43.2%",
+         "steps": [{"compression": 0.43, "status": "CONVERGED"}, {"compression": 0.44, "status": "INVERTED"}],
+         "stable_path_end": {"compression": 0.4321, "full": False, "collapse": True}, "fold_estimate": 0.44}
+    ok, words = compress.result(s)
+    assert ok and "\n" not in words and len(words) < 300
+    assert words.endswith("stopped in the step to 44% (INVERTED), stable states end at 43.21% (the material "
+                          "collapses: det F -> 0); limit point extrapolated at 44.0%")
+
+
+def test_reuse_over_a_corrupt_report_is_a_named_error(tmp_path, capsys):
+    from jaxrkpm.thesis.studies import reproduce
+    out = tmp_path / "rep"
+    out.mkdir()
+    (out / "run.json").write_text(json.dumps({"command": "reproduce", "options": {"quick": True}, "files": []}))
+    (out / "report.json").write_text("{ not json")
+    assert cli.main(["reproduce", "--quick", "--reuse", "--out", str(out)]) == interface.EXIT_OUTPUT
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"jaxrkpm reproduce: error: cannot --reuse {out}/report.json: not a readable report "
+                          "(JSONDecodeError: ") and "\n" not in err
+    (out / "report.json").write_text(json.dumps({"experiments": [{"no id": 1}]}))
+    with pytest.raises(interface.OutputError, match="KeyError"):
+        reproduce.main(["--quick", "--reuse", "--out", str(out)])

@@ -126,6 +126,12 @@ def test_bad_input(phantom):
         phantom.material("middle")
     with pytest.raises(ValueError, match="no particle"):
         nd.Phantom(paddles=(((0.05, 0.45), (0.0, 0.5)),)).sets(1)
+    with pytest.raises(ValueError, match="stiffness_ratio must be a positive factor"):
+        nd.Phantom(stiffness_ratio=0.0)
+    with pytest.raises(TypeError, match="increments must be a whole number"):
+        phantom.depths(2.5)
+    with pytest.raises(TypeError, match="paddle must be a 1-based int"):
+        phantom.sets(1.5)
 
 
 def test_continuous_paddle_and_optimised_placement(phantom, sweeps):

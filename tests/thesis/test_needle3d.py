@@ -191,6 +191,23 @@ def test_bad_input():
         Phantom3D(paddle_footprint=21)
 
 
+def test_hostile_phantom_input_blames_the_right_parameter():
+    """Issue 35: each is refused where it is given, naming it (before any mesh is made)."""
+    with pytest.raises(TypeError, match=r"paddle must be a 1-based int index into the 20 patches, got 1.5"):
+        Phantom3D().patch(1.5)
+    with pytest.raises(ValueError, match=r"needle_radius 2 is too large for the phantom: the needle's surface"):
+        Phantom3D(needle_radius=2.0)
+    for length in (-0.1, 0.0, float("nan")):
+        with pytest.raises(ValueError, match="needle_length must be a positive length"):
+            Phantom3D(needle_length=length)
+    for ratio in (0.0, -1.0, float("inf")):
+        with pytest.raises(ValueError, match="stiffness_ratio must be a positive factor"):
+            Phantom3D(stiffness_ratio=ratio)
+    with pytest.raises(TypeError, match=r"increments must be a whole number of insertion increments, got 2.5"):
+        Phantom3D().depths(2.5)
+    assert Phantom3D().depths(3)[-1] == pytest.approx(Phantom3D().insertion)
+
+
 def test_cli_static(tmp_path, phantom, sweep):
     """``jaxrkpm needle3d --mode static``: summary, figures and .vtu files (its report on
     the module's sweep, so no second sweep is compiled and run)."""

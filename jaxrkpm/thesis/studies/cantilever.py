@@ -4,7 +4,6 @@ Writes summary.json and convergence.png (error against spacing, with an h^2 guid
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -73,10 +72,10 @@ def result(s: dict) -> tuple[bool, str]:
 
 def main(argv=None):
     a = interface.parse("cantilever", argv)
-    t0 = time.time()
-    out = interface.output_folder(a.out)
-    s = convergence(tuple(0.25 / 2**k for k in range(a.levels)))
-    (out / "summary.json").write_text(json.dumps(s, indent=2))
-    figure(out, s)
-    interface.finish(out, t0, s, result(s)[1], a.json)
+    results = interface.results("cantilever", a)
+    with results as out:
+        s = convergence(tuple(0.25 / 2**k for k in range(a.levels)))
+        (out / "summary.json").write_text(json.dumps(s, indent=2))
+        figure(out, s)
+        results.finish(s, *result(s), a.json)
     return s

@@ -361,6 +361,20 @@ def figures(out: Path, summary, model, states, tag: str):
     plot.save(fig, out / f"reaction_{tag}.png")
 
 
+def stop_words(s: dict) -> str:
+    """Why the compression stopped, in a clause (the whole story is ``summary["reason"]``)."""
+    steps, end = s.get("steps") or [], s.get("stable_path_end")
+    failed = steps[-1] if steps and steps[-1].get("status") != "CONVERGED" else None
+    if failed is None:
+        return s["reason"].split(";")[0]
+    words = f"stopped in the step to {100 * failed['compression']:.0f}% ({failed['status']})"
+    if end:
+        words += (f", stable states end at {100 * end['compression']:.2f}%"
+                  + (" (the material collapses: det F -> 0)" if end.get("collapse") else "")
+                  if not end.get("full") else ", a Newton failure: stable states go on")
+    return words
+
+
 def result(s: dict) -> tuple[bool, str]:
     """(at least one step converged, the result in words) of a compression summary: the
     study looks for where the compression fails, so stopping is its finding."""
@@ -370,7 +384,7 @@ def result(s: dict) -> tuple[bool, str]:
     words = (f"{s['mode']} compression ({s['integration']}, {s['particles'][0]}x{s['particles'][1]} "
              f"{s['material']['name']}): last converged step {100 * s['max_compression']:.0f}%, largest "
              f"compression on stable states {100 * s.get('max_stable_compression', 0.0):.0f}%{crit}; "
-             f"{s['reason']}")
+             f"{stop_words(s)}")
     if s.get("fold_estimate") is not None:
         words += f"; limit point extrapolated at {100 * s['fold_estimate']:.1f}%"
     return s["max_compression"] > 0, words
@@ -378,19 +392,25 @@ def result(s: dict) -> tuple[bool, str]:
 
 def main(argv=None):
     a = interface.parse("compress", argv)
+    p = interface.compress_parser()
     if a.step > a.max:
-        interface.compress_parser().error(f"--step {a.step:g} is larger than --max {a.max:g}")
-    t0 = time.time()
-    out = interface.output_folder(a.out)
-    summary, model, states = run(a.mode, a.integration, a.n, a.max, a.step, a.through, a.material,
-                                 half_width=a.paddle_half_width)
-    summary["fold_estimate"] = fold_estimate(summary)
-    summary["material_uniaxial_limits"] = uniaxial_limits(a.material)
+        p.error(f"--step {a.step:g} is larger than --max {a.max:g}")
+    if round(a.max / a.step) > interface.COMPRESSION_STEPS_MAX:
+        p.error(f"--max {a.max:g} / --step {a.step:g} makes {round(a.max / a.step):,} compression steps, more than "
+                f"{interface.COMPRESSION_STEPS_MAX:,} (a solve each): take a larger --step")
+    if too_big := interface.memory_error("--n", a.n, a.n * a.n, side=lambda k: k * k):
+        p.error(too_big)
     tag = (f"{a.mode}_{a.integration}_{a.n}" + ("" if a.material == "fung" else f"_{a.material}")
            + ("" if a.paddle_half_width == PADDLE_HALF_WIDTH else "_edge" if a.paddle_half_width >= 0.5
               else f"_hw{a.paddle_half_width:g}"))
-    mode_figures(out, summary, model, tag)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    figures(out, summary, model, states, tag)
-    interface.finish(out, t0, summary, result(summary)[1], a.json)
+    results = interface.results("compress", a, a.out or f"results/compress/{tag}")
+    with results as out:
+        summary, model, states = run(a.mode, a.integration, a.n, a.max, a.step, a.through, a.material,
+                                     half_width=a.paddle_half_width)
+        summary["fold_estimate"] = fold_estimate(summary)
+        summary["material_uniaxial_limits"] = uniaxial_limits(a.material)
+        mode_figures(out, summary, model, tag)
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        figures(out, summary, model, states, tag)
+        results.finish(summary, *result(summary), a.json)
     return summary

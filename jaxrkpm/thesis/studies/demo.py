@@ -9,7 +9,6 @@ waypoint) and prints one line: what it wrote, waypoints reached, the largest way
 error, iterations and times. The same run as ``jaxrkpm track --path box``."""
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 from jaxrkpm.thesis.studies import interface, track
@@ -25,8 +24,8 @@ result = track.result   # (every waypoint reached, the result in words)
 
 def main(argv=None):
     a = interface.parse("demo", argv)
-    t0 = time.time()
-    out = interface.output_folder(a.out)
-    s = run(out)
-    interface.finish(out, t0, s, result(s)[1], a.json)
+    results = interface.results("demo", a)
+    with results as out:
+        s = run(out)
+        results.finish(s, *result(s), a.json)
     return s

@@ -329,8 +329,9 @@ def optimize_figures(phantom, model, sw, summary, out: Path):
     sd = np.array([np.nan if d is None else abs(d) for d in summary["scan"]["deviation"]])
     a1.semilogy(sq, sd, "-", color="0.5", label="spring paddle, scan")
     failed = np.isnan(sd)
-    if failed.any():
-        a1.plot(sq[failed], np.full(failed.sum(), np.nanmin(sd)), "rx", label="insertion fails (det F <= 0)")
+    if failed.any():   # no deviation there to plot: marked on the q axis (axes-fraction height)
+        a1.plot(sq[failed], np.full(failed.sum(), 0.03), "rx", transform=a1.get_xaxis_transform(), clip_on=False,
+                label="insertion fails at this q (no deviation; det F <= 0)")
     idx = np.arange(1, len(sw.final) + 1)
     ok = np.asarray(summary["discrete_converged"])
     a1.plot(idx[ok], np.abs(sw.final[ok]), "s", ms=8, mfc="none", label="essential paddle (Table 6.2)")
@@ -378,24 +379,34 @@ def result(s: dict) -> tuple[bool, str]:
                  f"{s['paddle']}: max |deviation| {s['max_deviation']:.1e}, paddle travel "
                  f"{s['paddle_travel']:.4f}; {s['status']}: {s['message']}")
         return s["status"] == "converged", words
-    o = s["optimum"]
-    words = (f"needle optimize ({inc}): paddle q = {o['q']:.3f}, deviation {abs(o['deviation']):.1e}, "
-             f"{s['improvement_over_discrete']:.1f}x below the best discrete paddle {s['best_discrete']}; "
-             f"{s['status']}: {s['message']}")
-    return s["status"] == "converged", words
+    return optimize_result(s, "needle optimize", f"paddle q = {s['optimum']['q']:.3f}", "paddle")
+
+
+def optimize_result(s: dict, what: str, where: str, unit: str) -> tuple[bool, str]:
+    """(goal reached, words) of an optimize summary (2D and 3D). The goal: a placement at
+    least as good as the best discrete one; Adam's stop (converged or its iteration budget,
+    which returns the best iterate) is said either way, a failed start is a missed goal."""
+    o, better = s["optimum"], s["improvement_over_discrete"]
+    ok = s["status"] != "start_failed" and better >= 1.0
+    words = (f"{what} ({s['inclusion']}): {where}, deviation {abs(o['deviation']):.1e}, "
+             + (f"{better:.1f}x below" if better >= 1.0 else f"{1 / max(better, 1e-300):.1f}x ABOVE")
+             + f" the best discrete {unit} {s['best_discrete']}; Adam {s['status']}: {s['message']}")
+    return ok, words
 
 
 def main(argv=None):
     a = interface.parse("needle", argv)
-    t0 = time.time()
-    out = interface.output_folder(a.out)
-    phantom = nd.Phantom()
-    if a.mode == "static":
-        summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
-    elif a.mode == "dynamic":
-        summary = run_dynamic(phantom, a.inclusion, a.increments, out, a.paddle, a.devices)
-    else:
-        summary = run_optimize(phantom, a.inclusion, a.increments, out, a.devices, a.start, a.iterations)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    interface.finish(out, t0, summary, result(summary)[1], a.json)
+    if too_many := interface.devices_error(a.devices):
+        interface.needle_parser().error(too_many)
+    results = interface.results("needle", a, a.out or f"results/needle/{a.mode}_{a.inclusion}")
+    with results as out:
+        phantom = nd.Phantom()
+        if a.mode == "static":
+            summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
+        elif a.mode == "dynamic":
+            summary = run_dynamic(phantom, a.inclusion, a.increments, out, a.paddle, a.devices)
+        else:
+            summary = run_optimize(phantom, a.inclusion, a.increments, out, a.devices, a.start, a.iterations)
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        results.finish(summary, *result(summary), a.json)
     return summary

@@ -34,6 +34,7 @@ from jaxrkpm.io import output
 from jaxrkpm.io import plot
 from jaxrkpm.thesis.phantom3d import Phantom3D, ellipsoid_point
 from jaxrkpm.thesis.studies import interface
+from jaxrkpm.thesis.studies.needle import optimize_result
 
 
 def object_size(phantom: Phantom3D) -> float:
@@ -62,8 +63,9 @@ def draw_deformed(ax, phantom: Phantom3D, model, sol, title: str, vmax=None, pat
     return sc
 
 
-def skin_map(ax, phantom: Phantom3D, values, label: str, log=True, best=None):
-    """Patch centres seen from above (x-y), coloured by ``values`` (one per patch)."""
+def skin_map(ax, phantom: Phantom3D, values, label: str, log=True, best=None, best_label="best patch"):
+    """Patch centres seen from above (x-y), coloured by ``values`` (one per patch); ``best``
+    (1-based) ringed and named ``best_label`` in the legend."""
     c = phantom.paddles
     v = np.asarray(values, float)
     from matplotlib.colors import LogNorm
@@ -77,11 +79,11 @@ def skin_map(ax, phantom: Phantom3D, values, label: str, log=True, best=None):
     for i, p in enumerate(c):
         ax.annotate(str(i + 1), p[:2], fontsize=6, ha="center", va="center", color="w")
     if best is not None:
-        ax.plot(*c[best - 1, :2], "o", ms=16, mfc="none", mec="r", mew=2, label=f"best patch {best}")
+        ax.plot(*c[best - 1, :2], "o", ms=16, mfc="none", mec="r", mew=2, label=f"{best_label} {best}")
     ax.plot(*phantom.target[:2], "m*", ms=12, label="target")
     ax.set_aspect("equal")
-    ax.set_xlabel("x")
-    ax.set_ylabel("y")
+    ax.set_xlabel(f"x ({plot.UNITS})")
+    ax.set_ylabel(f"y ({plot.UNITS})")
     ax.legend(fontsize=7, loc="lower left")
     ax.figure.colorbar(sc, ax=ax, label=label, shrink=0.8)
     return sc
@@ -92,7 +94,8 @@ def final_state(phantom, inclusion, paddle, increments):
 
 
 def write_vtu(out: Path, name: str, model, sol) -> str:
-    return str(output.write_solution(out / f"{name}.vtu", model, sol))
+    """Write ``out/name.vtu``; returns its name (relative to the results folder)."""
+    return output.write_solution(out / f"{name}.vtu", model, sol).name
 
 
 def run_static(phantom, inclusion, increments, out: Path, n_devices=1):
@@ -122,11 +125,11 @@ def static_report(phantom, sw, out: Path, wall=None):
         "converged": sw.converged, "wall_s": wall,
     }
     fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(13, 4.8), layout="constrained")
-    skin_map(a1, phantom, np.abs(final), "|lateral deviation| at full insertion", best=best)
+    skin_map(a1, phantom, np.abs(final), f"|lateral deviation| at full insertion ({plot.UNITS})", best=best)
     a1.set_title(f"inclusion {inclusion}: no paddle {abs(free):.2e}; best patch {best} "
                  f"({summary['best_reduction']:.0f}x less)", fontsize=10)
-    skin_map(a2, phantom, ctrl, r"controllability $\delta x_{min}$ (paddle travel / lateral correction)",
-             best=summary["most_controllable"])
+    skin_map(a2, phantom, ctrl, r"controllability $\delta x_{min}$ (paddle travel / lateral correction, -)",
+             best=summary["most_controllable"], best_label="most controllable patch")
     a2.set_title("controllability after the first increment (smaller: more controllable)", fontsize=10)
     fig.savefig(out / f"patches_{inclusion}.png", dpi=120)
     plot.plt.close(fig)
@@ -139,7 +142,7 @@ def static_report(phantom, sw, out: Path, wall=None):
     ax.set_yscale("log")
     ax.set_xticks(idx)             # one tick per patch: patches are numbered, not a continuum
     ax.set_xlabel("paddle patch")
-    ax.set_ylabel("|lateral target deviation|")
+    ax.set_ylabel(f"|lateral target deviation| ({plot.UNITS})")
     ax.set_title(f"3D phantom, inclusion {inclusion}: final deviation per patch", fontsize=10)
     ax.legend(fontsize=8)
     plot.save(fig, out / f"deviation_{inclusion}.png")
@@ -151,7 +154,7 @@ def static_report(phantom, sw, out: Path, wall=None):
     draw_deformed(axes[0], phantom, m0, s0, "no paddle (x-z view)", vmax)
     sc = draw_deformed(axes[1], phantom, m1, s1, f"static patch {best} (x-z view)", vmax, patch=best)
     axes[1].legend(fontsize=7, loc="upper right")
-    fig.colorbar(sc, ax=axes, label="|u|", shrink=0.8)
+    fig.colorbar(sc, ax=axes, label=f"|u| ({plot.UNITS})", shrink=0.8)
     fig.savefig(out / f"phantom_static_{inclusion}.png", dpi=120)
     plot.plt.close(fig)
     summary["vtu"] = [write_vtu(out, f"no_paddle_{inclusion}", m0, s0),
@@ -189,14 +192,14 @@ def run_dynamic(phantom, inclusion, increments, out: Path, paddle=None, tol=1e-5
     a1.semilogy(d, np.maximum(dev, 1e-16), "o-", ms=3, label="closed loop")
     a1.axhline(1e-4 * size, color="r", ls=":", label="1e-4 x object size")
     a1.set_xlabel("needle insertion (% of the chord)")
-    a1.set_ylabel("|lateral target deviation|")
+    a1.set_ylabel(f"|lateral target deviation| ({plot.UNITS})")
     a1.legend(fontsize=7)
     a1.grid(alpha=0.3, which="both")
     if run.solution is not None:
         model = phantom.model(inclusion, chosen)
         sc = draw_deformed(a2, phantom, model, run.solution, f"dynamic patch {chosen}, final state", patch=chosen)
         a2.legend(fontsize=7, loc="upper right")
-        fig.colorbar(sc, ax=a2, label="|u|", shrink=0.8)
+        fig.colorbar(sc, ax=a2, label=f"|u| ({plot.UNITS})", shrink=0.8)
         summary["vtu"] = write_vtu(out, f"dynamic_patch{chosen}_{inclusion}", model, run.solution)
     fig.savefig(out / f"dynamic_{inclusion}.png", dpi=120)
     plot.plt.close(fig)
@@ -229,7 +232,7 @@ def run_optimize(phantom, inclusion, increments, out: Path, iterations=12, stiff
         "history": opt.history.tolist(), "paddle_stiffness": stiffness, "wall_s": wall,
     }
     fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(12, 4.6), layout="constrained")
-    skin_map(a1, phantom, np.abs(sw.final), "|lateral deviation| (discrete patches)", best=best)
+    skin_map(a1, phantom, np.abs(sw.final), f"|lateral deviation| (discrete patches, {plot.UNITS})", best=best)
     h = opt.history
     path = np.array([np.asarray(ellipsoid_point(phantom.semi_axes, *q)) for q in h[:, :2]])
     a1.plot(path[:, 0], path[:, 1], "o-", color="C3", ms=3, label="Adam iterates")
@@ -240,7 +243,7 @@ def run_optimize(phantom, inclusion, increments, out: Path, iterations=12, stiff
     a2.axhline(abs(best_dev), color="k", ls="--", label=f"best discrete patch {best}")
     a2.axhline(abs(summary["no_paddle_deviation"]), color="r", ls=":", label="no paddle")
     a2.set_xlabel("iteration")
-    a2.set_ylabel("|lateral deviation| at full insertion")
+    a2.set_ylabel(f"|lateral deviation| at full insertion ({plot.UNITS})")
     a2.legend(fontsize=8)
     a2.grid(alpha=0.3, which="both")
     fig.savefig(out / f"optimize_{inclusion}.png", dpi=120)
@@ -268,33 +271,33 @@ def result(s: dict) -> tuple[bool, str]:
                  f"{s['status']}: {s['message']}")
         return bool(s["held"]), words
     o = s["optimum"]
-    words = (f"needle3d optimize ({inc}, {n} particles): patch at theta {o['theta']:.3f}, phi {o['phi']:.3f}, "
-             f"deviation {abs(o['deviation']):.1e}, {s['improvement_over_discrete']:.1f}x below the best "
-             f"discrete patch {s['best_discrete']}; {s['status']}: {s['message']}")
-    return s["status"] == "converged", words
+    return optimize_result(s, "needle3d optimize", f"{n} particles, patch at theta {o['theta']:.3f}, phi {o['phi']:.3f}", "patch")
 
 
 def main(argv=None):
     a = interface.parse("needle3d", argv)
-    t0 = time.time()
-    out = interface.output_folder(a.out)
-    stages = interface.progress(total=2, desc=f"needle3d {a.mode} {a.inclusion}", unit="stage")
-    stages.set_postfix_str("mesh and models")
+    if too_many := interface.devices_error(a.devices):
+        interface.needle3d_parser().error(too_many)
     phantom = Phantom3D(spacing=a.spacing)
-    if a.paddle is not None and a.paddle > len(phantom.paddles):
-        interface.needle3d_parser().error(f"argument --paddle: must be an integer in [1, {len(phantom.paddles)}] "
+    patches = len(phantom.patch_coordinates)          # the angle grid: no mesh needed yet
+    if a.paddle is not None and a.paddle > patches:   # refused before any folder is made
+        interface.needle3d_parser().error(f"argument --paddle: must be an integer in [1, {patches}] "
                                           f"(the candidate patches), got {a.paddle}")
-    phantom.body
-    stages.update()
-    stages.set_postfix_str("sweep and solves")
-    if a.mode == "static":
-        summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
-    elif a.mode == "dynamic":
-        summary = run_dynamic(phantom, a.inclusion, a.increments, out, a.paddle, a.tol, a.devices)
-    else:
-        summary = run_optimize(phantom, a.inclusion, a.increments, out, a.iterations, n_devices=a.devices)
-    stages.update()
-    stages.close()
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    interface.finish(out, t0, summary, result(summary)[1], a.json)
+    results = interface.results("needle3d", a, a.out or f"results/needle3d/{a.mode}_{a.inclusion}")
+    with results as out:
+        stages = interface.progress(total=2, desc=f"needle3d {a.mode} {a.inclusion}", unit="stage")
+        stages.set_postfix_str("mesh and models")
+        phantom.body
+        stages.update()
+        stages.set_postfix_str("sweep and solves")
+        if a.mode == "static":
+            summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
+        elif a.mode == "dynamic":
+            summary = run_dynamic(phantom, a.inclusion, a.increments, out, a.paddle, a.tol, a.devices)
+        else:
+            summary = run_optimize(phantom, a.inclusion, a.increments, out, a.iterations, n_devices=a.devices)
+        stages.update()
+        stages.close()
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        results.finish(summary, *result(summary), a.json)
     return summary

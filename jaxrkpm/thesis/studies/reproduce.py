@@ -36,7 +36,6 @@ def run_entry(e: Entry, root: Path, quick: bool, reuse: bool = False) -> dict:
     """Run one experiment into root/<id>/ (``reuse``: read an existing summary.json instead,
     e.g. to resume an interrupted run or to rebuild the report) and return its report row."""
     out = root / e.id
-    out.mkdir(parents=True, exist_ok=True)
     log = io.StringIO()
     t0 = time.perf_counter()
     row = {"id": e.id, "thesis_ref": e.thesis_ref, "thesis_value": e.thesis_value, "note": e.note}
@@ -46,8 +45,9 @@ def run_entry(e: Entry, root: Path, quick: bool, reuse: bool = False) -> dict:
             row["reused"] = True
         else:
             command, argv = e.run(out, quick)
+            # reproduce's own folder was claimed for this run: its experiments replace theirs
             with contextlib.redirect_stdout(log):
-                s = importlib.import_module(STUDIES[command]).main(argv)
+                s = importlib.import_module(STUDIES[command]).main(argv + ["--overwrite"])
         if s is None:   # scripts that only write their summary
             s = json.loads((out / "summary.json").read_text())
         row.update(status="ok", ours=e.ours(s))
@@ -59,7 +59,9 @@ def run_entry(e: Entry, root: Path, quick: bool, reuse: bool = False) -> dict:
         row.update(status="failed", ours=f"failed: bad options (exit {exc.code})", verdict="-", reason="failed")
     row["wall_s"] = round(time.perf_counter() - t0, 1)
     if not row.get("reused"):
+        out.mkdir(parents=True, exist_ok=True)
         (out / "log.txt").write_text(log.getvalue())
+        interface.also_written(out, "log.txt")
     row["figures"] = sorted(str(p.relative_to(root)) for p in out.rglob("*.png"))
     return row
 
@@ -128,12 +130,30 @@ def main(argv=None):
         if bad:
             interface.reproduce_parser().error(f"unknown experiment id(s) {bad}; choose from {sorted(known)}")
     entries = [e for e in ENTRIES if (e.id in a.only if a.only else (e.quick or not a.quick))]
-    t_start = time.time()
-    root = interface.output_folder(a.out)
-    t0 = time.perf_counter()
+    results = interface.results("reproduce", a, staged=False, ignore=("only", "reuse"))
     earlier = {}
-    if a.reuse and (root / "report.json").exists():   # keep the timings of the runs reused
-        earlier = {r["id"]: r for r in json.loads((root / "report.json").read_text())["experiments"]}
+    if a.reuse and (Path(a.out) / "report.json").exists():   # keep the timings of the runs reused
+        earlier = earlier_rows(Path(a.out) / "report.json")
+    with results as root:
+        rep = run_all(a, entries, root, earlier)
+        results.finish(rep, *result(rep), a.json)
+    return rep
+
+
+def earlier_rows(path: Path) -> dict:
+    """id -> row of an earlier report.json; an OutputError (exit 3) naming it if it cannot
+    be read as one."""
+    try:
+        rows = json.loads(path.read_text())["experiments"]
+        return {r["id"]: r for r in rows}
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise interface.OutputError(f"cannot --reuse {path}: not a readable report "
+                                    f"({type(e).__name__}: {' '.join(str(e).split())})") from None
+
+
+def run_all(a, entries, root: Path, earlier: dict) -> dict:
+    """Run (or reuse) every experiment into root/<id>/; write report.json and report.md."""
+    t0 = time.perf_counter()
     rows = []
     bar = interface.progress(entries, desc="reproduce", unit="exp", leave=True)
     for e in bar:
@@ -143,12 +163,11 @@ def main(argv=None):
         # hold more memory mappings than Linux allows a process (jaxrkpm/programs.py)
         release_compiled_programs()
         if row.get("reused") and e.id in earlier:
-            row["wall_s"] = earlier[e.id]["wall_s"]
+            row["wall_s"] = earlier[e.id].get("wall_s", row["wall_s"])
         rows.append(row)
     total = time.perf_counter() - t0
     rep = {"quick": a.quick, "total_wall_s": round(total, 1),
            "experiments_wall_s": round(sum(r["wall_s"] for r in rows), 1), "experiments": rows}
     (root / "report.json").write_text(json.dumps(rep, indent=2))
     (root / "report.md").write_text(report_md(rows, a.quick, total))
-    interface.finish(root, t_start, rep, result(rep)[1], a.json)
     return rep

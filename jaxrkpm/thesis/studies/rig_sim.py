@@ -229,7 +229,9 @@ def fig_calibration(cal, rec, out: Path):
     r.add_patch(plot.plt.Circle((0.3, 0.7), 0.15, fill=False, color="w", ls="--", label="true inclusion"))
     r.set_title("fitted stiffness multiplier (3x3 map; one marker:\nfits the kinematics, does not locate the inclusion)", fontsize=10)
     r.legend(fontsize=8, loc="lower right")
-    fig.colorbar(im, ax=r)
+    r.set_xlabel(f"x ({plot.UNITS})")
+    r.set_ylabel(f"y ({plot.UNITS})")
+    fig.colorbar(im, ax=r, label="stiffness multiplier (x the model's, -)")
     fig.tight_layout()
     plot.save(fig, out / "calibration.png")
 
@@ -308,26 +310,37 @@ def run(out: Path, path: str = "box", calibrate_model: bool = False, broyden: bo
 
 
 def result(s: dict) -> tuple[bool, str]:
-    """(every tracking run reached every waypoint, the result in words) of a rig summary."""
+    """(goal reached, the result in words) of a rig summary. The goal, the thesis' finding:
+    every tracking run reaches every waypoint and settles within RIG_SETTLE_MM of it
+    physically. The budget run's error (a fixed number of iterations per waypoint, by design
+    short of settling) measures the Jacobian and is said apart from it."""
     tol = s["settings"]["tol_mm"]
     parts = []
     for name, r in s["runs"].items():
         t, b = r["tracking"], r["budget"]
         reached = sum(w["reached_at"] >= 0 for w in t["waypoints"])
         parts.append(f"{name}: {reached}/{len(t['waypoints'])} waypoints within {tol:g} mm (camera) in "
-                     f"{t['iterations']} iterations, physical error max {t['physical_error_mm']['max']:.2f} mm"
+                     f"{t['iterations']} iterations, physical error max {t['physical_error_mm']['max']:.2f} mm "
+                     f"(thesis: settles within {RIG_SETTLE_MM:g} mm)"
                      + ("" if t["status"] == "DONE" else f" ({t['status']}: {t['message']})")
-                     + f"; with {s['settings']['budget']} iteration(s) per waypoint (budget run): mean physical "
-                       f"error {b['physical_error_mm']['mean']:.2f} mm")
-    words = f"rig-sim {s['path']}: " + " | ".join(parts) + f" (thesis: settles within {RIG_SETTLE_MM:g} mm)"
-    return all(r["tracking"]["status"] == "DONE" for r in s["runs"].values()), words
+                     + f"; budget run, {s['settings']['budget']} iteration(s) per waypoint (a measure of the "
+                       f"Jacobian, not a settling): mean physical error {b['physical_error_mm']['mean']:.2f} mm")
+    ok = all(r["tracking"]["status"] == "DONE" and r["tracking"]["physical_error_mm"]["max"] <= RIG_SETTLE_MM
+             for r in s["runs"].values())
+    return ok, f"rig-sim {s['path']}: " + " | ".join(parts)
 
 
 def main(argv=None):
     a = interface.parse("rig-sim", argv)
-    t0 = time.time()
-    out = interface.output_folder(a.out or f"results/rig_sim/{a.path}")
-    s = run(out, a.path, a.calibrate, a.broyden, a.physical_n, a.noise, a.seed, a.gain, a.tol_mm,
-            a.max_iter, a.budget, a.transport, a.waypoints, not a.no_figures)
-    interface.finish(out, t0, s, result(s)[1], a.json)
+    p = interface.rig_sim_parser()
+    n_path = len(PATHS[a.path])
+    if a.waypoints is not None and a.waypoints > n_path:
+        p.error(f"argument --waypoints: the {a.path} path has {n_path} waypoints, got {a.waypoints}")
+    if too_big := interface.memory_error("--physical-n", a.physical_n, a.physical_n ** 2, side=lambda k: k * k):
+        p.error(too_big)
+    results = interface.results("rig-sim", a, a.out or f"results/rig_sim/{a.path}")
+    with results as out:
+        s = run(out, a.path, a.calibrate, a.broyden, a.physical_n, a.noise, a.seed, a.gain, a.tol_mm,
+                a.max_iter, a.budget, a.transport, a.waypoints, not a.no_figures)
+        results.finish(s, *result(s), a.json)
     return s

@@ -419,9 +419,7 @@ def fig_layers_3d(exp, res, snaps, out, sub: int = 4):
         ax.set_ylim(bl[1], bh[1])
         ax.set_zlim(bl[2], bh[2])
         ax.set_box_aspect(bh - bl)
-        ax.set_xlabel(f"x ({UNITS})")
-        ax.set_ylabel(f"y ({UNITS})")
-        ax.set_zlabel(f"z ({UNITS})")
+        plot.tidy_3d_axes(ax)
         ax.view_init(elev=24, azim=-55)
         if a == 0:
             handles, labels = ax.get_legend_handles_labels()
@@ -520,23 +518,37 @@ def result(s: dict) -> tuple[bool, str]:
     return s["status"] == "DONE", words
 
 
+ONLY_2D = ("n", "beta")              # options of the 2D square only
+ONLY_3D = ("model", "scheme")         # options of the 3D cube only
+
+
 def main(argv=None):
     a = interface.parse("track", argv)
     p = interface.track_parser()
-    if a.scheme == "reduced-to-refined" and (a.dim != 3 or a.model != "refined"):
+    given = interface.given("track", argv)
+    wrong = [o for o in (ONLY_3D if a.dim == 2 else ONLY_2D) if o in given]
+    if wrong:                         # an option of the other dimension would be ignored
+        other = 3 if a.dim == 2 else 2
+        p.error(f"{', '.join('--' + o for o in wrong)} {'applies' if len(wrong) == 1 else 'apply'} to "
+                f"--dim {other} only (this run is --dim {a.dim})")
+    model, scheme = a.model or "reduced", a.scheme or "self"
+    n, beta = a.n or 9, a.beta or 1.0
+    if scheme == "reduced-to-refined" and (a.dim != 3 or model != "refined"):
         p.error("--scheme reduced-to-refined needs --dim 3 --model refined")
     if a.dim == 3 and a.path not in (None, PATH_3D):
         p.error(f"--dim 3 tracks Table 5.1 (--path {PATH_3D})")
     if a.dim == 2 and a.path == PATH_3D:
         p.error("--path table5.1 is the 3D cube's (--dim 3)")
-    t0 = time.time()
+    if a.dim == 2 and (too_big := interface.memory_error("--n", n, n * n, side=lambda k: k * k)):
+        p.error(too_big)
     try:
-        exp = build(a.path, a.dim, a.integration, a.model, a.scheme, a.n, a.alpha, a.beta)
+        exp = build(a.path, a.dim, a.integration, model, scheme, n, a.alpha, beta)
     except ValueError as e:
         p.error(f"cannot build the model: {e}")
-    out = interface.output_folder(a.out or f"results/track/{exp.name}")
-    s = run(out, gain=a.gain, clamp=a.clamp, tol=a.tol, max_iter=a.max_iter, max_steps=a.max_steps,
-            window=a.window, repeats=a.repeats, make_figures=not a.no_figures,
-            mesh_output=not a.no_mesh, experiment=exp)
-    interface.finish(out, t0, s, result(s)[1], a.json)
+    results = interface.results("track", a, a.out or f"results/track/{exp.name}")
+    with results as out:
+        s = run(out, gain=a.gain, clamp=a.clamp, tol=a.tol, max_iter=a.max_iter, max_steps=a.max_steps,
+                window=a.window, repeats=a.repeats, make_figures=not a.no_figures,
+                mesh_output=not a.no_mesh, experiment=exp)
+        results.finish(s, *result(s), a.json)
     return s

@@ -1,0 +1,37 @@
+"""The persistent compilation cache (jaxrkpm/base/cache.py), measured: ``jaxrkpm demo`` run
+twice, each in a fresh process, with a fresh cache folder; each run's own line (its tracking
+loop's compile time) and the whole command's wall time. ``--min-compile-s`` overrides the
+smallest compile time a program must take to be kept (the module's MIN_COMPILE_S).
+
+    python experiments/bench_compile_cache.py [--min-compile-s 0.1]
+
+Only comparable on a quiet machine (``uptime``).
+"""
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+ap = argparse.ArgumentParser()
+ap.add_argument("--min-compile-s", type=float, default=None)
+a = ap.parse_args()
+code = "import sys\nfrom jaxrkpm.base import cache\n"
+if a.min_compile_s is not None:
+    code += f"cache.MIN_COMPILE_S = {a.min_compile_s}\n"
+code += "from jaxrkpm.thesis import cli\nsys.exit(cli.main(sys.argv[1:]))"
+with tempfile.TemporaryDirectory() as tmp:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_COMPILATION", "JAX_PERSISTENT", "JAXRKPM_"))}
+    env.update(XDG_CACHE_HOME=tmp, PYTHONPATH=str(ROOT))
+    for run in (1, 2):
+        t0 = time.perf_counter()
+        p = subprocess.run([sys.executable, "-c", code, "demo", "--overwrite", "--out", f"{tmp}/demo"],
+                           capture_output=True, text=True, env=env, cwd=ROOT)
+        wall = time.perf_counter() - t0
+        line = p.stdout.strip().splitlines()[-1] if p.stdout.strip() else p.stderr[-500:]
+        files = list((Path(tmp) / "jaxrkpm").glob("*-cache"))
+        print(f"run {run}: wall {wall:.1f} s, {len(files)} programs cached; {line.split('iterations, ')[-1]}")

@@ -1,0 +1,23 @@
+"""Peak memory per particle of a 2D model, the figure the command line's size checks use
+(``jaxrkpm.thesis.studies.interface.BYTES_PER_PARTICLE_2D``): the growth of this process's peak
+resident memory while building the planar tracking square of ``n`` x ``n`` particles, solving
+it once and taking the control point Jacobian (compiles included), per particle.
+
+    python experiments/bench_memory_2d.py 65       # one size per process (a peak only grows)
+"""
+import resource
+import sys
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxrkpm.thesis.studies.track import planar_model
+
+n = int(sys.argv[1]) if len(sys.argv) > 1 else 65
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+m = planar_model(n)
+sol = m.solve({"paddle": jnp.array([0.01, 0.01])})
+J = m.jacobian(sol, "paddle", np.array([[0.5, 0.5]]))
+after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(f"{n} x {n} = {n * n} particles, {m.linear.name} solver: peak RSS {before / 1024:.0f} -> {after / 1024:.0f} MiB, "
+      f"{(after - before) * 1024 / (n * n) / 1e3:.0f} kB per particle")
