@@ -32,8 +32,9 @@ class Status(Outcome):
                            "allowed (or once the failed attempts had spent their work budget); "
                            "the path is stopped at the last stable state (solve with "
                            "check_stability=False to follow the unstable branch)")
-    STABILITY_UNKNOWN = 6, ("converged, but the factorisation could not tell whether K_ff is "
-                            "positive definite (perturbed or permuted pivots): the state may lie "
+    STABILITY_UNKNOWN = 6, ("converged, but the linear solver could not tell whether K_ff is "
+                            "positive definite (a factorisation with perturbed or permuted pivots, "
+                            "or a Krylov solve that did not reach its tolerance): the state may lie "
                             "past a critical point")
     LINEAR_SOLVE = 7, ("the iterative linear solver (solver='krylov') did not converge on the "
                        "smallest load step allowed (or once the failed attempts had spent their "
@@ -133,6 +134,16 @@ class Solution(NamedTuple):
     residual_norm: jax.Array
     branch: jax.Array     # () critical points passed by switching to a stable branch (0: primary)
     critical: "Critical"  # the critical points this solve passed (fixed size, NaN where unfilled)
+
+    def __repr__(self) -> str:
+        """The outcome and the shapes, not the arrays (the critical-point record is NaN where
+        unfilled: printed whole, a converged solve looked like a failed one)."""
+        if isinstance(self.status, jax.core.Tracer):
+            return f"Solution(traced: u {tuple(self.u.shape)}, g {tuple(self.g.shape)})"
+        shapes = f"u {tuple(np.shape(self.u))}, g {tuple(np.shape(self.g))}"
+        if np.ndim(self.status):
+            return f"Solution(batch of {np.size(self.status)}: {self.message}; {shapes})"
+        return f"Solution({Status.of(self.status).name}: {self.message}; {shapes}, load {float(self.load):g})"
 
     @property
     def converged(self) -> bool:

@@ -3,6 +3,7 @@ the direct one, and its failure reported as a status."""
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 import jaxrkpm as jr
 from jaxrkpm.solvers.linalg import multigrid as krylov
@@ -93,3 +94,38 @@ def test_pardiso_pattern_holds_the_lower_saddle_point_matrix():
     full = np.block([[K, C.T], [C, np.zeros((S.nc, S.nc))]])
     A = S.matrix(blocks).toarray()
     assert np.abs(A - np.tril(full)).max() < 1e-12 * np.abs(full).max()
+
+
+def test_cg_that_stagnates_is_not_negative_curvature(cube5):
+    """Host CG on K_ff: asked for a tolerance it cannot reach (1e-19, below round-off), it
+    stops as MAX_ITERATIONS, never as negative curvature (which would report a stable state
+    as UNSTABLE_TANGENT); on a K with a resolved negative eigenvalue it reports the curvature;
+    and a solve whose CG cannot reach its tolerance says so instead of blaming pivots."""
+    dense, ref, model = cube5
+    system = model.linear.system.replace(maxiter=200)
+    pool = krylov.pool(system)
+    blocks = dense.problem().tangent_blocks(ref.u, ref.g)
+    K = system.matrix(np.asarray(blocks))
+    ml = system.hierarchy(np.asarray(blocks))
+    b = np.random.default_rng(2).standard_normal(system.n_free)
+    x, status, its, _ = system.cg(ml, K, b, rtol=1e-19)
+    assert status == krylov.KrylovStatus.MAX_ITERATIONS and np.all(np.isfinite(x))
+    x, status, its, _ = system.cg(ml, K, b, rtol=1e-8)
+    assert status == krylov.KrylovStatus.CONVERGED
+    # no curvature at all (p.Kp = 0: a singular or vanishing product) is not negative curvature
+    _, status, _, _ = system.cg(ml, 0.0 * K, b, rtol=1e-8)
+    assert status == krylov.KrylovStatus.MAX_ITERATIONS
+    # the same K shifted by more than its lowest eigenvalue: a resolved negative curvature
+    lam_max = np.abs(K.diagonal()).max()
+    shifted = K - 1e-1 * lam_max * sp.eye(K.shape[0], format="bsr")
+    _, status, _, _ = system.cg(ml, shifted.tobsr(blocksize=(3, 3)), b, rtol=1e-8)
+    assert status == krylov.KrylovStatus.NEGATIVE_CURVATURE
+    pool.clear()
+    assert "Krylov solve that did not reach its tolerance" in jr.Status.STABILITY_UNKNOWN.message
+
+
+def test_a_solution_prints_its_outcome_not_its_arrays(cube5):
+    dense, ref, _ = cube5
+    text = repr(ref)
+    assert text.startswith("Solution(CONVERGED: converged in") and "nan" not in text.lower()
+    assert len(text) < 300
