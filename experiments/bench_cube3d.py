@@ -6,7 +6,9 @@ one factorisation of K_ff, the implicit Jacobian of the control point (the cube'
 the paddle's 3 rigid translations from it, and a 1% paddle increment settled from the previous
 state (Newton predictor + chord corrections with that factorisation; the adaptive path only if
 they fail). "Jacobian": ``Model.jacobian`` as a user calls it (its own factorisation).
-"Control loop": ``track_loop`` run for --loop-steps iterations towards a waypoint out of reach
+"Public control step": the same 1% move as a user writes it, ``model.solve(..., initial=last)``
+then ``model.jacobian``, from the factorisations the Solutions keep (``Solution.linear``)
+against the same calls with none kept. "Control loop": ``track_loop`` run for --loop-steps iterations towards a waypoint out of reach
 (every iteration a clamped 1% move), per iteration, with a factorisation per iteration
 (reuse 0) and with kept factorisations (``track(reuse=...)``: quasi-Newton chord corrections on
 a factorisation of an earlier state, refactorised only where a correction cuts |r| by less than
@@ -100,7 +102,17 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
     reuse = model.newton_reuse if reuse is None else reuse
     reuse_s, re = timed(lambda: model.solve({"right": g}, steps=10, reuse=reuse), repeats, "default_solve")
     centre = np.array([[0.5, 0.5, 0.5]])
-    jac_s, _ = timed(lambda: model.jacobian(sol, "right", centre), repeats, "jacobian")
+    jac_s, _ = timed(lambda: model.jacobian(sol._replace(linear=None), "right", centre), repeats, "jacobian")
+
+    def public_step(start, keep):
+        """A control step as a user writes it: solve a 1% paddle move from the last state,
+        then the Jacobian there; ``keep``: from the factorisations the Solutions kept."""
+        start = start if keep else start._replace(linear=None)
+        new = model.solve({"right": g + jnp.array([-0.01, 0.0, 0.0])}, initial=start)
+        return new, model.jacobian(new if keep else new._replace(linear=None), "right", centre)
+
+    public_kept_s, (pub, _) = timed(lambda: public_step(re, True), repeats, "public_step_kept")
+    public_fresh_s, _ = timed(lambda: public_step(re, False), repeats, "public_step_fresh")
 
     ctrl = ControlledModel.of(model, "right", centre)
     lim = Limits.of(steps=1)
@@ -154,6 +166,9 @@ def run_case(n, repeats, solver, reuse, integration="gauss", loop_steps=10, keep
             "full_newton_warm_solve_s": solve_s, "default_reuse": reuse, "default_warm_solve_s": reuse_s,
             "default_status": re.outcome.name, "default_newton_iterations": int(re.iterations),
             "default_max_du_difference": float(abs(re.u - sol.u).max()), "jacobian_s": jac_s, "control_step_s": step_s,
+            "public_step_kept_s": public_kept_s, "public_step_fresh_s": public_fresh_s,
+            "public_step_fresh_over_kept": public_fresh_s / public_kept_s,
+            "public_step_newton": int(pub.iterations),
             "control_step_parts_s": {"factorise": fact_s, "jacobian_from_state": jfrom_s, "settle": settle_s},
             "newton_iteration_parts_s": parts,
             "control_step_newton": int(moved.iterations), "control_step_status": int(moved.status),
@@ -288,6 +303,7 @@ def ratios_of(out: dict) -> dict:
         if key.startswith("cube_") and "loop_ratio_kept_over_every_step" in case:
             ratios[f"control_loop_kept_over_every_step {key}"] = case["loop_ratio_kept_over_every_step"]
             ratios[f"full_newton_over_default_solve {key}"] = case["full_newton_over_default_solve"]
+            ratios[f"public_step_fresh_over_kept {key}"] = case["public_step_fresh_over_kept"]
     for row in out.get("crossover", {}).get("sizes", []):
         for name in ("dense_over_sparse", "mixed_over_double"):
             if name in row:

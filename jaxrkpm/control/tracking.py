@@ -172,6 +172,7 @@ class ControlledModel:
         and a loss of stability shows as a chord that stops contracting (a refactorisation,
         whose stability is then checked)."""
         prob = self.problem
+        sol = sol._replace(linear=None)   # the loop carries its factorisations itself (``state``)
         # a kept factorisation is given up by its contraction (the chord's reuse), not a count
         cap = max(max_corr, self.corrections) if self.keeps else max_corr
 
@@ -279,6 +280,8 @@ def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: L
     dict, reached, achieved, controller Solution, plant Solution)."""
     dim_mp = ctrl.G.shape[0]
     n_wp, n_cp = desired.shape
+    # the loop carries its own factorisations: the ones the Solutions kept stay out of its carry
+    c0, p0 = c0._replace(linear=None), p0._replace(linear=None)
 
     def g_of(side, g_base, mp):
         return g_base + jnp.einsum("a,abi->bi", mp, side.G)

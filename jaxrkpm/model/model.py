@@ -2,6 +2,7 @@
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Mapping
 
@@ -498,15 +499,21 @@ class Model:
         auto = options.get("stable_branch") is None
         lim = Limits.of(steps, max_iter, max_cuts)
         loads = jnp.asarray(loads, jnp.float64)
+        eager = all(map(_is_concrete, jax.tree.leaves((g, loads, params, start))))
         if options.get("reuse") is None:
-            eager = all(map(_is_concrete, jax.tree.leaves((g, loads, params, start))))
             options["reuse"] = self.newton_reuse if eager else 0.0
         options = {k: v for k, v in options.items() if not (k == "stable_branch" and v is None)}
         problem = self.problem(params)
-        sol = solve_path_jit(self.solver(**options), problem, lim, start.u, start.g, g,
-                             jnp.asarray(start.load, jnp.float64), loads)
+        # eager solves keep the linear solver's last state in the Solution, and start from the
+        # one the initial Solution kept: the predictor (modified Newton) or the preconditioner
+        # (sparse) of the first step, and the implicit Jacobian at the new state, need no
+        # factorisation of their own (``experiments/bench_cube3d.py``'s public-API control step)
+        kept = self._kept_linear(start, problem) if eager else None
+        sol = solve_path_jit(self._driver(options, eager), problem, lim, start.u, start.g, g,
+                             jnp.asarray(start.load, jnp.float64), loads, kept)
         status = _concrete(sol.status)
-        if auto and status == Status.UNSTABLE_TANGENT and (branching := self.solver(**options, stable_branch=True)).switches:
+        if auto and status == Status.UNSTABLE_TANGENT and (
+                branching := self._driver({**options, "stable_branch": True}, eager)).switches:
             rest = solve_path_jit(branching, problem, lim, sol.u, sol.g, g, sol.load, loads)
             sol = joined(sol, rest)
             status = _concrete(sol.status)
@@ -514,6 +521,24 @@ class Model:
             # under jax.jacfwd / jax.grad the fields are tracers: the error carries their values
             raise SolveError(Solution(*jax.tree.map(_concrete, tuple(sol))))
         return sol
+
+    def _driver(self, options, eager: bool) -> LoadPath:
+        """``solver(**options)``, keeping the linear state in the Solution where ``eager``."""
+        driver = self.solver(**options)
+        return dataclasses.replace(driver, keep_linear=True) if eager else driver
+
+    def _kept_linear(self, sol: Solution, problem):
+        """``sol.linear`` where it is a state of this model's linear solver (a Solution of
+        another model, or one that kept none: None)."""
+        state = sol.linear
+        if state is None:
+            return None
+        want = jax.eval_shape(lambda: self.linear.empty(problem, jnp.float64))
+        if jax.tree.structure(state) != jax.tree.structure(want):
+            return None
+        same = all(np.shape(a) == b.shape and jnp.result_type(a) == b.dtype
+                   for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(want)))
+        return state if same else None
 
     @property
     def newton_reuse(self) -> float:
@@ -561,14 +586,18 @@ class Model:
         return (*self._point_tables(points), self.directions(driven, rigid))
 
     def jacobian(self, sol: Solution, driven: str, points, method: str = "implicit",
-                 eps: float = 1e-6, scheme: str = "central", rigid: bool = True, params=None):
+                 eps: float = 1e-6, scheme: str = "central", rigid: bool = True, params=None,
+                 rtol: float = 1e-12):
         """J = d(displacement at points)/d(displacement of the driven set): (P*d, m), m = d for
         a rigidly driven set (else n_set*d, per particle and component).
 
-        "implicit": one factorisation of K_ff at the converged state and m solves
-        K_ff du_f = -K_fg dg (no re-solve). "fd": the thesis' Algorithm 4: perturb each
-        direction by eps, re-solve from the converged state, restore (``scheme`` "forward"
-        or "central")."""
+        "implicit": m solves K_ff du_f = -K_fg dg at the converged state (no re-solve), with a
+        factorisation of K_ff there; where the Solution kept its solve's last factorisation
+        (``Solution.linear``, of an iterate next to it), conjugate gradients with the exact
+        Hessian-vector products, preconditioned by it, to the relative residual ``rtol``
+        instead (no factorisation). "fd": the thesis' Algorithm 4: perturb each direction by
+        eps, re-solve from the converged state, restore (``scheme`` "forward" or
+        "central")."""
         if method not in ("implicit", "fd"):
             raise ValueError(f"unknown Jacobian method {method!r}: choose 'implicit' or 'fd'")
         if scheme not in ("forward", "central"):
@@ -577,7 +606,12 @@ class Model:
         idx, psi, G = self._jacobian_tables(points, driven, rigid)
         P = idx.shape[0]
         if method == "implicit":
-            J = implicit_jacobian(self.problem(params), self.linear, sol.u, sol.g, sol.load, G, idx, psi)
+            if not (isinstance(rtol, (int, float)) and 0 < rtol < 1):
+                raise ValueError(f"rtol must be a number in (0, 1), got {rtol!r}")
+            problem = self.problem(params)
+            kept = self._kept_linear(sol, problem)
+            J = implicit_jacobian(problem, self.linear, sol.u, sol.g, sol.load, G, idx, psi, kept,
+                                  refine=0.0 if kept is None else float(rtol))
             return J.reshape(P * self.dim, -1)
         if not (np.isfinite(eps) and eps > 0):
             raise ValueError(f"eps must be positive, got {eps}")

@@ -106,8 +106,9 @@ def point_jacobian(problem, idx, psi, u, g, du, dG):
     return jnp.moveaxis(dU, 0, -1)
 
 
-@partial(jax.jit, static_argnames=("linear",))
-def implicit_jacobian(problem, linear, u, g, load, dG, idx, psi, state=None):
-    """d(displacement at points)/d(direction) for the m directions dG: (P, d, m)."""
-    du = response(problem, linear, u, g, load, dG, state)
+@partial(jax.jit, static_argnames=("linear", "refine"))
+def implicit_jacobian(problem, linear, u, g, load, dG, idx, psi, state=None, refine: float = 0.0):
+    """d(displacement at points)/d(direction) for the m directions dG: (P, d, m) (``state``,
+    ``refine``: see ``sensitivity``)."""
+    du = response(problem, linear, u, g, load, dG, state, refine)
     return point_jacobian(problem, idx, psi, u, g, du, dG)

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 from .branch import BranchSwitch
 from .iterate import iterate, when
 from .linalg.dense import DenseSolver
-from .newton import Newton, _count, _positive
+from .newton import Newton, _count, _flag, _positive
 from .results import CRITICAL_EIGS, Critical, Limits, Solution, Status
 
 
@@ -84,7 +84,12 @@ class LoadPath:
     they would. So a solve that cannot proceed costs at most (1 + failed_work) x the larger of
     the work it did and a converging solve's nominal work, plus two attempts, whatever
     max_cuts allows (without the budget, a solve stuck at a limit point spent tens of times a
-    converging solve's work)."""
+    converging solve's work).
+
+    ``keep_linear``: the Solution carries the linear solver's state where the solve ended
+    (``Solution.linear``), so that the next solve from it and the implicit Jacobian at it need
+    no factorisation of their own. Off inside batched and differentiated solves, where the
+    state would be stacked or differentiated for nothing."""
 
     newton: Newton = Newton()
     easy: int = 4
@@ -92,6 +97,7 @@ class LoadPath:
     branch: BranchSwitch | None = None
     locate: int = 6
     failed_work: int = 2
+    keep_linear: bool = False   # the Solution carries the linear solver's last state
 
     def __post_init__(self):
         if not isinstance(self.newton, Newton) or self.newton.chord:
@@ -100,6 +106,7 @@ class LoadPath:
         _positive("growth", self.growth)
         _count("locate", self.locate)
         _count("failed_work", self.failed_work)
+        _flag("keep_linear", self.keep_linear)
         if self.branch is not None and not isinstance(self.branch, BranchSwitch):
             raise ValueError(f"branch must be a BranchSwitch or None, got {self.branch!r}")
 
@@ -178,4 +185,4 @@ class LoadPath:
         status = jnp.where((s.status == 0) & s.unknown, Status.STABILITY_UNKNOWN, s.status)
         g, load = path.at(s.t)
         return Solution(s.u, g, load, status, s.t, s.iterations, s.steps, s.cuts, s.residual_norm, s.branch,
-                        s.critical)
+                        s.critical, s.linear if self.keep_linear else None)

@@ -3,7 +3,7 @@ every field), the critical points it passed, and the dynamic ``Limits`` it ran u
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -121,7 +121,11 @@ class Solution(NamedTuple):
     ``status`` a Status code. ``branch`` counts the critical points this solve passed by
     switching to a stable branch (0: the state lies on the branch the solve started on;
     CONVERGED with branch > 0: a stable state of a secondary, bifurcated branch) and
-    ``critical`` records them (see ``Critical``)."""
+    ``critical`` records them (see ``Critical``). ``linear``: the linear solver's last state
+    (its factorisation of K_ff at the last tangent the solve made, an iterate near the state
+    returned), where the solve keeps it (an eager ``Model.solve``; None otherwise): a solve
+    started from this Solution and the implicit Jacobian at it use it instead of factorising
+    again."""
 
     u: jax.Array
     g: jax.Array
@@ -134,6 +138,7 @@ class Solution(NamedTuple):
     residual_norm: jax.Array
     branch: jax.Array     # () critical points passed by switching to a stable branch (0: primary)
     critical: "Critical"  # the critical points this solve passed (fixed size, NaN where unfilled)
+    linear: Any = None    # the linear solver's last state, where kept (LoadPath.keep_linear)
 
     def __repr__(self) -> str:
         """The outcome and the shapes, not the arrays (the critical-point record is NaN where

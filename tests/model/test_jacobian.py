@@ -67,6 +67,54 @@ def test_jacfwd_through_solve_equals_implicit_jacobian(planar):
     assert np.abs(np.asarray(Jd) - np.asarray(model.jacobian(sol, "paddle", CP))).max() < 1e-10
 
 
+def test_solution_keeps_its_linear_state_where_eager(planar):
+    """An eager solve keeps its last factorisation in the Solution; a traced one keeps none
+    (it would be stacked or differentiated for nothing)."""
+    model, sol = planar
+    assert sol.linear is not None
+    traced = jax.jit(lambda v: model.solve({"paddle": v}, steps=2))(jnp.array([-0.08, 0.05]))
+    assert traced.linear is None
+    assert np.abs(np.asarray(traced.u) - np.asarray(sol.u)).max() < 1e-12
+
+
+def test_jacobian_and_next_solve_from_the_kept_state(planar):
+    """The implicit Jacobian refined from the kept factorisation (an iterate next to the
+    converged state) equals the one from a factorisation at it; a solve started from a
+    Solution that kept its state lands on the same equilibrium as one started from a
+    Solution that kept none."""
+    model, sol = planar
+    bare = sol._replace(linear=None)
+    Jk = np.asarray(model.jacobian(sol, "paddle", CP))
+    Jb = np.asarray(model.jacobian(bare, "paddle", CP))
+    assert np.abs(Jk - Jb).max() < 1e-10 * np.abs(Jb).max()
+    g = {"paddle": jnp.array([-0.06, 0.07])}
+    nk, nb = model.solve(g, initial=sol), model.solve(g, initial=bare)
+    assert nk.status == nb.status == Status.CONVERGED
+    assert np.abs(np.asarray(nk.u) - np.asarray(nb.u)).max() < 1e-9
+
+
+def test_sparse_jacobian_from_the_kept_state_factorises_nothing(planar):
+    """With the sparse solver, the Jacobian at a Solution that kept its factorisation costs no
+    factorisation (conjugate gradients preconditioned by it), one without costs one."""
+    from jaxrkpm.solvers.linalg import factorisations as jsparse
+
+    model, _ = planar
+    sparse = jr.Model(model.body, model.material, essential={n: model.set_indices(n) for n in model.set_names},
+                      solver="sparse")
+    sol = sparse.solve({"paddle": jnp.array([-0.08, 0.05])}, steps=2)
+    assert sol.linear is not None
+    jsparse.reset_stats()
+    Jk = np.asarray(sparse.jacobian(sol, "paddle", CP))
+    kept = dict(jsparse.STATS)
+    jsparse.reset_stats()
+    Jb = np.asarray(sparse.jacobian(sol._replace(linear=None), "paddle", CP))
+    fresh = dict(jsparse.STATS)
+    assert kept["factorisations"] == 0 and fresh["factorisations"] == 1, (kept, fresh)
+    assert np.abs(Jk - Jb).max() < 1e-10 * np.abs(Jb).max()
+    with pytest.raises(ValueError, match="rtol"):
+        sparse.jacobian(sol, "paddle", CP, rtol=2.0)
+
+
 def test_grad_wrt_prescribed_and_material_match_fd(planar):
     model, _ = planar
     g0 = jnp.array([-0.08, 0.05])
