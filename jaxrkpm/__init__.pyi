@@ -14,13 +14,12 @@ from .control.tracking import (
     waypoint_table as waypoint_table,
 )
 from .discretise.body import Body as Body
-from .discretise.mesh import (
+from .discretise.mesh import read_mesh as read_mesh, refine_mesh as refine_mesh
+from .discretise.surface import (
     cylinder as cylinder,
     half_ellipsoid as half_ellipsoid,
     lobe as lobe,
     mirrored as mirrored,
-    read_mesh as read_mesh,
-    refine_mesh as refine_mesh,
     tetrahedralise as tetrahedralise,
 )
 from .io.plot import deformed_particles as deformed_particles, deformed_surface as deformed_surface

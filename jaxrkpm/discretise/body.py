@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 from . import mesh
 from . import polygons
 from . import rk
+from . import surface
 
 
 def _check_spacing(spacing) -> float:
@@ -194,9 +195,9 @@ class Body:
         spacing = _check_spacing(spacing)
         if isinstance(max_cells, (bool, np.bool_)) or not isinstance(max_cells, (int, np.integer)) or max_cells < 1:
             raise ValueError(f"max_cells must be a positive int, got {max_cells!r}")
-        points, triangles = mesh.read_surface(source)
-        return Body.from_mesh(mesh.tetrahedralise(points, triangles, spacing, mesh.source_name(source),
-                                                  int(max_cells)))
+        points, triangles = surface.read_surface(source)
+        return Body.from_mesh(surface.tetrahedralise(points, triangles, spacing, mesh.source_name(source),
+                                                     int(max_cells)))
 
     @cached_property
     def _mesh_boundary(self):

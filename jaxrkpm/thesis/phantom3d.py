@@ -244,10 +244,10 @@ class Phantom3D(NeedleTrack):
     def mesh(self):
         """The tetrahedral half-ellipsoid (gmsh, at ``spacing``) conforming to the needle's
         lines (``tracks``), mirror-symmetric when the needle lies in y = 0: a meshio.Mesh."""
-        from ..discretise import mesh
-        return mesh.half_ellipsoid(self.semi_axes, self.spacing, embed_segments=self.tracks,
-                                   segment_spacing=self.track_spacing,
-                                   symmetric="y" if self.mirror_symmetric else None)
+        from ..discretise import surface
+        return surface.half_ellipsoid(self.semi_axes, self.spacing, embed_segments=self.tracks,
+                                      segment_spacing=self.track_spacing,
+                                      symmetric="y" if self.mirror_symmetric else None)
 
     @property
     def body(self) -> Body:

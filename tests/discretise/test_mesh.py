@@ -15,6 +15,7 @@ import jaxrkpm as jr
 from jaxrkpm.discretise import quadrature as integration
 from jaxrkpm.discretise import mesh
 from jaxrkpm.discretise import scni
+from jaxrkpm.discretise import surface as surf
 from jaxrkpm.mechanics.loads import nodal_forces
 
 RADII = (1.0, 1.0, 0.6)                  # the half-ellipsoid "breast" on its base z = 0
@@ -24,7 +25,7 @@ MAT = jr.NeoHookean(1.0, 1.0)
 
 @pytest.fixture(scope="module")
 def breast_mesh():
-    return mesh.half_ellipsoid(RADII, 0.25)
+    return surf.half_ellipsoid(RADII, 0.25)
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +93,7 @@ def test_half_ellipsoid_body(breast):
 def test_cylinder_and_lobe_shapes():
     from concurrent.futures import ThreadPoolExecutor
     with ThreadPoolExecutor(2) as pool:                  # gmsh's global state, off the main thread
-        cyl_mesh, again = pool.map(lambda _: mesh.cylinder(0.5, 1.0, 0.25), range(2))
+        cyl_mesh, again = pool.map(lambda _: surf.cylinder(0.5, 1.0, 0.25), range(2))
     cyl = jr.Body.from_mesh(cyl_mesh)
     assert np.array_equal(jr.Body.from_mesh(again).cells, cyl.cells)
     assert set(cyl.tags) == {"bottom", "top", "side", "volume"}
@@ -101,7 +102,7 @@ def test_cylinder_and_lobe_shapes():
     side = cyl.X[cyl.tagged("side")]
     assert np.abs(np.hypot(side[:, 0], side[:, 1]) - 0.5).max() < 1e-9
     assert abs(cyl.measure / (np.pi * 0.25) - 1) < 0.05
-    lobe = jr.Body.from_mesh(mesh.lobe(2.0, 1.0, 0.5, 0.15))
+    lobe = jr.Body.from_mesh(surf.lobe(2.0, 1.0, 0.5, 0.15))
     assert set(lobe.tags) == {"surface", "volume"}
     assert np.array_equal(lobe.tagged("surface"), lobe.surface_particles())
     big, small = 4 / 3 * np.pi * 0.7 * 0.5 * 0.25, 4 / 3 * np.pi * 0.5 * 0.35 * 0.175   # semi-axes
@@ -177,7 +178,7 @@ _body_force = jax.jit(jax.vmap(lambda X: -jnp.trace(jax.jacfwd(_pk1)(X), axis1=1
 
 
 def manufactured_model(spacing, integration_="gauss"):
-    body = jr.Body.from_mesh(mesh.cylinder(0.5, 1.0, spacing))
+    body = jr.Body.from_mesh(surf.cylinder(0.5, 1.0, spacing))
     surface = body.surface_particles()
     return jr.Model(body, MAT, integration=integration_, essential={"surface": surface},
                     body_force=lambda X: np.asarray(_body_force(jnp.asarray(X))))
@@ -336,7 +337,7 @@ def test_bad_meshes_get_named_errors(breast_mesh, tmp_path):
     with pytest.raises(ValueError, match="too coarse"):
         jr.Body.from_surface(write_surface(tmp_path / "cube.ply", P, T), 0.8)
     with pytest.raises(ValueError, match="too coarse"):
-        mesh.half_ellipsoid(RADII, 0.4)                   # the breast is 0.6 thick
+        surf.half_ellipsoid(RADII, 0.4)                   # the breast is 0.6 thick
 
     tets = breast_mesh.cells_dict["tetra"].copy()       # (mixed vertex orders: test_mesh_hostile.py)
     flat = meshio.Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0.0]]),
@@ -387,7 +388,7 @@ def test_embedded_segments_and_mirror_symmetric_shapes():
     track); ``symmetric``: the half meshed and mirrored, vertex for vertex, tags on both halves."""
     a, b = np.array([-0.9, 0.0, 0.2]), np.array([0.3, 0.0, 0.2])
     inside = a + [0.03, 0, 0]                        # a segment in the mirror plane starts inside
-    plain, fine, mirror = (jr.Body.from_mesh(mesh.half_ellipsoid(RADII, 0.25, **kw)) for kw in (
+    plain, fine, mirror = (jr.Body.from_mesh(surf.half_ellipsoid(RADII, 0.25, **kw)) for kw in (
         {}, {"embed_segments": [(a, b)], "segment_spacing": 0.1},
         {"embed_segments": [(inside, b)], "segment_spacing": 0.1, "symmetric": "y"}))
     assert len(plain.near_segment(a, b, 1e-9)) < 4
@@ -405,10 +406,10 @@ def test_embedded_segments_and_mirror_symmetric_shapes():
     assert np.array_equal(mirror.tagged("skin"), np.intersect1d(mirror.surface_particles(), mirror.tagged("skin")))
     assert np.all(np.isin(mirror.surface_particles(), np.union1d(mirror.tagged("skin"), mirror.tagged("base"))))
     with pytest.raises(ValueError, match="leaves the half-ellipsoid"):
-        mesh.half_ellipsoid(RADII, 0.25, embed_segments=[(a, [1.5, 0, 0.2])])
+        surf.half_ellipsoid(RADII, 0.25, embed_segments=[(a, [1.5, 0, 0.2])])
     with pytest.raises(ValueError, match="mirrored half"):
-        mesh.half_ellipsoid(RADII, 0.25, embed_segments=[([0, -0.2, 0.2], b)], symmetric="y")
+        surf.half_ellipsoid(RADII, 0.25, embed_segments=[([0, -0.2, 0.2], b)], symmetric="y")
     with pytest.raises(ValueError, match="pairs of 3D points"):
-        mesh.half_ellipsoid(RADII, 0.25, embed_segments=[(0, 1)])
+        surf.half_ellipsoid(RADII, 0.25, embed_segments=[(0, 1)])
     with pytest.raises(ValueError, match="symmetric"):
-        mesh.half_ellipsoid(RADII, 0.25, symmetric="z")
+        surf.half_ellipsoid(RADII, 0.25, symmetric="z")

@@ -139,7 +139,7 @@ def test_unreadable_file_is_a_named_error_not_an_exit(tmp_path):
 
 
 def test_surface_input_is_checked_before_meshing(tmp_path, monkeypatch):
-    from jaxrkpm.discretise import mesh
+    from jaxrkpm.discretise import surface
     from tests.discretise.test_mesh import cube_surface, write_surface
 
     P, T = cube_surface()
@@ -147,7 +147,7 @@ def test_surface_input_is_checked_before_meshing(tmp_path, monkeypatch):
 
     def no_meshing(*a, **k):
         raise AssertionError("gmsh was started")
-    monkeypatch.setattr(mesh, "gmsh_session", no_meshing)
+    monkeypatch.setattr(surface, "gmsh_session", no_meshing)
     with pytest.raises(TypeError, match=r"spacing must be a positive number, got '0.3' \(str\)"):
         jr.Body.from_surface(path, spacing="0.3")
     with pytest.raises(ValueError, match="spacing 0.002 is too fine for "):
@@ -160,9 +160,9 @@ def test_surface_input_is_checked_before_meshing(tmp_path, monkeypatch):
     Q = P.copy()
     Q[3, 0] = np.nan
     with pytest.raises(ValueError, match="non-finite coordinates"):
-        mesh.tetrahedralise(Q, T, 0.3)
+        surface.tetrahedralise(Q, T, 0.3)
     with pytest.raises(ValueError, match="index past"):
-        mesh.tetrahedralise(P, np.r_[T, [[0, 1, 8]]], 0.3)
+        surface.tetrahedralise(P, np.r_[T, [[0, 1, 8]]], 0.3)
 
 
 def test_refining_past_the_bound_is_refused(box):
