@@ -9,7 +9,7 @@ These names are supported, but they follow the implementation more closely than
 from .base.outcome import Outcome
 from .base.programs import memory_mappings, release_compiled_programs
 from .control.batching import batch_axes, default_batching, map_batch, run_batched, stack_models
-from .control.tracking import ControlledModel, predicted_change, response_trend, track_loop
+from .control.tracking import ControlledModel, Tracker, predicted_change, response_trend, track_loop
 from .discretise.constraints import EssentialSets, Transformation
 from .mechanics.assembly import Ops, Params
 from .mechanics.problem import Problem
@@ -32,7 +32,7 @@ from .solvers.results import Critical, Limits
 __all__ = [
     "Outcome", "memory_mappings", "release_compiled_programs",
     "batch_axes", "default_batching", "map_batch", "run_batched", "stack_models",
-    "ControlledModel", "predicted_change", "response_trend", "track_loop",
+    "ControlledModel", "Tracker", "predicted_change", "response_trend", "track_loop",
     "EssentialSets", "Transformation",
     "Ops", "Params", "Problem",
     "SolverChoice",

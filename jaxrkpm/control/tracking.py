@@ -1,6 +1,7 @@
 """Jacobian path tracking (thesis Algorithm 3): MP <- MP + K J^-1 e.
 
-The whole tracking run is one jitted while-loop: at each iteration the controller model's
+The whole tracking run is one jitted while-loop (``Tracker``, a driver of
+``jaxrkpm.solvers.iterate.iterate``): at each iteration the controller model's
 implicit Jacobian J = d CP / d MP is taken at its converged state, the manipulation point
 (a rigidly driven essential set) moves by K J^+ e clamped to ``clamp`` per component, and
 the models re-equilibrate. The plant (whose control point is measured) is the controller
@@ -25,7 +26,7 @@ from __future__ import annotations
 
 from functools import partial
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -36,10 +37,10 @@ from ..discretise.polygons import distance_to_segment
 from ..mechanics.problem import Problem
 from ..model.model import Model
 from ..solvers.implicit import point_jacobian, response
-from ..solvers.iterate import when
+from ..solvers.iterate import iterate, when
 from ..solvers.linalg.dense import DenseSolver
 from ..solvers.linalg.quasi_newton import QuasiNewton
-from ..solvers.newton import Chord, Newton
+from ..solvers.newton import Chord, Newton, _count, _flag
 from ..solvers.path import LoadPath
 from ..solvers.results import Limits, Solution, Status, reached_equilibrium
 
@@ -269,158 +270,283 @@ def predicted_change(du, dmp, trend=None):
     return first if trend is None else first + 0.5 * jnp.einsum("a,aij->ij", dmp, trend)
 
 
-@partial(jax.jit, static_argnames=("same", "max_iter", "max_steps", "window", "max_corr"))
-def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: Limits, c0: Solution,
-               p0: Solution, desired, gain, clamp, tol, damping, max_iter: int, max_steps: int,
-               window: int, max_corr: int = 6):
-    """Algorithm 3 as one while-loop (see ``track`` for the arguments). Per iteration: one
-    factorisation of the controller at its converged state serves the Jacobian and the
-    settling of the next state (``ControlledModel.settle``); a separate plant is settled
-    the same way with its own factorisation. Returns (iterations, TrackStatus code, history
-    dict, reached, achieved, controller Solution, plant Solution)."""
-    dim_mp = ctrl.G.shape[0]
-    n_wp, n_cp = desired.shape
-    # the loop carries its own factorisations: the ones the Solutions kept stay out of its carry
-    c0, p0 = c0._replace(linear=None), p0._replace(linear=None)
+class TrackModels(NamedTuple):
+    """The tracking loop's problem: the controller (whose Jacobian drives the moves) and the
+    plant (moved and measured; the controller itself where ``Tracker.same``)."""
 
-    def g_of(side, g_base, mp):
-        return g_base + jnp.einsum("a,abi->bi", mp, side.G)
+    ctrl: ControlledModel
+    plant: ControlledModel
 
-    cg_base, pg_base = c0.g, p0.g   # the manipulation point moves relative to the start
-    # the chords' round-off floors, once, at the start: the floor is a stiffness times machine
-    # epsilon with a wide margin over the round-off actually left in |r| (``Tolerance``), and
-    # the tracked object moves by small increments, so the floor of the start serves the whole
-    # path; its own pass through the material costs as much as a chord correction
-    # (``experiments/bench_tracking.py``)
-    c_floor = ctrl.roundoff_floor(c0)
-    p_floor = c_floor if same else plant.roundoff_floor(p0)
-    H = max_steps + 1
-    hist = dict(mp=jnp.zeros((H, dim_mp)), cp=jnp.zeros((H, n_cp)), error=jnp.zeros(H),
-                waypoint=jnp.zeros(H, jnp.int32), newton=jnp.zeros(H, jnp.int32),
-                solve_status=jnp.zeros(H, jnp.int32))
-    cp0 = plant.measure(p0)
-    hist["cp"] = hist["cp"].at[0].set(cp0)
-    hist["error"] = hist["error"].at[0].set(jnp.linalg.norm(desired[0] - cp0))
 
-    class S(NamedTuple):
-        k: jax.Array
-        wp: jax.Array
-        it_wp: jax.Array
-        best: jax.Array
-        since_best: jax.Array
-        mp: jax.Array
-        c: Solution
-        p: Solution
-        cp: jax.Array
-        hist: dict
-        reached: jax.Array
-        achieved: jax.Array
-        status: jax.Array
-        c_state: object   # the kept factorisations (``ControlledModel.keeps``; else unused)
-        p_state: object
-        du: jax.Array     # the controller's last response
-        last_move: jax.Array   # the move of the last iteration (zero where it hit a waypoint or failed)
-        du_next: jax.Array     # the response predicted at the current state (keeps: where its CG starts)
+class TrackArgs(NamedTuple):
+    """The tracking loop's constants (arrays: other values do not recompile)."""
 
-    class Step(NamedTuple):   # what one iteration changes (the history is written outside the cond)
-        mp: jax.Array
-        c: Solution
-        p: Solution
-        cp: jax.Array
-        newton: jax.Array
-        solve_status: jax.Array
-        c_state: object
-        p_state: object
-        du: jax.Array
-        trend: jax.Array   # the response's predicted change over the move (``response_trend``)
+    lim: Limits          # the adaptive solve's limits, where a settle needs it
+    desired: jax.Array   # (W, C*d) the waypoints
+    gain: jax.Array      # () K
+    clamp: jax.Array     # () the largest component of a move
+    tol: jax.Array       # () a waypoint is reached when |e| < tol
+    damping: jax.Array   # () of the least-squares increment (``control_increment``)
+    c_base: jax.Array    # (Nb, d) the controller's prescribed values at the start: the
+    p_base: jax.Array    # (Nb, d) plant's; the manipulation point moves relative to them
+    c_floor: jax.Array   # () the controller's chord round-off floor (``Tracker.constants``)
+    p_floor: jax.Array   # () the plant's
 
-    def cond(s):
-        return (s.status < 0) & (s.wp < n_wp)
 
-    def factorisation(side, sol, kept):
-        return kept if side.keeps else side.factorise(sol)
+class History(NamedTuple):
+    """The history of a tracking run (``TrackResult`` holds it as numpy arrays): arrays of
+    max_steps + 1 rows, or one row of them (``Tracker.record``)."""
 
-    def step(s, e):
-        state = factorisation(ctrl, s.c, s.c_state)
+    mp: jax.Array            # (H, d_mp) manipulation point displacement
+    cp: jax.Array            # (H, C*d) control point displacement (plant)
+    error: jax.Array         # (H,) |e| against the current waypoint
+    waypoint: jax.Array      # (H,) its index
+    newton: jax.Array        # (H,) nonlinear iterations of the step
+    solve_status: jax.Array  # (H,) the worse of the two solves' statuses
+
+
+class TrackState(NamedTuple):
+    """The tracking loop's state between iterations (``Tracker``)."""
+
+    k: jax.Array             # () iterations run (history rows written after the first)
+    wp: jax.Array            # () the waypoint tracked
+    it_wp: jax.Array         # () iterations spent on it
+    best: jax.Array          # () the smallest error towards it that counted as progress
+    since_best: jax.Array    # () iterations since that error
+    mp: jax.Array            # (d_mp,) manipulation point displacement
+    c: Solution              # the controller's last converged state
+    p: Solution              # the plant's
+    cp: jax.Array            # (C*d,) control point displacement there (plant)
+    hist: History
+    reached: jax.Array       # (W,) iteration at which each waypoint was reached (-1 if not)
+    achieved: jax.Array      # (W, C*d) the control point there
+    status: jax.Array        # () -1 while running, else the TrackStatus
+    c_state: Any             # the kept factorisations (``ControlledModel.keeps``; else unused)
+    p_state: Any
+    du: jax.Array            # (d_mp, Nf, d) the controller's last response
+    last_move: jax.Array     # (d_mp,) the last iteration's move (zero where it hit a waypoint or failed)
+    du_next: jax.Array       # the response predicted at the current state (keeps: where its CG starts)
+
+
+class TrackStep(NamedTuple):
+    """What one control iteration changes (``Tracker.move``)."""
+
+    mp: jax.Array
+    c: Solution
+    p: Solution
+    cp: jax.Array
+    newton: jax.Array
+    solve_status: jax.Array
+    c_state: Any
+    p_state: Any
+    du: jax.Array
+    trend: jax.Array   # the response's predicted change over the move (``response_trend``)
+
+
+class Tracked(NamedTuple):
+    """``Tracker.run``'s result: what ``TrackResult`` is made of (the history in full)."""
+
+    iterations: jax.Array
+    status: jax.Array   # the TrackStatus
+    hist: History
+    reached: jax.Array
+    achieved: jax.Array
+    controller: Solution
+    plant: Solution
+
+
+@dataclass(frozen=True)
+class Tracker:
+    """Algorithm 3 as a driver of ``iterate`` (see ``track`` for the settings): each ``step``
+    is one control iteration over ``TrackModels`` with ``TrackArgs``. One factorisation of the
+    controller at its converged state serves the Jacobian and the settling of the next state
+    (``ControlledModel.settle``); a separate plant is settled the same way with its own.
+
+    same        the plant is the controller (``TrackModels.plant`` is the controller, not
+                solved twice)
+    max_iter    iterations per waypoint (then ITERATION_CAP)
+    max_steps   iterations in all (then HISTORY_FULL; the history has max_steps + 1 rows)
+    window      iterations without a 1% error decrease (then NO_PROGRESS)
+    max_corr    chord corrections of a settle (``ControlledModel.settle``)
+
+    Static: ``run`` compiles once per setting, the models' arrays and ``TrackArgs`` traced."""
+
+    same: bool
+    max_iter: int
+    max_steps: int
+    window: int
+    max_corr: int = 6
+
+    def __post_init__(self):
+        _flag("same", self.same)
+        for name in ("max_iter", "max_steps", "window"):
+            _count(name, getattr(self, name), 1)
+        _count("max_corr", self.max_corr)
+
+    @partial(jax.jit, static_argnums=0)
+    def run(self, ctrl: ControlledModel, plant: ControlledModel, lim: Limits, c0: Solution, p0: Solution,
+            desired, gain, clamp, tol, damping) -> Tracked:
+        """Track ``desired`` (W, C*d) from the equilibria c0 and p0 (one jitted while-loop)."""
+        models = TrackModels(ctrl, plant)
+        # the loop carries its own factorisations: the ones the Solutions kept stay out of its carry
+        c0, p0 = c0._replace(linear=None), p0._replace(linear=None)
+        args = self.constants(models, lim, c0, p0, desired, gain, clamp, tol, damping)
+        s = iterate(self, models, args, self.init(models, args, c0, p0))
+        status = jnp.where(s.status < 0, TrackStatus.DONE, s.status)
+        return Tracked(s.k, status, s.hist, s.reached, s.achieved, s.c, s.p)
+
+    def constants(self, models: TrackModels, lim, c0, p0, desired, gain, clamp, tol, damping) -> TrackArgs:
+        # the chords' round-off floors, once, at the start: the floor is a stiffness times machine
+        # epsilon with a wide margin over the round-off actually left in |r| (``Tolerance``), and
+        # the tracked object moves by small increments, so the floor of the start serves the whole
+        # path; its own pass through the material costs as much as a chord correction
+        # (``experiments/bench_tracking.py``)
+        c_floor = models.ctrl.roundoff_floor(c0)
+        p_floor = c_floor if self.same else models.plant.roundoff_floor(p0)
+        return TrackArgs(lim, desired, gain, clamp, tol, damping, c0.g, p0.g, c_floor, p_floor)
+
+    def init(self, models: TrackModels, args: TrackArgs, c0: Solution, p0: Solution) -> TrackState:
+        ctrl, plant = models
+        dim_mp = ctrl.G.shape[0]
+        n_wp, n_cp = args.desired.shape
+        H = self.max_steps + 1
+        hist = History(jnp.zeros((H, dim_mp)), jnp.zeros((H, n_cp)), jnp.zeros(H), jnp.zeros(H, jnp.int32),
+                       jnp.zeros(H, jnp.int32), jnp.zeros(H, jnp.int32))
+        cp0 = plant.measure(p0)
+        hist = hist._replace(cp=hist.cp.at[0].set(cp0),
+                             error=hist.error.at[0].set(jnp.linalg.norm(args.desired[0] - cp0)))
+        c_state0 = self._first_factorisation(ctrl, c0)
+        p_state0 = c_state0 if self.same else self._first_factorisation(plant, p0)
+        return TrackState(jnp.array(0), jnp.array(0), jnp.array(0), jnp.array(jnp.inf), jnp.array(0), jnp.zeros(dim_mp),
+                          c0, p0, cp0, hist, -jnp.ones(n_wp, jnp.int32), jnp.zeros((n_wp, n_cp)), jnp.array(-1),
+                          c_state0, p_state0, jnp.zeros((dim_mp,) + c0.u.shape, c0.u.dtype), jnp.zeros(dim_mp),
+                          jnp.zeros((dim_mp,) + c0.u.shape, c0.u.dtype))
+
+    def terminate(self, s: TrackState):
+        return (s.status >= 0) | (s.wp >= s.reached.shape[0])
+
+    def step(self, models: TrackModels, args: TrackArgs, s: TrackState) -> TrackState:
+        """One control iteration; where the control point is already at its waypoint (|e| <
+        tol), the next waypoint instead: no solve counts, the states and history stay."""
+        e = args.desired[s.wp] - s.cp
+        hit = jnp.linalg.norm(e) < args.tol
+        # the step is taken and discarded on the (few) iterations that hit a waypoint: cheaper
+        # than a lax.cond around it on every iteration. The factorisations it made are kept
+        # even then (and after a failed solve): each is of a nearby state, which is all a kept
+        # factorisation is (the residual test decides convergence), and a select would copy
+        # them (3 n^2 doubles) at every iteration
+        new = self.move(models, args, s, e)
+        st = self.taken(s, new, hit)
+        moved = ~hit
+        ok = reached_equilibrium(st.c.status) & reached_equilibrium(st.p.status)
+        k = s.k + moved
+        # a failed solve keeps the last converged states: the history row of that iteration
+        # holds them (with the failed solve's status), never the attempted, unbalanced move
+        c, p, mp, cp = jax.tree.map(lambda a, b: jnp.where(ok, a, b), (st.c, st.p, st.mp, st.cp),
+                                    (s.c, s.p, s.mp, s.cp))
+        e_new = jnp.linalg.norm(args.desired[s.wp] - cp)
+        best, since = self.progress(s, e_new)
+        at = jnp.where(moved, k, self.max_steps + 1)   # out of range: dropped (no row for a waypoint hit)
+        hist = self.record(s.hist, at, History(mp, cp, e_new, s.wp, st.newton, st.solve_status))
+        after = self.next_waypoint(s, hit, best, since, self.status(s, ok, k, since))
+        return after._replace(k=k, mp=mp, c=c, p=p, cp=cp, hist=hist, c_state=new.c_state, p_state=new.p_state,
+                              du=new.du, last_move=jnp.where(ok & moved, st.mp - s.mp, 0.0),
+                              du_next=jnp.where(ok & moved, new.du + new.trend, new.du))
+
+    # -------------------------------------------------------------------------- parts
+    def move(self, models: TrackModels, args: TrackArgs, s: TrackState, e) -> TrackStep:
+        """The control increment K J^+ e from the controller's Jacobian at its state, and both
+        models settled at the moved manipulation point."""
+        ctrl, plant = models
+        state = self._factorisation(ctrl, s.c, s.c_state)
         # with a kept factorisation the response is refined by CG: it starts from the one
         # predicted for this state (the last one plus its trend), which saves most of CG's
         # iterations (``experiments/bench_tracking.py``, ``experiments/bench_cube3d.py``);
         # one that is not finite, after a failed solve, is no guess: CG starts from 0
         guess = jnp.where(jnp.all(jnp.isfinite(s.du_next)), s.du_next, 0.0) if ctrl.keeps else None
         du = ctrl.response(s.c, state, guess)
-        dmp = control_increment(ctrl.jacobian(s.c, state, du), e, gain, clamp, damping)
+        dmp = control_increment(ctrl.jacobian(s.c, state, du), e, args.gain, args.clamp, args.damping)
         mp = s.mp + dmp
         # with a kept factorisation (of an earlier state) its own predictor is poor: the
         # response, refined to this state's, predicts the move, to second order along the path
         trend = response_trend(du, dmp, s.du, s.last_move) if ctrl.keeps else jnp.zeros_like(du)
         du_move = predicted_change(du, dmp, trend) if ctrl.keeps else None
-        c, c_state = ctrl.settle(s.c, state, g_of(ctrl, cg_base, mp), lim, max_corr, du_move, c_floor)
-        if same:
+        c, c_state = ctrl.settle(s.c, state, _moved(ctrl, args.c_base, mp), args.lim, self.max_corr, du_move,
+                                 args.c_floor)
+        if self.same:
             p, p_state = c, c_state
         else:
-            p, p_state = plant.settle(s.p, factorisation(plant, s.p, s.p_state), g_of(plant, pg_base, mp),
-                                      lim, max_corr, floor=p_floor)
-        return Step(mp, c, p, plant.measure(p), c.iterations + (0 if same else p.iterations),
-                    jnp.maximum(c.status, p.status), c_state, p_state, du, trend)
+            p, p_state = plant.settle(s.p, self._factorisation(plant, s.p, s.p_state), _moved(plant, args.p_base, mp),
+                                      args.lim, self.max_corr, floor=args.p_floor)
+        return TrackStep(mp, c, p, plant.measure(p), c.iterations + (0 if self.same else p.iterations),
+                         jnp.maximum(c.status, p.status), c_state, p_state, du, trend)
 
-    def body(s):
-        e = desired[s.wp] - s.cp
-        hit = jnp.linalg.norm(e) < tol
-        keep = Step(s.mp, s.c, s.p, s.cp, jnp.array(0, s.c.iterations.dtype), jnp.array(0, s.c.status.dtype),
-                    s.c_state, s.p_state, s.du, s.du)
-        # the step is taken and discarded on the (few) iterations that hit a waypoint: cheaper
-        # than a lax.cond around it on every iteration. The factorisations it made are kept
-        # even then (and after a failed solve): each is of a nearby state, which is all a kept
-        # factorisation is (the residual test decides convergence), and a select would copy
-        # them (3 n^2 doubles) at every iteration
-        new = step(s, e)
-        unselected = dict(c_state=None, p_state=None, du=None, trend=None)
-        st = jax.tree.map(lambda a, b: jnp.where(hit, a, b), keep._replace(**unselected), new._replace(**unselected))
-        moved = ~hit
-        ok = reached_equilibrium(st.c.status) & reached_equilibrium(st.p.status)
-        k = s.k + moved
-        # a failed solve keeps the last converged states: the history row of that iteration
-        # holds them (with the failed solve's status), never the attempted, unbalanced move
-        c = jax.tree.map(lambda a, b: jnp.where(ok, a, b), st.c, s.c)
-        p = jax.tree.map(lambda a, b: jnp.where(ok, a, b), st.p, s.p)
-        mp = jnp.where(ok, st.mp, s.mp)
-        cp = jnp.where(ok, st.cp, s.cp)
-        c_state, p_state = new.c_state, new.p_state
-        e_new = jnp.linalg.norm(desired[s.wp] - cp)
-        improved = e_new < 0.99 * s.best
-        best = jnp.where(improved, e_new, s.best)
-        since = jnp.where(improved, 0, s.since_best + 1)
-        at = jnp.where(moved, k, H)    # out of range: dropped (no history row for a waypoint hit)
-        row = dict(mp=mp, cp=cp, error=e_new, waypoint=s.wp, newton=st.newton, solve_status=st.solve_status)
-        h = {k: s.hist[k].at[at].set(v.astype(s.hist[k].dtype), mode="drop") for k, v in row.items()}
-        status = jnp.where(~ok, TrackStatus.SOLVE_FAILED,
-                           jnp.where(s.it_wp + 1 >= max_iter, TrackStatus.ITERATION_CAP,
-                                     jnp.where(since >= window, TrackStatus.NO_PROGRESS,
-                                               jnp.where(k >= max_steps, TrackStatus.HISTORY_FULL, -1))))
-        # a waypoint hit moves on to the next one: no solve ran, the states and history stay
-        at_wp = jnp.where(hit, s.wp, n_wp)
-        return s._replace(
-            k=k, wp=s.wp + hit, it_wp=jnp.where(hit, 0, s.it_wp + 1), best=jnp.where(hit, jnp.inf, best),
-            since_best=jnp.where(hit, 0, since), mp=mp, c=c, p=p, cp=cp, hist=h,
-            reached=s.reached.at[at_wp].set(s.k.astype(s.reached.dtype), mode="drop"),
-            achieved=s.achieved.at[at_wp].set(s.cp, mode="drop"), status=jnp.where(hit, s.status, status),
-            c_state=c_state, p_state=p_state, du=new.du, last_move=jnp.where(ok & moved, st.mp - s.mp, 0.0),
-            du_next=jnp.where(ok & moved, new.du + new.trend, new.du))
+    @staticmethod
+    def taken(s: TrackState, new: TrackStep, hit) -> TrackStep:
+        """The step kept: ``new``, or where the waypoint was hit, none (the state as it was,
+        no iterations); the factorisations and responses are not selected (``step``)."""
+        keep = TrackStep(s.mp, s.c, s.p, s.cp, jnp.array(0, s.c.iterations.dtype), jnp.array(0, s.c.status.dtype),
+                         None, None, None, None)
+        return jax.tree.map(lambda a, b: jnp.where(hit, a, b), keep,
+                            new._replace(c_state=None, p_state=None, du=None, trend=None))
 
-    def first_state(side, sol):   # the factorisation kept from the start (a placeholder if none is)
+    @staticmethod
+    def progress(s: TrackState, error):
+        """(best, since_best) after an iteration that ended at ``error``: an error 1% below
+        the best so far counts as progress."""
+        improved = error < 0.99 * s.best
+        return jnp.where(improved, error, s.best), jnp.where(improved, 0, s.since_best + 1)
+
+    @staticmethod
+    def record(hist: History, at, row: History) -> History:
+        """The history with ``row`` written at ``at`` (dropped where out of range)."""
+        return History(*(h.at[at].set(v.astype(h.dtype), mode="drop") for h, v in zip(hist, row)))
+
+    def status(self, s: TrackState, ok, k, since):
+        """-1 (go on) or why the run stops after an iteration from ``s``."""
+        return jnp.where(~ok, TrackStatus.SOLVE_FAILED,
+                         jnp.where(s.it_wp + 1 >= self.max_iter, TrackStatus.ITERATION_CAP,
+                                   jnp.where(since >= self.window, TrackStatus.NO_PROGRESS,
+                                             jnp.where(k >= self.max_steps, TrackStatus.HISTORY_FULL, -1))))
+
+    @staticmethod
+    def next_waypoint(s: TrackState, hit, best, since, status) -> TrackState:
+        """``s`` with the waypoint bookkeeping of the iteration from it: where the waypoint
+        was hit, its record (the iteration and control point of ``s``) and the next
+        waypoint, its counters reset and the status unchanged (no solve counted, the states
+        and history stay); else the iteration's counters (``progress``) and ``status``."""
+        at_wp = jnp.where(hit, s.wp, s.reached.shape[0])   # out of range: dropped
+        return s._replace(wp=s.wp + hit, it_wp=jnp.where(hit, 0, s.it_wp + 1), best=jnp.where(hit, jnp.inf, best),
+                          since_best=jnp.where(hit, 0, since),
+                          reached=s.reached.at[at_wp].set(s.k.astype(s.reached.dtype), mode="drop"),
+                          achieved=s.achieved.at[at_wp].set(s.cp, mode="drop"), status=jnp.where(hit, s.status, status))
+
+    @staticmethod
+    def _factorisation(side: ControlledModel, sol: Solution, kept):
+        return kept if side.keeps else side.factorise(sol)
+
+    @staticmethod
+    def _first_factorisation(side: ControlledModel, sol: Solution):
+        """The factorisation kept from the start (a placeholder if none is)."""
         if side.keeps:
             return side.factorise(sol)
         return side.linear.empty(side.problem, sol.u.dtype)
 
-    c_state0 = first_state(ctrl, c0)
-    p_state0 = c_state0 if same else first_state(plant, p0)
-    s0 = S(jnp.array(0), jnp.array(0), jnp.array(0), jnp.array(jnp.inf), jnp.array(0), jnp.zeros(dim_mp),
-           c0, p0, cp0, hist, -jnp.ones(n_wp, jnp.int32), jnp.zeros((n_wp, n_cp)), jnp.array(-1),
-           c_state0, p_state0, jnp.zeros((dim_mp,) + c0.u.shape, c0.u.dtype), jnp.zeros(dim_mp),
-           jnp.zeros((dim_mp,) + c0.u.shape, c0.u.dtype))
-    s = jax.lax.while_loop(cond, body, s0)
-    status = jnp.where(s.status < 0, TrackStatus.DONE, s.status)
-    return s.k, status, s.hist, s.reached, s.achieved, s.c, s.p
+
+def _moved(side: ControlledModel, g_base, mp):
+    """The prescribed values of ``side`` with the manipulation point at ``mp``."""
+    return g_base + jnp.einsum("a,abi->bi", mp, side.G)
+
+
+def track_loop(ctrl: ControlledModel, plant: ControlledModel, same: bool, lim: Limits, c0: Solution,
+               p0: Solution, desired, gain, clamp, tol, damping, max_iter: int, max_steps: int,
+               window: int, max_corr: int = 6):
+    """Algorithm 3 as one jitted while-loop: ``Tracker(same, max_iter, max_steps, window,
+    max_corr).run(...)`` (see ``track`` for the arguments). Returns (iterations, TrackStatus
+    code, history dict, reached, achieved, controller Solution, plant Solution)."""
+    out = Tracker(same, max_iter, max_steps, window, max_corr).run(ctrl, plant, lim, c0, p0, desired, gain, clamp,
+                                                                  tol, damping)
+    return out.iterations, out.status, out.hist._asdict(), out.reached, out.achieved, out.controller, out.plant
 
 
 def _kept(model: Model, reuse: float | None) -> float:
@@ -475,13 +601,12 @@ def track(model: Model, path, driven: str, control_points, *, plant: Model | Non
         raise ValueError("controller and plant must drive the same number of coordinates")
     c0 = model.initial() if initial is None else initial
     p0 = c0 if same else (plant_model.initial() if plant_initial is None else plant_initial)
-    k, status, hist, reached, achieved, c, p = track_loop(
-        ctrl, pside, same, Limits.of(steps=1), c0, p0, jnp.asarray(path),
-        gain, clamp, tol, damping, int(max_iter), int(max_steps), int(window))
-    n = int(k) + 1
-    h = {key: np.asarray(v)[:n] for key, v in hist.items()}
-    return TrackResult(h["mp"], h["cp"], h["error"], h["waypoint"], h["newton"], h["solve_status"],
-                       np.asarray(reached), np.asarray(achieved), path, TrackStatus.of(status), c, p)
+    out = Tracker(same, int(max_iter), int(max_steps), int(window)).run(
+        ctrl, pside, Limits.of(steps=1), c0, p0, jnp.asarray(path), gain, clamp, tol, damping)
+    n = int(out.iterations) + 1
+    h = History(*(np.asarray(v)[:n] for v in out.hist))
+    return TrackResult(*h, np.asarray(out.reached), np.asarray(out.achieved), path, TrackStatus.of(out.status),
+                       out.controller, out.plant)
 
 
 # ----------------------------------------------------------------- analysis of a TrackResult
