@@ -311,7 +311,7 @@ def test_kept_factorisation_settles_to_full_newton(planar):
     unrefined = ControlledModel(side.problem, side.G, side.idx, side.psi, side.driver, side.chord, jacobian_rtol=0.0)
     stale = np.asarray(jax.jit(lambda sd, st: sd.jacobian(s, st))(unrefined, state))
     assert np.abs(stale - Jref).max() > 1e-3 * np.abs(Jref).max()     # refinement did the work
-    # the response predicts a move to first order (track_loop passes it to settle): from it
+    # the response predicts a move to first order (Tracker.move passes it to settle): from it
     # the stale factorisation's chord needs fewer corrections than from its own predictor,
     # and lands on the same equilibrium
     dmp = jnp.array([0.002, 0.001])
