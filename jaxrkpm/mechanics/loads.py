@@ -91,6 +91,7 @@ class DeadLoad(Term):
 
     f: jax.Array
     name: str = static("dead_load")
+    linear = True
 
     def energy(self, d, load, aux=None):
         return -(load * jnp.sum(self.f * d)), None

@@ -18,8 +18,16 @@ parameters (``params``, a dict) are what a solve is differentiable in (``Model.s
 {term.name: ...})``). Nothing mutable is static; geometry is NumPy and built once, outside
 jit, by the term's builder (a ``TermSpec``'s ``build``).
 
-Writing a new term, e.g. a load that pulls particles towards a point with a stiffness k
+Writing a new term, e.g. zero-length springs of one stiffness k that hold material points
 (the shape of every term; :mod:`jaxrkpm.mechanics.pressure` is a worked one)::
+
+    from dataclasses import dataclass, replace
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jaxrkpm.internal import Term, TermSpec, static, term
 
     @term
     class Tether(Term):
@@ -62,14 +70,15 @@ Writing a new term, e.g. a load that pulls particles towards a point with a stif
                                           support_factor=ctx.support)
             return Tether(jnp.asarray(sf.idx), jnp.asarray(sf.psi), jnp.asarray(self.k), name=self.name)
 
-and ``Model(..., terms=[TetherSpec(points)])`` adds it; export the spec in ``jaxrkpm/__init__.pyi``.
+and ``Model(..., terms=[TetherSpec(points)])`` adds it, ``solve(params={"tether": {"k": k}})``
+overrides its parameter (``Term.check_params``); export the spec in ``jaxrkpm/__init__.pyi``.
 A term whose tangent blocks are cheap to get by autodiff may form them so (the pressure's
 per-facet Hessians are); the energy's gradient, the residual, is always autodiff.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
-from typing import Any, NamedTuple
+from typing import Any, ClassVar, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -128,6 +137,9 @@ class Term:
     no tangent blocks, no parameters, no share of the force scale."""
 
     name: str
+    # True: the energy is linear in d by construction (a dead load): it has no tangent blocks
+    # and the build does not check that (a class attribute, not a field)
+    linear: ClassVar[bool] = False
 
     # ------------------------------------------------------------------ inside jit
     def energy(self, d, load, aux=None):
@@ -171,8 +183,16 @@ class Term:
         return self
 
     def check_params(self, value) -> dict:
-        """``params`` from a user's override ``Model.solve(params={name: value})``, checked."""
-        raise ValueError(f"the {self.name!r} term has no parameters to override")
+        """``params`` from a user's override ``Model.solve(params={name: value})``, checked:
+        by default a dict of the same names and shapes as ``params``."""
+        ref = self.params
+        if not ref:
+            raise ValueError(f"the {self.name!r} term has no parameters to override")
+        if not (isinstance(value, Mapping) and set(value) == set(ref)
+                and all(jnp.shape(value[k]) == jnp.shape(ref[k]) for k in ref)):
+            raise ValueError(f"params[{self.name!r}] must be a dict of " + ", ".join(
+                f"{k!r} (shape {jnp.shape(v)})" for k, v in ref.items()))
+        return dict(value)
 
     # --------------------------------------------------------- host side, at build
     def lists(self) -> np.ndarray | None:
@@ -207,11 +227,24 @@ def window_plan(n: int, per_item: int, budget: int) -> tuple[int, int]:
     return windows, -(-n // windows)
 
 
-def on_pattern(terms, n: int) -> tuple:
+def on_pattern(terms, n: int, dim: int) -> tuple:
     """The pair pattern of ``terms`` over n particles (every pair within a row of any term's
     ``lists``) and the terms placed on it: (Pairs, terms, pair_i, pair_j (NumPy, for the
-    host-side linear systems))."""
+    host-side linear systems)). A term without lists must be linear in d (its Hessian, the
+    blocks it does not give, is zero: checked at a random state, so a new term that forgets
+    its blocks is refused instead of leaving the tangent short; a term that declares itself
+    ``linear`` is taken at its word, sparing every model build the check's eager compiles)."""
     lists = [t.lists() for t in terms]
+    rng = np.random.default_rng(0)
+    for t, rows in zip(terms, lists):
+        if rows is not None and type(t).blocks is Term.blocks:
+            raise TypeError(f"term {t.name!r} has lists but no blocks: its tangent would be missing")
+        if rows is None and t.linear:
+            continue
+        d, v = (jnp.asarray(rng.standard_normal((n, dim))) for _ in range(2))
+        if rows is None and np.any(np.asarray(jax.jvp(jax.grad(lambda x, t=t: t.energy(x, 1.0)[0]), (d,), (v,))[1])):
+            raise TypeError(f"term {t.name!r} has no tangent blocks (lists() is None) but its energy is "
+                            "not linear in d: give it lists, placed and blocks")
     pair_i, pair_j, pair_t, ids = pair_pattern([rows for rows in lists if rows is not None], n)
     ids = iter(ids)
     placed = tuple(t if rows is None else t.placed(next(ids)) for t, rows in zip(terms, lists))

@@ -199,7 +199,7 @@ class Model:
         strain = strain_energy(ctx, material)
         built = (strain, self._springs(springs, ctx), dead_load(ctx, body_force, tractions),
                  *self._terms(terms, ctx, {*strain.point, *strain.tensors}))
-        pairs, built, pair_i, pair_j = on_pattern(built, body.n)
+        pairs, built, pair_i, pair_j = on_pattern(built, body.n, d)
         self._problem = Problem(essential_constraint(self.sets, trans, body.n, d, pair_i, pair_j), pairs, built,
                                 jnp.asarray(body.spacing))
 
