@@ -14,6 +14,7 @@ from .control.tracking import ControlledModel, predicted_change, response_trend,
 from .discretise.constraints import EssentialSets, Transformation
 from .mechanics.constraint import Essential
 from .mechanics.loads import DeadLoad, SpringTerm
+from .mechanics.pressure import PressureTerm
 from .mechanics.problem import Problem
 from .mechanics.strain import StrainEnergy
 from .mechanics.term import Context, Pairs, Term, TermSpec, static, term
@@ -38,7 +39,7 @@ __all__ = [
     "batch_axes", "default_batching", "map_batch", "run_batched", "stack_models",
     "ControlledModel", "predicted_change", "response_trend", "track_loop",
     "EssentialSets", "Transformation",
-    "Essential", "DeadLoad", "SpringTerm", "Problem", "StrainEnergy",
+    "Essential", "DeadLoad", "SpringTerm", "PressureTerm", "Problem", "StrainEnergy",
     "Context", "Pairs", "Term", "TermSpec", "static", "term",
     "SolverChoice",
     "BranchSwitch", "StableDescent", "ArcLength",

@@ -135,7 +135,8 @@ class Model:
                 points (elastic supports, penalty paddles; movable, see ``springs_at``)
     terms       [spec, ...]: further terms of the total potential energy, each a
                 ``TermSpec`` with a name of its own that keys its parameters in
-                ``solve(params=...)`` (see jaxrkpm.mechanics.term for writing one)
+                ``solve(params=...)``, e.g. ``Pressure(where, p)``, a follower pressure on a
+                boundary part (see jaxrkpm.mechanics.term for writing one)
     solver      "auto" (dense up to ``choice.dense_limit(dim)`` free DOFs on a CPU, as many as
                 the device memory holds on a GPU; else sparse) | "dense" | "sparse"
                 | "krylov" (CG preconditioned by algebraic multigrid, no factorisation: large 3D
@@ -451,7 +452,7 @@ class Model:
         ``prescribed``: set name -> (d,) rigid translation or (n_set, d) values; sets not
         named keep the values of ``initial`` (default: zero).
         ``params``: parameter overrides (``params_with``): a material parameter by its name,
-        a term's parameters by the term's name ("springs", or a term of ``terms``).
+        a term's parameters by the term's name ("springs", a pressure's p by its name).
         ``initial`` warm-starts from a previous Solution (the path starts at its prescribed
         values and load). ``steps`` is the initial number of load steps (halved on failure,
         grown when easy; at most jaxrkpm.solvers.results.MAX_STEPS). With ``throw`` a failed solve raises
