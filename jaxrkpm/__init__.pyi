@@ -29,6 +29,7 @@ from .io.output import (
     write_solution as write_solution,
 )
 from .mechanics.loads import Springs as Springs
+from .mechanics.pressure import Pressure as Pressure
 from .mechanics.materials import (
     Fung as Fung,
     Material as Material,

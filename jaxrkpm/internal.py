@@ -1,7 +1,8 @@
 """The pieces under the public API, for power users: the discrete problem as a jit-friendly
-pytree, the solver objects (Newton, chord, load path, stable-branch descent, arc length) and
-their one iteration loop, the linear solvers with explicit state, implicit derivatives,
-batching of many problems, and the building blocks of the tracking loop.
+pytree, the terms of the energy it sums (and what a new term is written with), the solver
+objects (Newton, chord, load path, stable-branch descent, arc length) and their one
+iteration loop, the linear solvers with explicit state, implicit derivatives, batching of
+many problems, and the building blocks of the tracking loop.
 
 These names are supported, but they follow the implementation more closely than
 :mod:`jaxrkpm`'s and may change with it; the modules they come from are private.
@@ -11,8 +12,12 @@ from .base.programs import memory_mappings, release_compiled_programs
 from .control.batching import batch_axes, default_batching, map_batch, run_batched, stack_models
 from .control.tracking import ControlledModel, Tracker, predicted_change, response_trend, track_loop
 from .discretise.constraints import EssentialSets, Transformation
-from .mechanics.assembly import Ops, Params
+from .mechanics.constraint import Essential
+from .mechanics.loads import DeadLoad, SpringTerm
+from .mechanics.pressure import PressureTerm
 from .mechanics.problem import Problem
+from .mechanics.strain import StrainEnergy
+from .mechanics.term import Context, Pairs, Term, TermSpec, static, term
 from .model.model import SolverChoice
 from .solvers.branch import BranchSwitch, StableDescent
 from .solvers.continuation import ArcLength
@@ -34,7 +39,8 @@ __all__ = [
     "batch_axes", "default_batching", "map_batch", "run_batched", "stack_models",
     "ControlledModel", "Tracker", "predicted_change", "response_trend", "track_loop",
     "EssentialSets", "Transformation",
-    "Ops", "Params", "Problem",
+    "Essential", "DeadLoad", "SpringTerm", "PressureTerm", "Problem", "StrainEnergy",
+    "Context", "Pairs", "Term", "TermSpec", "static", "term",
     "SolverChoice",
     "BranchSwitch", "StableDescent", "ArcLength",
     "implicit_jacobian", "point_jacobian", "response", "sensitivity", "solve_path_diff",

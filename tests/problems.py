@@ -32,6 +32,23 @@ def unit_grid(n: int, dim: int = 2) -> jr.Body:
     return jr.Body.grid((n,) * dim, 1.0 / (n - 1))
 
 
+def annulus(inner: float = 1.0, outer: float = 2.0, rings: int = 4, sectors: int = 32) -> jr.Body:
+    """The thick-walled ring inner <= |X| <= outer as a triangle mesh body: ``rings`` + 1
+    circles of ``sectors`` vertices (the particles), each quadrilateral cut along alternating
+    diagonals (no preferred direction)."""
+    r = np.linspace(inner, outer, rings + 1)
+    t = 2 * np.pi * np.arange(sectors) / sectors
+    R, T = np.meshgrid(r, t, indexing="ij")
+    points = np.stack([R * np.cos(T), R * np.sin(T), 0 * R], -1).reshape(-1, 3)
+    tris = []
+    for i in range(rings):
+        for j in range(sectors):
+            a, b = i * sectors + j, i * sectors + (j + 1) % sectors
+            c, d = b + sectors, a + sectors
+            tris += [(a, b, c), (a, c, d)] if (i + j) % 2 else [(a, b, d), (b, c, d)]
+    return jr.Body.from_mesh(meshio.Mesh(points, [("triangle", np.array(tris))]), dim=2)
+
+
 def phantom_body(spacing: float = 0.1) -> jr.Body:
     """The Figure 6.1 outline as a polygon body (clipped Voronoi cells)."""
     return jr.Body.polygon(PHANTOM, spacing)

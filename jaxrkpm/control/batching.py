@@ -29,11 +29,11 @@ def stack_models(models: Sequence[Model]) -> tuple[Problem, tuple]:
     unbatched one per member: ``experiments/bench_sweep.py``)."""
     ref = models[0]
     for m in models[1:]:
-        if m.body is not ref.body or m.ops.idx.shape != ref.ops.idx.shape:
+        if m.body is not ref.body or m.volume.idx.shape != ref.volume.idx.shape:
             raise ValueError("batched models must share one body and integration table")
-        if m.ops.free.shape != ref.ops.free.shape:
+        if m.sets.free.shape != ref.sets.free.shape:
             raise ValueError("batched models must have essential sets of equal sizes "
-                             f"({m.ops.bnd.shape[0]} vs {ref.ops.bnd.shape[0]} essential particles)")
+                             f"({m.sets.bnd.shape[0]} vs {ref.sets.bnd.shape[0]} essential particles)")
         if m.material.W != ref.material.W or m.linear != ref.linear:
             raise ValueError("batched models must share one material law and linear solver")
 
@@ -50,6 +50,8 @@ def stack_models(models: Sequence[Model]) -> tuple[Problem, tuple]:
 
     flat = [jax.tree.flatten(m.problem()) for m in models]
     treedef = flat[0][1]
+    if any(t != treedef for _, t in flat[1:]):
+        raise ValueError("batched models must have the same terms (kinds, names and settings)")
     columns = list(zip(*[leaves for leaves, _ in flat]))
     batched = tuple(not same(xs) for xs in columns)
     leaves = [stack(xs) if b else jnp.asarray(xs[0]) for xs, b in zip(columns, batched)]

@@ -125,7 +125,7 @@ class ControlledModel:
 
     def factorise(self, sol: Solution):
         """The linear solver's factorisation of K_ff at ``sol``."""
-        return self.linear.state_at(self.problem, sol.u, sol.g)
+        return self.linear.state_at(self.problem, sol.u, sol.g, sol.load)
 
     def roundoff_floor(self, sol: Solution):
         """The round-off floor of the residual test at ``sol`` (``Tolerance``)."""
@@ -190,7 +190,7 @@ class ControlledModel:
             state = learned   # with a quasi-Newton solver: the secant pairs of the corrections
 
             def refactorised():
-                v, st2, its2, rn2, fresh = chord(u, None, self.linear.state_at(prob, u, g1))
+                v, st2, its2, rn2, fresh = chord(u, None, self.linear.state_at(prob, u, g1, sol.load))
                 return v, st2, its + its2, rn2, fresh
 
             u, st, its, rn, state = when(st != Status.CONVERGED, refactorised, (u, st, its, rn, state))

@@ -52,7 +52,7 @@ def split_groups(grp_of, counts, size):
 def point_groups(idx: np.ndarray) -> np.ndarray:
     """The integration points (Q,) with identical neighbour lists (the Gauss points of one
     cell) as groups (G, S) of point indices, padded with Q: their tangent contributions are
-    summed before the scatter (``jaxrkpm.mechanics.assembly.pair_blocks``). Where padding
+    summed before the scatter (``jaxrkpm.mechanics.strain.StrainEnergy.blocks``). Where padding
     would cost more than a quarter of the points, one point a group."""
     Q = idx.shape[0]
     _, grp_of, counts = np.unique(idx, axis=0, return_inverse=True, return_counts=True)
@@ -71,12 +71,14 @@ def point_groups(idx: np.ndarray) -> np.ndarray:
     return groups
 
 
-def pair_pattern(lists: np.ndarray, extra: np.ndarray, N: int):
-    """The tangent's pattern: the particle pairs that share a neighbour list (one per group,
-    ``lists`` (G, K): per point it would be Q K^2 keys, GBs in 3D) or a row of ``extra``
-    (S, Ks: spring points). Returns (pair_i, pair_j, pair_t (P,): the index of each pair's
-    transpose (the pattern is symmetric), pair_id (G, K, K), extra_id (S, Ks, Ks))."""
-    uniq = pair_keys(lists, N) if len(extra) == 0 else np.union1d(pair_keys(lists, N), pair_keys(extra, N))
+def pair_pattern(lists, N: int):
+    """The tangent's pattern: the particle pairs that share a row of any of ``lists`` (a
+    sequence of (R, K) particle lists: one per integration group, ``point_groups``, since per
+    point it would be Q K^2 keys, GBs in 3D; the spring points; a loaded facet). Returns
+    (pair_i, pair_j, pair_t (P,): the index of each pair's transpose (the pattern is
+    symmetric), [the pair ids (R, K, K) of each list's rows])."""
+    keys = [pair_keys(rows, N) for rows in lists if len(rows)]
+    uniq = keys[0] if len(keys) == 1 else np.unique(np.concatenate(keys))
     pair_i, pair_j = uniq // N, uniq % N
     pair_t = np.searchsorted(uniq, pair_j * N + pair_i)
-    return pair_i, pair_j, pair_t, pair_ids(uniq, lists, N), pair_ids(uniq, extra, N)
+    return pair_i, pair_j, pair_t, [pair_ids(uniq, rows, N) for rows in lists]

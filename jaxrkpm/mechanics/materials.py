@@ -130,9 +130,8 @@ def pk2(W: Callable, E, p):
 def det(A):
     """Determinant of (..., d, d) matrices by cofactors for d <= 3. jnp.linalg.det factorises
     each matrix by LU, and its derivatives (a log-det energy's stress and tangent) are chains
-    of batched LAPACK calls on 2x2 or 3x3 matrices: measured at the 20^3 cube's 54,872 Gauss
-    points (same run, medians of 7), the neo-Hookean stress took 9.7 -> 5.8 ms and dP/dF
-    315 -> 270 ms."""
+    of batched LAPACK calls on 2x2 or 3x3 matrices (``experiments/bench_cube3d.py`` times the
+    tangent blocks that differentiate it)."""
     d = A.shape[-1]
     a = lambda i, j: A[..., i, j]
     if d == 1:

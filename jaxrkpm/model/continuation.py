@@ -86,7 +86,7 @@ def arc_length(model, ds: float, *, steps: int = 50, initial: Solution | None = 
     if not Status.of(start.status).equilibrium:
         raise ValueError(f"initial must be an equilibrium, but its status is {Status.of(start.status).name}")
     problem = model.problem(params)
-    f_ext = problem.ops.f_ext
+    f_ext = problem.load_pattern
     if load_pattern is not None:
         f = np.asarray(load_pattern, float)
         if f.shape != f_ext.shape or not np.all(np.isfinite(f)):
@@ -94,9 +94,9 @@ def arc_length(model, ds: float, *, steps: int = 50, initial: Solution | None = 
                              f"(e.g. from jaxrkpm.point_load), got shape {f.shape}")
         problem = problem.with_load_pattern(f)
     dg = model.prescribed(prescribed)
-    if not (np.any(np.asarray(problem.ops.f_ext)) or np.any(np.asarray(dg))):
-        raise ValueError("nothing drives the path: the model has no dead load (tractions, body force), "
-                         "and neither load_pattern nor prescribed is given")
+    if not (problem.loaded() or np.any(np.asarray(dg))):
+        raise ValueError("nothing drives the path: the model has no dead load (tractions, body force) "
+                         "and no pressure, and neither load_pattern nor prescribed is given")
     probes = None
     if points is not None:   # checked (inside the body, finite) before the path, not after it
         sf = model.shape_functions(model.body.check_inside(points, "probe point"), gradients=False)

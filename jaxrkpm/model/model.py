@@ -14,13 +14,13 @@ import scipy.sparse as sp
 from ..discretise import quadrature as integ
 from ..discretise import scni
 from ..discretise.body import Body
-from ..discretise.constraints import EssentialSets, Transformation, elimination_layout
-from ..discretise.pairs import pair_pattern, point_groups
-from ..discretise.rk import psi_jax
-from ..mechanics.assembly import Ops, Params, coefficients, deformation_gradients, energy_full, point_values
-from ..mechanics.loads import Springs, nodal_forces
+from ..discretise.constraints import EssentialSets, Transformation
+from ..mechanics.constraint import Essential, essential as essential_constraint
+from ..mechanics.loads import SpringTerm, Springs, dead_load, spring_psi, spring_term
 from ..mechanics.materials import Material, det, green_lagrange, pk2
 from ..mechanics.problem import Problem
+from ..mechanics.strain import deformation_gradients, strain_energy
+from ..mechanics.term import Context, TermSpec, on_pattern
 from ..solvers.branch import BranchSwitch, StableDescent
 from ..solvers.implicit import implicit_jacobian, solve_path_jit
 from ..solvers.linalg.dense import DenseSolver
@@ -33,7 +33,8 @@ from ..solvers.path import LoadPath
 from ..solvers.results import Critical, Limits, Solution, Status, joined
 
 
-_point_values_jit = jax.jit(point_values)   # FD evaluates it per re-solve: one dispatch, not ~10 eager ops
+# FD evaluates it per re-solve: one dispatch, not ~10 eager ops
+_point_values_jit = jax.jit(lambda constraint, idx, psi, u, g: constraint.point_values(idx, psi, u, g))
 
 MAX_SUPPORT_DIAMETERS = 2.0   # kernel support (support x spacing) allowed, in body diameters
 SOLVERS = ("auto", "dense", "sparse", "krylov")   # Model(solver=...)
@@ -138,6 +139,10 @@ class Model:
                 points where predicate(X) holds
     springs     Springs(points, stiffness, region): zero-length springs holding material
                 points (elastic supports, penalty paddles; movable, see ``springs_at``)
+    terms       [spec, ...]: further terms of the total potential energy, each a
+                ``TermSpec`` with a name of its own that keys its parameters in
+                ``solve(params=...)``, e.g. ``Pressure(where, p)``, a follower pressure on a
+                boundary part (see jaxrkpm.mechanics.term for writing one)
     solver      "auto" (dense up to ``choice.dense_limit(dim)`` free DOFs on a CPU, as many as
                 the device memory holds on a GPU; else sparse) | "dense" | "sparse"
                 | "krylov" (CG preconditioned by algebraic multigrid, no factorisation: large 3D
@@ -154,7 +159,7 @@ class Model:
     def __init__(self, body: Body, material: Material, integration: str = "gauss",
                  essential: Mapping | None = None, support: float = 2.01, order: int = 2,
                  cell_size: float | None = None, body_force=None, tractions=(),
-                 springs: Springs | None = None, solver: str = "auto",
+                 springs: Springs | None = None, terms=(), solver: str = "auto",
                  factorisation: str = "auto", precision: str = "auto", choice: SolverChoice = SolverChoice()):
         if not isinstance(body, Body):
             raise ValueError(f"body must be a jaxrkpm Body, got {type(body).__name__}")
@@ -192,41 +197,20 @@ class Model:
             self.volume = integ.gauss_table(body, self.a, order, cell_size, support_factor=self.support)
         else:
             self.volume = scni.table(body, self.a, integration, order, support_factor=self.support)
-        wts = self.volume.weights
         bp, bw, bn = integ.boundary_points(body, order)
         self.surface = integ.table(body, bp, bw, self.a, normals=bn, support_factor=self.support)
 
         self.sets = EssentialSets.build(body, dict(essential or {}))
         trans = Transformation.build(body, self.sets, self.a, self.support) if len(self.sets.bnd) else None
-        f_ext = nodal_forces(body, self.volume, self.surface, body_force, tractions)
+        ctx = Context(body, self.a, self.support, self.volume, self.surface, self.sets)
+        strain = strain_energy(ctx, material)
+        built = (strain, self._springs(springs, ctx), dead_load(ctx, body_force, tractions),
+                 *self._terms(terms, ctx, {*strain.point, *strain.tensors}))
+        pairs, built, pair_i, pair_j = on_pattern(built, body.n, d)
+        self._problem = Problem(essential_constraint(self.sets, trans, body.n, d, pair_i, pair_j), pairs, built,
+                                jnp.asarray(body.spacing))
 
-        sp_idx, sp_params = self._springs(springs)
-        N = body.n
-        idx = self.volume.idx.astype(np.int64)
-        Q, K = idx.shape
-        groups = point_groups(idx)
-        pair_i, pair_j, pair_t, pair_id, sp_pair = pair_pattern(idx[groups[:, 0]], sp_idx, N)
-
-        Nf = len(self.sets.free)
-        if trans is not None:
-            A = trans.coupling(self.sets, N)
-            Dbinv, nb_idx, nb_psi = trans.Dbinv, trans.nb_idx, trans.nb_psi
-        else:
-            A = np.zeros((0, Nf))
-            Dbinv, nb_idx, nb_psi = np.zeros((0, 0)), np.zeros((0, 1), np.int64), np.zeros((0, 1))
-        self.ops = Ops(
-            idx=jnp.asarray(idx, jnp.int32), dpsi=jnp.asarray(self.volume.dpsi),
-            w=jnp.asarray(wts), free=jnp.asarray(self.sets.free, jnp.int32),
-            bnd=jnp.asarray(self.sets.bnd, jnp.int32), Dbinv=jnp.asarray(Dbinv),
-            nb_idx=jnp.asarray(nb_idx, jnp.int32), nb_psi=jnp.asarray(nb_psi),
-            f_ext=jnp.asarray(f_ext), pair_id=jnp.asarray(pair_id, jnp.int32),
-            pair_i=jnp.asarray(pair_i, jnp.int32), pair_j=jnp.asarray(pair_j, jnp.int32),
-            pair_t=jnp.asarray(pair_t, jnp.int32),
-            elim=jax.tree.map(jnp.asarray, elimination_layout(A, pair_i, pair_j, self.sets.free, self.sets.bnd)),
-            spacing=jnp.asarray(body.spacing), groups=jnp.asarray(groups, jnp.int32),
-            sp_idx=jnp.asarray(sp_idx, jnp.int32), sp_pair=jnp.asarray(sp_pair, jnp.int32))
-
-        n_free = Nf * d
+        n_free = len(self.sets.free) * d
         if not isinstance(choice, SolverChoice):
             raise ValueError(f"choice must be a SolverChoice, got {type(choice).__name__}")
         self.choice = choice
@@ -238,52 +222,64 @@ class Model:
                                                     self.sets.free, self.sets.bnd))
         else:
             self.linear = self._sparse_solver(trans, pair_i, pair_j, factorisation, precision)
-        self.params = Params(
-            {k: jnp.asarray(v) for k, v in material.point_params(self.volume.points).items()},
-            {k: jnp.asarray(v) for k, v in material.global_params(d).items()}, sp_params)
-        material.check_energy(d, {k: v[0] for k, v in self.params.point.items()})
         # no essential set and no springs: the body may translate and rotate freely. Such a
         # model is fine for its tangent (its rigid-body modes) and energy; a solve is refused
-        self.unconstrained = len(self.sets.bnd) == 0 and not np.any(np.asarray(sp_params["k"]) > 0)
+        self.unconstrained = len(self.sets.bnd) == 0 and not np.any(np.asarray(self.springs.k) > 0)
 
     # ----------------------------------------------------------------------- internals
-    def _springs(self, springs):
-        """(sp_idx (S, Ks), params.springs) for the spring points: every point's candidate
-        list is the whole region (a moved point must find its neighbours there)."""
-        if springs is None:
-            return np.zeros((0, 1), np.int64), {"psi": jnp.zeros((0, 1)), "k": jnp.zeros((0,))}
-        if not isinstance(springs, Springs):
-            raise ValueError(f"springs must be a jaxrkpm Springs, got {type(springs).__name__}")
-        P = self.body.check_inside(springs.points, "spring point")
-        k = springs.stiffnesses()
-        if springs.region is None:
-            nb = self.body.neighbours(P, self.a)
-            region = np.unique(nb.idx[nb.mask]).astype(np.int64)
-        else:
-            region = np.unique(np.asarray(springs.region, np.int64))
-            if region.size == 0 or region.min() < 0 or region.max() >= self.body.n:
-                raise ValueError(f"spring region must be particle indices in 0..{self.body.n - 1}")
-        sp_idx = np.tile(region, (len(P), 1))
-        return sp_idx, {"psi": self._spring_psi(P, sp_idx), "k": jnp.asarray(k)}
+    def _springs(self, springs, ctx):
+        """The springs' term (an empty one where there are none)."""
+        return spring_term(ctx, springs)
 
-    def _spring_psi(self, points, sp_idx):
-        return psi_jax(self.body.X, self.body.volumes, sp_idx, jnp.asarray(points, jnp.float64), self.a)
+    def _terms(self, specs, ctx, material_names) -> list:
+        """The terms built from ``Model(terms=...)``: each a ``TermSpec`` whose name is free
+        (not a material parameter, not another term's)."""
+        if isinstance(specs, TermSpec) or not isinstance(specs, (list, tuple)):
+            raise TypeError(f"terms must be a list of term specifications (e.g. [jaxrkpm.Pressure(...)]), "
+                            f"got {type(specs).__name__}")
+        taken = {"strain", "springs", "dead_load", *material_names}
+        out = []
+        for spec in specs:
+            if not isinstance(spec, TermSpec):
+                raise TypeError(f"each of terms must be a term specification (e.g. jaxrkpm.Pressure), "
+                                f"got {type(spec).__name__}")
+            if not isinstance(spec.name, str) or spec.name in taken:
+                raise ValueError(f"term name {spec.name!r} is taken (by a term or a material parameter): "
+                                 f"give it another name=...")
+            taken.add(spec.name)
+            out.append(spec.build(ctx))
+        return out
+
+    @property
+    def springs(self) -> SpringTerm:
+        """The springs' term (its points' shape functions ``psi`` and stiffnesses ``k``)."""
+        return self._problem.term("springs")
+
+    @property
+    def constraint(self) -> Essential:
+        """The essential constraint d = T(u, g) (``jaxrkpm.internal.Essential``)."""
+        return self._problem.constraint
+
+    @property
+    def params(self) -> dict:
+        """The model's parameters: term name -> that term's (``Problem.params``)."""
+        return self._problem.params
 
     def springs_at(self, points, stiffness=None) -> dict:
         """``params={"springs": ...}`` for the model's springs moved to ``points`` (S, d)
         (and, optionally, new stiffnesses): JAX, so a solve is differentiable in both. The
         points must stay where the particles of the spring region cover them."""
-        S = self.ops.sp_idx.shape[0]
+        S = self.springs.idx.shape[0]
         if S == 0:
             raise ValueError("this model has no springs (Model(..., springs=Springs(...)))")
         points = jnp.asarray(points, jnp.float64)
         if points.shape != (S, self.dim):
             raise ValueError(f"spring points must have shape ({S}, {self.dim}), got {points.shape}")
-        psi = self._spring_psi(points, np.asarray(self.ops.sp_idx))
+        psi = spring_psi(self.body, self.a, points, np.asarray(self.springs.idx))
         if _is_concrete(psi) and not np.allclose(np.asarray(psi).sum(1), 1.0, atol=1e-8):
             raise ValueError("a spring point left its region (its shape functions no longer sum "
                              "to 1): widen Springs(region=...)")
-        k = self.params.springs["k"] if stiffness is None else jnp.broadcast_to(
+        k = self.springs.k if stiffness is None else jnp.broadcast_to(
             jnp.asarray(stiffness, jnp.float64), (S,))
         return {"psi": psi, "k": k}
 
@@ -333,7 +329,7 @@ class Model:
     def problem(self, params=None) -> Problem:
         """The discrete problem with parameter overrides ``params`` (see ``params_with``): a
         jit-friendly pytree (see jaxrkpm.mechanics.problem)."""
-        return Problem(self.ops, self.params_with(params), self.material.W)
+        return self._problem.replace(params=self.params_with(params)) if params else self._problem
 
     @property
     def dim(self) -> int:
@@ -406,21 +402,21 @@ class Model:
             g = g.at[sl].set(v)
         return g
 
-    def params_with(self, overrides: Mapping | None = None) -> Params:
-        """Model parameters with overrides: name -> scalar, (Q,) array, or field X -> (Q,)."""
+    def params_with(self, overrides: Mapping | None = None) -> dict:
+        """The problem's parameters (term name -> its parameters, ``Problem.params``) with
+        overrides: a material parameter's name -> scalar, (Q,) array, or field X -> (Q,); a
+        term's name (e.g. "springs", a pressure's) -> its value (see the term)."""
         if not overrides:
             return self.params
-        point, tensors = dict(self.params.point), dict(self.params.tensors)
-        springs = self.params.springs
-        Q = self.ops.w.shape[0]
+        if not isinstance(overrides, Mapping):
+            raise TypeError(f"params must be a dict name -> value, got {type(overrides).__name__}")
+        params = dict(self.params)
+        strain = self._problem.term("strain")
+        point, tensors = dict(strain.point), dict(strain.tensors)
+        Q = strain.w.shape[0]
+        terms = {t.name: t for t in self._problem.terms if t.name != "strain"}
         for k, v in overrides.items():
-            if k == "springs":
-                ref = self.params.springs
-                if not (isinstance(v, dict) and set(v) == {"psi", "k"}
-                        and all(jnp.shape(v[n]) == jnp.shape(ref[n]) for n in ref)):
-                    raise ValueError('params["springs"] must come from model.springs_at(points, stiffness)')
-                springs = v
-            elif k in point:
+            if k in point:
                 if callable(v):
                     v = np.asarray(v(self.volume.points), float)
                 v = jnp.asarray(v, jnp.float64)
@@ -436,10 +432,14 @@ class Model:
                 point[k] = v
             elif k in tensors:
                 tensors[k] = jnp.asarray(v, jnp.float64)
+            elif k in terms:
+                params[k] = terms[k].check_params(v)
             else:
                 raise ValueError(f"unknown material parameter {k!r}; {self.material.name} has "
-                                 f"{sorted(point) + sorted(tensors)}")
-        return Params(point, tensors, springs)
+                                 f"{sorted(point) + sorted(tensors)}, and the model's terms "
+                                 f"{sorted(terms)}")
+        params["strain"] = {"point": point, "tensors": tensors}
+        return params
 
     # -------------------------------------------------------------------------- solve
     def initial(self) -> Solution:
@@ -457,6 +457,8 @@ class Model:
 
         ``prescribed``: set name -> (d,) rigid translation or (n_set, d) values; sets not
         named keep the values of ``initial`` (default: zero).
+        ``params``: parameter overrides (``params_with``): a material parameter by its name,
+        a term's parameters by the term's name ("springs", a pressure's p by its name).
         ``initial`` warm-starts from a previous Solution (the path starts at its prescribed
         values and load). ``steps`` is the initial number of load steps (halved on failure,
         grown when easy; at most jaxrkpm.solvers.results.MAX_STEPS). With ``throw`` a failed solve raises
@@ -618,9 +620,9 @@ class Model:
 
         def at(g):  # Algorithm 4: solve from the saved state; ``sol`` itself is never modified
             s = self.solve_g(g, initial=sol, params=params, loads=sol.load)
-            return _point_values_jit(self.ops, idx, psi, s.u, s.g).ravel()
+            return _point_values_jit(self.constraint, idx, psi, s.u, s.g).ravel()
 
-        base = _point_values_jit(self.ops, idx, psi, sol.u, sol.g).ravel()
+        base = _point_values_jit(self.constraint, idx, psi, sol.u, sol.g).ravel()
         cols = []
         for dg in G:
             if scheme == "forward":
@@ -633,7 +635,7 @@ class Model:
     def coefficients(self, sol: Solution):
         """(N, d) RK coefficients of a solution (essential ones by eq 3.22)."""
         self.check_solution(sol)
-        return coefficients(self.ops, sol.u, sol.g)
+        return self.constraint.coefficients(sol.u, sol.g)
 
     def shape_functions(self, points, gradients=True):
         P = self.body.check_inside(points)
@@ -643,7 +645,7 @@ class Model:
         """u(X) at reference points (P, d)."""
         self.check_solution(sol)
         idx, psi = self._point_tables(points)
-        return _point_values_jit(self.ops, idx, psi, sol.u, sol.g)
+        return _point_values_jit(self.constraint, idx, psi, sol.u, sol.g)
 
     def particle_displacements(self, sol: Solution):
         """u at every particle (N, d) (RK coefficients are not displacements)."""
@@ -660,14 +662,14 @@ class Model:
         P_ = self.body.check_inside(points)
         F = self.deformation_gradient(sol, P_)
         prm = self.material.point_params(P_)
-        base = self.params_with(params)
+        tensors = self.params_with(params)["strain"]["tensors"]
         prm = {k: jnp.asarray(v) for k, v in prm.items()}
         if params:
             prm.update({k: jnp.broadcast_to(jnp.asarray(v), (len(P_),)) for k, v in params.items()
                         if k in prm and not callable(v) and jnp.ndim(v) == 0})
-        axes = {**{k: 0 for k in prm}, **{k: None for k in base.tensors}}
+        axes = {**{k: 0 for k in prm}, **{k: None for k in tensors}}
         S = jax.vmap(lambda E, p: pk2(self.material.W, E, p), in_axes=(0, axes))(
-            green_lagrange(F), {**prm, **base.tensors})
+            green_lagrange(F), {**prm, **tensors})
         if kind == "pk2":
             return S
         if kind == "pk1":
@@ -678,10 +680,8 @@ class Model:
     def reactions(self, sol: Solution, params=None):
         """(Nb, d) generalized reaction at each essential particle: dPi/dg, the force the
         constraint exerts on the body (exact discrete reaction from the residual)."""
-        d = self.coefficients(sol)
-        prm = self.params_with(params)
-        r_d = jax.grad(lambda c: energy_full(self.ops, prm, self.material.W, c, sol.load)[0])(d)
-        return self.ops.Dbinv.T @ r_d[self.ops.bnd]
+        self.check_solution(sol)
+        return self.problem(params).reactions(sol.u, sol.g, sol.load)
 
     def reaction(self, sol: Solution, name: str, params=None):
         """(d,) resultant force exerted on the body by the essential set ``name``."""
@@ -689,5 +689,4 @@ class Model:
         return jnp.sum(self.reactions(sol, params)[self.sets.slices[name]], axis=0)
 
     def energy(self, sol: Solution, params=None):
-        return energy_full(self.ops, self.params_with(params), self.material.W,
-                           self.coefficients(sol), sol.load)[0]
+        return self.problem(params).energy_full(self.coefficients(sol), sol.load)[0]

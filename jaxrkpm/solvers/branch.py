@@ -112,7 +112,7 @@ class StableDescent:
 
     def step(self, problem, fixed: Fixed, s: DescentState) -> DescentState:
         v, Pi, r = s.u, s.energy, s.residual
-        K = problem.tangent(v, fixed.g)
+        K = problem.tangent(v, fixed.g, fixed.load)
         L, tau, chol_ok, beta = self._shifted_cholesky(K, s.shift, s.min_shift)
         p = -jax.scipy.linalg.cho_solve((L, True), r.reshape(-1)).reshape(r.shape)
         slope = jnp.sum(p * r)
@@ -148,7 +148,7 @@ class StableDescent:
         """(u, converged to a stable equilibrium, energy, iterations)."""
         fixed = Fixed(g, load, max_iter)
         s = iterate(self, problem, fixed, self.init(problem, fixed, u))
-        L = jnp.linalg.cholesky(problem.tangent(s.u, g))
+        L = jnp.linalg.cholesky(problem.tangent(s.u, g, load))
         stable = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
         return s.u, (s.status == 1) & stable, s.energy, s.iteration
 
@@ -201,7 +201,7 @@ class BranchSwitch:
     def switch(self, problem, u, g, load, max_iter):
         """(u, found, lowest eigenvalues (CRITICAL_EIGS,), critical mode (Nf, d) of unit norm,
         iterations) from the unstable equilibrium u at (g, load)."""
-        lam, vecs = lowest_modes(problem.tangent(u, g), min(CRITICAL_EIGS, u.size))
+        lam, vecs = lowest_modes(problem.tangent(u, g, load), min(CRITICAL_EIGS, u.size))
         lam = jnp.concatenate([lam, jnp.full((CRITICAL_EIGS - lam.shape[0],), jnp.nan, lam.dtype)])
         mode = vecs[:, 0].reshape(u.shape)
         kick = self.amplitude * problem.spacing / jnp.max(jnp.abs(mode)) * mode

@@ -211,7 +211,7 @@ class ArcLength:
 
     def start(self, problem, u, g, load):
         """The path's first point: (factorisation of K_ff, stability, negative eigenvalues, |r|)."""
-        state = self.linear.state_at(problem, u, g)
+        state = self.linear.state_at(problem, u, g, load)
         rn = jnp.linalg.norm(problem.residual(u, g, load))
         return state, self.linear.stability(state), self.linear.negative_eigenvalues(state), rn
 
@@ -241,7 +241,7 @@ class ArcLength:
         finite = jnp.all(jnp.isfinite(r)) & jnp.all(jnp.isfinite(q))
         scale, stiffness = problem.force_scales(u, g)
         converged = rn <= self.tolerance.of(scale, self.tolerance.floor(stiffness), step.r_ref)
-        state = self.linear.state_at(problem, u, g)
+        state = self.linear.state_at(problem, u, g, lam)
         # K [dr, dt] = [-r, q]: the residual correction and the tangent at this iterate
         x = self.linear.solve(state, jnp.stack([-r, q], axis=-1))
         d_r, d_t = x[..., 0], x[..., 1]

@@ -43,7 +43,7 @@ def sensitivity(problem, linear, u, g, load, rhs, state=None, refine: float = 0.
     the energy, the solve uses the factorisation, and symmetry makes it transposable (so
     reverse mode works too)."""
     if state is None:
-        state = linear.state_at(problem, u, g)
+        state = linear.state_at(problem, u, g, load)
 
     def hvp(v):
         return jax.jvp(lambda x: problem.residual(x, g, load), (u,), (v,))[1]

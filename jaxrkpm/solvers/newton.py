@@ -288,7 +288,7 @@ class Newton:
     # -------------------------------------------------------------------------- parts
     def _assemble_and_solve(self, problem, inc: Increment, u, first, rhs, state):
         """A Newton step with the tangent at u (at g0 for the predictor): (dx, state, stability)."""
-        blocks = problem.tangent_blocks(u, jnp.where(first, inc.g0, inc.g1))
+        blocks = problem.tangent_blocks(u, jnp.where(first, inc.g0, inc.g1), inc.l1)
         # inexact Newton (iterative linear solvers): far from equilibrium the linear solve
         # need only be as accurate as the step is good (a forcing term proportional to the
         # residual keeps the convergence quadratic), near it solves are tight. With the

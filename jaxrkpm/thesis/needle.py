@@ -7,7 +7,7 @@ moved by the robot (dynamic) keeps it there.
 The phantom is configuration (``Phantom``): geometry, immobile edge, needle line and depth,
 target, the paddle positions of Table 6.2, inclusions as stiffness fields. Each paddle
 position is its own essential set, so each is its own ``Model``; the models share the
-particle layout and integration table, so their ``Ops`` differ only in the essential
+particle layout and integration table, so their problems differ only in the essential
 partition and stack (zero-padded) into one batch: every paddle position x every insertion
 increment runs in one compiled call (``lax.map`` or ``vmap`` over configurations of a
 ``scan`` over increments), optionally sharded over the visible devices.
@@ -25,7 +25,6 @@ import numpy as np
 from ..base.outcome import Outcome
 from ..control.batching import BATCHING, batch_axes, default_batching, map_batch, run_batched, stack_models
 from ..discretise.body import Body
-from ..mechanics.assembly import point_values
 from ..mechanics.loads import Springs
 from ..mechanics.materials import Fung
 from ..model.model import Model
@@ -302,7 +301,7 @@ def _insert_batch(driver: LoadPath, prob: Problem, G, dG, lim, idx, psi, *, batc
             sol = solve_path_diff(driver, prob, lim, u, g0, g1, jnp.float64(1.0), jnp.float64(1.0), state)
             tu = prob.point_values(idx, psi, sol.u, sol.g)[0]
             if with_jacobian:
-                state = driver.linear.state_at(prob, sol.u, sol.g)
+                state = driver.linear.state_at(prob, sol.u, sol.g, sol.load)
                 du = response(prob, driver.linear, sol.u, sol.g, sol.load, dG, state)
                 J = point_jacobian(prob, idx, psi, sol.u, sol.g, du, dG)[0]             # (d, m)
             else:
@@ -619,7 +618,7 @@ def final_deviation_and_gradient(model: Model, phantom: Phantom, q, depths):
     def final(q):
         s = model.solve({"needle": phantom.needle_at(depths[-1])}, initial=sol, throw=False,
                         params={"springs": model.springs_at(phantom.paddle_points(q))})
-        return phantom.deviation_of(point_values(model.ops, idx, psi, s.u, s.g)[0]), s.status
+        return phantom.deviation_of(model.constraint.point_values(idx, psi, s.u, s.g)[0]), s.status
 
     (d, st), g = jax.value_and_grad(final, has_aux=True)(jnp.asarray(q, jnp.float64))
     return float(d), (np.asarray(g) if np.ndim(q) else float(g)), Status.of(st)

@@ -52,8 +52,9 @@ def test_shared_arrays_stay_unbatched(setup):
     vmapped as an unbatched operand; what differs (essential partition, material) is stacked."""
     ph, models, depths, _ = setup
     prob, batched = batching.stack_models(models)
-    assert prob.ops.idx.shape == models[0].ops.idx.shape
-    assert prob.ops.pair_id.shape == models[0].ops.pair_id.shape
-    assert prob.ops.free.shape == (len(models),) + models[0].ops.free.shape
+    one = models[0].problem()
+    assert prob.term("strain").idx.shape == one.term("strain").idx.shape
+    assert prob.term("strain").pair_id.shape == one.term("strain").pair_id.shape
+    assert prob.constraint.free.shape == (len(models),) + one.constraint.free.shape
     axes = batching.batch_axes(prob, batched)
-    assert axes.ops.idx is None and axes.ops.free == 0
+    assert axes.term("strain").idx is None and axes.constraint.free == 0

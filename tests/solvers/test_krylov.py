@@ -81,7 +81,7 @@ def test_pardiso_pattern_holds_the_lower_saddle_point_matrix():
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1.5 - 1e-9)}
     model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets, solver="sparse", factorisation="pardiso")
     S = model.linear.system
-    pi, pj = np.asarray(model.ops.pair_i), np.asarray(model.ops.pair_j)
+    pi, pj = np.asarray(model.problem().pairs.i), np.asarray(model.problem().pairs.j)
     blocks = np.random.default_rng(1).standard_normal((len(pi), 3, 3))
     K = np.zeros((body.n * 3, body.n * 3))
     for p in range(len(pi)):

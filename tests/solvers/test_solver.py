@@ -1,4 +1,6 @@
 """Model and Newton solve: patch tests, convergence, reactions, statuses, errors."""
+from dataclasses import replace
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -165,7 +167,7 @@ def test_tangent_eliminates_essential_components(layout, components):
     sets = {"left": left, "right": right} if layout == "opposite" else \
         {"left": left, "bottom": np.setdiff1d(bottom, left)}
     model = jr.Model(body, MATERIALS["NeoHookean"], essential=sets)
-    assert model.ops.elim.A.shape[0] == components
+    assert model.constraint.elim.A.shape[0] == components
     g = 0.03 * np.random.default_rng(1).standard_normal((len(model.sets.bnd), 2))
     assert_tangent_matches_central_differences(model, jnp.asarray(g))
 
@@ -200,21 +202,19 @@ def block9():
     return body, sets, jr.Model(body, MATERIALS["NeoHookean"], essential=sets)
 
 
-def test_tangent_chunked_assembly_matches_one_chunk(block9, monkeypatch):
+def test_tangent_chunked_assembly_matches_one_chunk(block9):
     """The pair-block assembly swept in windows of groups (large 3D tables) sums every group
     exactly once, also where the last window is shifted back to end at the last group: it
     equals the assembly of all groups in one piece, at a random deformed state."""
-    from jaxrkpm.mechanics import assembly as jsolve
-    model = block9[2]
-    ops, W = model.ops, model.material.W
+    prob = block9[2].problem()
+    strain = prob.term("strain")
     rng = np.random.default_rng(3)
-    u = 0.03 * rng.standard_normal((len(model.sets.free), 2))
-    d = jsolve.coefficients(ops, u, model.prescribed({"right": jnp.array([0.1, 0.02])}))
-    whole = np.asarray(jsolve.pair_blocks(ops, model.params, W, d))
-    G, K = ops.groups.shape[0], ops.idx.shape[1]
+    u = 0.03 * rng.standard_normal((prob.n_free, 2))
+    d = prob.coefficients(u, block9[2].prescribed({"right": jnp.array([0.1, 0.02])}))
+    whole = np.asarray(strain.blocks(d, 1.0, prob.pairs))
+    G, K = strain.groups.shape[0], strain.idx.shape[1]
     chunk = next(c for c in range(7, G) if G % c)     # a partial last window
-    monkeypatch.setattr(jsolve, "BLOCK_BUDGET", chunk * K * K * 4)
-    swept = np.asarray(jsolve.pair_blocks(ops, model.params, W, d))
+    swept = np.asarray(replace(strain, block_budget=chunk * K * K * 4).blocks(d, 1.0, prob.pairs))
     assert G > 2 * chunk
     assert np.abs(swept - whole).max() < 1e-12 * np.abs(whole).max()
 
@@ -231,27 +231,24 @@ def test_det_by_cofactors_is_the_determinant():
         assert np.abs(np.asarray(jax.vmap(jax.hessian(f))(A) - jax.vmap(jax.hessian(g))(A))).max() < 1e-10
 
 
-def test_3d_tangent_from_one_triangle_is_the_energy_hessian(monkeypatch):
+def test_3d_tangent_from_one_triangle_is_the_energy_hessian():
     """A 3D body's neighbour lists are long (K = 64 at a 5^3 cube): its pair blocks are formed
     for one triangle of each group's (K, K) blocks and completed by transposes. They equal
     the whole square's assembly, and the tangent equals the energy's Hessian (products with
     random vectors by autodiff), at a random deformed state."""
-    from jaxrkpm.mechanics import assembly as jsolve
     body = jr.Body.grid((5, 5, 5), 0.25)
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
     model = jr.Model(body, jr.NeoHookean(lam=1.0, mu=1.0), essential=sets)
-    ops, W = model.ops, model.material.W
-    assert ops.idx.shape[1] // jsolve.HALF_PART >= 2            # the triangle is taken
+    prob = model.problem()
+    strain = prob.term("strain")
+    assert strain.idx.shape[1] // strain.half_part >= 2            # the triangle is taken
     rng = np.random.default_rng(4)
     u = 0.02 * rng.standard_normal((len(model.sets.free), 3))
     g = model.prescribed({"right": jnp.array([-0.1, 0.02, 0.0])})
-    d = jsolve.coefficients(ops, u, g)
-    half = np.asarray(jsolve.pair_blocks(ops, model.params, W, d))
-    monkeypatch.setattr(jsolve, "HALF_PART", 10**6)           # the whole square
-    whole = np.asarray(jsolve.pair_blocks(ops, model.params, W, d))
+    d = prob.coefficients(u, g)
+    half = np.asarray(strain.blocks(d, 1.0, prob.pairs))
+    whole = np.asarray(replace(strain, half_part=10**6).blocks(d, 1.0, prob.pairs))   # the whole square
     assert np.abs(half - whole).max() < 1e-12 * np.abs(whole).max()
-    monkeypatch.undo()
-    prob = model.problem()
     K = np.asarray(prob.tangent(jnp.asarray(u), g))
     grad = jax.grad(lambda v: prob.energy(v, g)[0])
     for v in rng.standard_normal((2,) + u.shape):

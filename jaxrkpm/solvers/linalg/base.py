@@ -5,7 +5,7 @@ A solver is a static, immutable description (part of the jit configuration); eve
 changes between calls is its *state*, a pytree returned and passed explicitly::
 
     state = solver.init(problem, blocks)       # factorise the tangent given as pair blocks
-    state = solver.state_at(problem, u, g)     # the same at a state (u, g)
+    state = solver.state_at(problem, u, g, load)   # the same at a state (u, g, load)
     x = solver.solve(state, rhs)               # K_ff x = rhs with that factorisation
     solver.stability(state)                    # Stability: STABLE / UNSTABLE / UNKNOWN / FAILED
     solver.negative_eigenvalues(state)         # inertia of K_ff (-1: unknown)
@@ -56,9 +56,10 @@ class LinearSolver:
         """The factorisation of K_ff given as (P, d, d) pair blocks."""
         raise NotImplementedError
 
-    def state_at(self, problem, u, g) -> Any:
-        """The factorisation of K_ff at the state (u, g)."""
-        return self.init(problem, problem.tangent_blocks(u, g))
+    def state_at(self, problem, u, g, load=1.0) -> Any:
+        """The factorisation of K_ff at the state (u, g) and load scale ``load`` (a follower
+        load's tangent depends on it)."""
+        return self.init(problem, problem.tangent_blocks(u, g, load))
 
     def solve(self, state, rhs):
         """K_ff x = rhs with the factorisation ``state``."""

@@ -26,7 +26,6 @@ import optax
 
 from ...model.model import Model
 from ...solvers.results import Status
-from ...mechanics.assembly import point_values
 
 __all__ = ["Recording", "CalibrationResult", "predict", "calibrate", "region_index", "broyden_update"]
 
@@ -86,7 +85,7 @@ def _predictor(model: Model, rec: Recording, steps: int):
     def one(params, mp):
         g = jnp.einsum("a,abi->bi", mp, G)
         s = model.solve_g(g, params=params, steps=steps, initial=base, throw=False)
-        cp = point_values(model.ops, idx, psi, s.u, s.g).ravel()
+        cp = model.constraint.point_values(idx, psi, s.u, s.g).ravel()
         f = -model.reaction(s, "paddle", params=params) * rec.force_scale_n
         return cp, f, s.status
 

@@ -41,7 +41,6 @@ from ... import Fung, Model
 from ...model.model import SolveError
 from ...control.tracking import control_increment
 from ...base.outcome import Outcome
-from ...mechanics.assembly import point_values
 from ..data import CP_2D, PADDLE_HALF_WIDTH, RIG_MODEL_BETA
 from ..scenarios import planar_square
 from .calibrate import Recording, broyden_update
@@ -105,7 +104,7 @@ class _Tracked:
 
     def cp(self) -> np.ndarray:
         """Control point displacement (model units), flattened."""
-        return np.asarray(point_values(self.model.ops, self._idx, self._psi, self.sol.u, self.sol.g)).ravel()
+        return np.asarray(self.model.constraint.point_values(self._idx, self._psi, self.sol.u, self.sol.g)).ravel()
 
     def jacobian(self) -> np.ndarray:
         """d(control point displacement)/d(paddle translation) at the current equilibrium, (P*d, d)."""

@@ -37,7 +37,7 @@ import numpy as np
 import jaxrkpm as jr
 from jaxrkpm.io import plot
 from jaxrkpm.solvers.minimise import stable_beyond
-from jaxrkpm.mechanics.assembly import deformation_gradients
+from jaxrkpm.mechanics.strain import deformation_gradients
 from jaxrkpm.thesis.studies import interface
 from jaxrkpm.thesis.data import PADDLE_HALF_WIDTH
 from jaxrkpm.thesis.scenarios import planar_square
@@ -78,12 +78,12 @@ def _diagnostics(model):
 
     @jax.jit
     def diag(prob, u, g):
-        ops, params = prob.ops, prob.params
+        strain = prob.term("strain")
         K = prob.tangent(u, g)
-        F = deformation_gradients(ops.idx, ops.dpsi, prob.coefficients(u, g))
-        axes = ({k: 0 for k in params.point}, {k: None for k in params.tensors})
+        F = deformation_gradients(strain.idx, strain.dpsi, prob.coefficients(u, g))
+        axes = ({k: 0 for k in strain.point}, {k: None for k in strain.tensors})
         C = jax.vmap(lambda F, p, t: jax.hessian(psi)(F, {**p, **t}), in_axes=(0, axes[0], None))(
-            F, params.point, params.tensors)                                # (Q, d, d, d, d)
+            F, strain.point, strain.tensors)                                # (Q, d, d, d, d)
         A = jnp.einsum("qijkl,nj,nl->qnik", C, normals, normals)
         ac = jnp.min(jnp.linalg.eigvalsh(A))
         return jnp.linalg.eigvalsh(K)[0], jnp.min(jnp.linalg.det(F)), ac
@@ -205,7 +205,7 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
         "particles": [n, n], "paddle_particles": int(len(model.set_indices("paddle"))),
         "paddle_half_width": half_width,
         "material": model.material.describe(), "step": step,
-        "integration_points": int(model.ops.w.shape[0]),
+        "integration_points": len(model.volume.weights),
         "branch": "primary (check_stability=False)" if through else "stable",
         "max_compression": ok[-1]["compression"] if ok else 0.0,
         "max_stable_compression": max(stable) if stable else 0.0,

@@ -314,7 +314,7 @@ def run_optimize(phantom, inclusion, increments, out: Path, n_devices=1, start=N
         "scan": {"q": scan_q.tolist(), "deviation": scan},
         "discrete_deviation": sw.final.tolist(),
         "discrete_converged": sw.converged_paddles.tolist(),
-        "paddle_stiffness": float(model.params.springs["k"][0]),
+        "paddle_stiffness": float(model.springs.k[0]),
         "wall_s": wall,
     }
     optimize_figures(phantom, model, sw, summary, out)
