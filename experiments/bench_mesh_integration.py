@@ -82,7 +82,7 @@ def patch(body, integration, repeats):
     u = np.asarray(m.particle_displacements(sol))
     F = np.asarray(m.deformation_gradient(sol, body.X[inner]))
     return (np.abs(u[inner] - body.X[inner] @ (F0 - np.eye(3)).T).max(), np.abs(F - F0).max(),
-            int(m.ops.w.shape[0]), wall)
+            int(m.problem().term("strain").w.shape[0]), wall)
 
 
 def manufactured(body, integration, repeats):

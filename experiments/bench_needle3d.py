@@ -78,8 +78,8 @@ def run_resolution(spacing, increments, repeats):
     first, (sol, dev) = timed(insertion, model, ph, depths)
     warm = [timed(insertion, model, ph, depths)[0] for _ in range(repeats)]
     return {"spacing": spacing, "particles": body.n, "tetrahedra": int(len(body.cells)),
-            "free_dof": int(len(model.sets.free) * 3), "integration_points": int(model.ops.w.shape[0]),
-            "neighbours": int(model.ops.idx.shape[1]), "solver": model.linear.name,
+            "free_dof": int(len(model.sets.free) * 3), "integration_points": int(model.problem().term("strain").w.shape[0]),
+            "neighbours": int(model.problem().term("strain").idx.shape[1]), "solver": model.linear.name,
             "mesh_s": t_mesh, "body_s": t_body, "model_s": t_model, "build_s": t_phantom + t_model,
             "first_insertion_s": first, "warm_insertion_s_median": statistics.median(warm),
             "warm_solve_s_median": statistics.median(warm) / increments, "increments": increments,

@@ -112,7 +112,6 @@ def main(argv=None):
     run = records.start("bench_needle3d_memory", a)
     s = Sampler(a.limit_gb)
     from jaxrkpm.thesis.phantom3d import Phantom3D
-    from jaxrkpm.mechanics.assembly import BLOCK_BUDGET
     s.enter("body")
     t0 = time.time()
     ph = Phantom3D(spacing=a.spacing)
@@ -123,11 +122,12 @@ def main(argv=None):
     s.enter("model")
     t0 = time.time()
     model = ph.model("none", None)
-    ops = model.ops
+    problem = model.problem()
+    ops = problem.term("strain")
     Q, K = ops.idx.shape
-    pairs = int(ops.pair_i.shape[0])
+    pairs = int(problem.n_pairs)
     free = int(len(model.sets.free) * 3)
-    chunk = max(1, BLOCK_BUDGET // (K * K * 9))
+    chunk = max(1, ops.block_budget // (K * K * 9))
     fig.update(model_s=time.time() - t0, rss_after_model_gb=rss_gb(), solver=model.linear.name, free_dof=free,
                integration_points=int(Q), neighbours=int(K), groups=list(ops.groups.shape),
                pair_id_table_gb=ops.pair_id.size * 4 / 1e9, particle_pairs=pairs,

@@ -63,8 +63,9 @@ class Case:
         med = statistics.median(self.t_solve)
         m = self.model
         return {"n": self.n, "integration": self.integration, "solver": m.linear.name,
-                "integration_points": int(m.ops.w.shape[0]), "neighbours_K": int(m.ops.idx.shape[1]),
-                "tangent_pairs": int(m.ops.pair_i.shape[0]), "free_dof": int(self.sol.u.size),
+                "integration_points": int(m.problem().term("strain").w.shape[0]),
+                "neighbours_K": int(m.problem().term("strain").idx.shape[1]),
+                "tangent_pairs": int(m.problem().n_pairs), "free_dof": int(self.sol.u.size),
                 "build_s": self.build_s, "first_solve_s_incl_compile": self.first_s,
                 "newton_iterations": self.iters, "warm_solve_s_median": med,
                 "time_per_iteration_s": med / self.iters,
