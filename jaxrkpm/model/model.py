@@ -510,7 +510,12 @@ class Model:
         # one the initial Solution kept: the predictor (modified Newton) or the preconditioner
         # (sparse) of the first step, and the implicit Jacobian at the new state, need no
         # factorisation of their own (``experiments/bench_cube3d.py``'s public-API control step)
-        kept = self._kept_linear(start, problem) if eager else None
+        # (an empty state where none is kept: the first solve and the warm-started ones then
+        # share one compiled program)
+        kept = None
+        if eager:
+            kept = self._kept_linear(start, problem)
+            kept = self.linear.empty(problem, jnp.float64) if kept is None else kept
         sol = solve_path_jit(self._driver(options, eager), problem, lim, start.u, start.g, g,
                              jnp.asarray(start.load, jnp.float64), loads, kept)
         status = _concrete(sol.status)
