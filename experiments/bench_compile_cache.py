@@ -3,7 +3,7 @@ twice, each in a fresh process, with a fresh cache folder; each run's own line (
 loop's compile time) and the whole command's wall time. ``--min-compile-s`` overrides the
 smallest compile time a program must take to be kept (the module's MIN_COMPILE_S).
 
-    python experiments/bench_compile_cache.py [--min-compile-s 0.1]
+    python -m experiments.bench_compile_cache [--min-compile-s 0.1]
 
 Only comparable on a quiet machine (``uptime``).
 """
@@ -15,11 +15,16 @@ import tempfile
 import time
 from pathlib import Path
 
+from experiments import records
+
 ROOT = Path(__file__).resolve().parents[1]
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--min-compile-s", type=float, default=None)
+records.add_arguments(ap)
 a = ap.parse_args()
+rec = records.start("bench_compile_cache", a)
+figures = {}
 code = "import sys\nfrom jaxrkpm.base import cache\n"
 if a.min_compile_s is not None:
     code += f"cache.MIN_COMPILE_S = {a.min_compile_s}\n"
@@ -35,3 +40,11 @@ with tempfile.TemporaryDirectory() as tmp:
         line = p.stdout.strip().splitlines()[-1] if p.stdout.strip() else p.stderr[-500:]
         files = list((Path(tmp) / "jaxrkpm").glob("*-cache"))
         print(f"run {run}: wall {wall:.1f} s, {len(files)} programs cached; {line.split('iterations, ')[-1]}")
+        assert p.returncode == 0, p.stderr[-2000:]
+        # the demo's line: "..., <warm> s warm + <compile> s compile (thesis: ...)"
+        tail = line.split("iterations, ")[-1]
+        warm_s, compile_s = (float(part.split(" s ")[0]) for part in tail.split(" + ")[:2])
+        figures[f"run{run}"] = {"wall_s": wall, "programs_cached": len(files), "warm_s": warm_s,
+                                "compile_s": compile_s}
+records.finish(rec, figures, {"second_over_first": {
+    k: figures["run2"][k] / figures["run1"][k] for k in ("wall_s", "compile_s")}})

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxrkpm as jr
+from experiments import records
 from tests.problems import skfem_box
 
 jax.config.update("jax_enable_x64", True)
@@ -99,7 +100,9 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--schemes", nargs="+", default=["gauss", "gauss1", "scni", "mscni"])
+    records.add_arguments(ap)
     a = ap.parse_args()
+    run = records.start("bench_mesh_integration", a)
     with tempfile.TemporaryDirectory() as tmp:
         path = skfem_box(Path(tmp) / "box.vtu")
         body = jr.Body.from_mesh(path)
@@ -107,13 +110,27 @@ def main():
     print(f"box: {body.n} particles, {len(body.cells)} tetrahedra; refined: {fine.n} particles")
     print(f"{'scheme':7s} {'points':>7s} {'patch |u err|':>14s} {'patch |F err|':>14s} {'patch solve s':>14s} "
           f"{'MS rel err':>11s} {'MS solve s':>11s} {'MS rel err (refined)':>21s} {'refined solve s':>16s}")
+    rows = {}
     for scheme in a.schemes:
         eu, eF, points, t_patch = patch(body, scheme, a.repeats)
         err, t_ms, status = manufactured(body, scheme, a.repeats)
         err_f, t_f, status_f = manufactured(fine, scheme, 1)
         print(f"{scheme:7s} {points:7d} {eu:14.2e} {eF:14.2e} {t_patch:14.3f} {err:11.3e} {t_ms:11.3f} "
               f"{err_f:21.3e} {t_f:16.3f}  ({status}, {status_f})")
+        rows[scheme] = {"integration_points": points, "patch_u_error": eu, "patch_F_error": eF,
+                        "patch_solve_s": t_patch, "manufactured_rel_error": err, "manufactured_solve_s": t_ms,
+                        "refined_rel_error": err_f, "refined_solve_s": t_f, "status": [status, status_f]}
         jr.release_if_crowded()
+    ratios = {}
+    if "gauss" in rows:
+        for scheme, r in rows.items():
+            if scheme != "gauss":
+                ratios[f"{scheme}_over_gauss"] = {
+                    "manufactured_solve_s": r["manufactured_solve_s"] / rows["gauss"]["manufactured_solve_s"],
+                    "manufactured_rel_error": r["manufactured_rel_error"] / rows["gauss"]["manufactured_rel_error"],
+                    "refined_rel_error": r["refined_rel_error"] / rows["gauss"]["refined_rel_error"]}
+    records.finish(run, {"particles": body.n, "tetrahedra": len(body.cells), "refined_particles": fine.n,
+                         "schemes": rows}, ratios)
 
 
 if __name__ == "__main__":
