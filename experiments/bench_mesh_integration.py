@@ -26,38 +26,24 @@ import time
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 import jaxrkpm as jr
 from experiments import records
-from tests.problems import skfem_box
+from tests.problems import MANUFACTURED_MATERIAL, manufactured_body_force, manufactured_u, skfem_box
 
 jax.config.update("jax_enable_x64", True)
 
 F0 = np.array([[1.1, 0.05, 0.02], [-0.04, 0.95, 0.03], [0.01, -0.02, 1.05]])
-MAT = jr.NeoHookean(1.0, 1.0)
-A_MS = 0.05
-
-
-def u_exact(X):
-    x, y, z = X[..., 0], X[..., 1], X[..., 2]
-    return A_MS * jnp.stack([jnp.sin(2 * x + z), jnp.cos(x + y), y * jnp.sin(z)], -1)
-
-
-def _pk1(X):
-    F = jnp.eye(3) + jax.jacfwd(u_exact)(X)
-    return F @ jr.pk2(MAT.W, jr.green_lagrange(F), {"lam": 1.0, "mu": 1.0})
-
-
-_body_force = jax.jit(jax.vmap(lambda X: -jnp.trace(jax.jacfwd(_pk1)(X), axis1=1, axis2=2)))
+MAT = MANUFACTURED_MATERIAL
+u_exact = manufactured_u
 
 
 def model(body, scheme, body_force=None):
     """``scheme``: "gauss" (order 2: 8 points a tetrahedron), "gauss1" (order 1: one point),
     "scni", "mscni"."""
     surface = body.surface_particles()
-    bf = None if body_force is None else (lambda X: np.asarray(_body_force(jnp.asarray(X))))
+    bf = None if body_force is None else manufactured_body_force
     integration, order = ("gauss", 1) if scheme == "gauss1" else (scheme, 2)
     return jr.Model(body, MAT, integration=integration, order=order, essential={"surface": surface},
                     body_force=bf)

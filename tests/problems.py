@@ -238,3 +238,29 @@ def scipy_box(n_inside: int = 120, n_face: int = 12, seed: int = 1) -> meshio.Me
     pts.append(rng.uniform(0.1, 0.9, (n_inside, 3)) * L)
     P = np.concatenate(pts)
     return meshio.Mesh(P, [("tetra", Delaunay(P).simplices)])
+
+
+# ---------------------------------------------------------- a manufactured 3D solution
+MANUFACTURED_AMPLITUDE = 0.05
+MANUFACTURED_MATERIAL = jr.NeoHookean(1.0, 1.0)
+
+
+def manufactured_u(X):
+    """A smooth large-deformation field u(X) = A (sin(2x + z), cos(x + y), y sin z), A = 0.05."""
+    x, y, z = X[..., 0], X[..., 1], X[..., 2]
+    return MANUFACTURED_AMPLITUDE * jnp.stack([jnp.sin(2 * x + z), jnp.cos(x + y), y * jnp.sin(z)], -1)
+
+
+def _manufactured_pk1(X):
+    F = jnp.eye(3) + jax.jacfwd(manufactured_u)(X)
+    return F @ jr.pk2(MANUFACTURED_MATERIAL.W, jr.green_lagrange(F), {"lam": 1.0, "mu": 1.0})
+
+
+_manufactured_force = jax.jit(jax.vmap(lambda X: -jnp.trace(jax.jacfwd(_manufactured_pk1)(X), axis1=1, axis2=2)))
+
+
+def manufactured_body_force(X):
+    """The body force -Div P(F(u)) that makes ``manufactured_u`` an equilibrium of
+    ``MANUFACTURED_MATERIAL`` (autodiff), as a Model's ``body_force`` takes it."""
+    return np.asarray(_manufactured_force(jnp.asarray(X)))
+

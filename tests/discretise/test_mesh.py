@@ -4,8 +4,6 @@ convergence study on an unstructured tetrahedral body."""
 import copy
 import itertools
 
-import jax
-import jax.numpy as jnp
 import meshio
 import numpy as np
 import pytest
@@ -17,10 +15,11 @@ from jaxrkpm.discretise import mesh
 from jaxrkpm.discretise import scni
 from jaxrkpm.discretise import surface as surf
 from jaxrkpm.mechanics.loads import nodal_forces
+from tests.problems import MANUFACTURED_MATERIAL, manufactured_body_force, manufactured_u
 
 RADII = (1.0, 1.0, 0.6)                  # the half-ellipsoid "breast" on its base z = 0
 F0 = np.array([[1.1, 0.05, 0.02], [-0.04, 0.95, 0.03], [0.01, -0.02, 1.05]])
-MAT = jr.NeoHookean(1.0, 1.0)
+MAT = MANUFACTURED_MATERIAL
 
 
 @pytest.fixture(scope="module")
@@ -161,27 +160,14 @@ def test_scni_integration_constraint_on_meshes(which, breast):
 
 
 # ================================================================== solves
-A_MS = 0.05      # manufactured displacement amplitude
-
-
-def u_exact(X):
-    x, y, z = X[..., 0], X[..., 1], X[..., 2]
-    return A_MS * jnp.stack([jnp.sin(2 * x + z), jnp.cos(x + y), y * jnp.sin(z)], -1)
-
-
-def _pk1(X):
-    F = jnp.eye(3) + jax.jacfwd(u_exact)(X)
-    return F @ jr.pk2(MAT.W, jr.green_lagrange(F), {"lam": 1.0, "mu": 1.0})
-
-
-_body_force = jax.jit(jax.vmap(lambda X: -jnp.trace(jax.jacfwd(_pk1)(X), axis1=1, axis2=2)))  # -Div P
+u_exact = manufactured_u
 
 
 def manufactured_model(spacing, integration_="gauss"):
     body = jr.Body.from_mesh(surf.cylinder(0.5, 1.0, spacing))
     surface = body.surface_particles()
     return jr.Model(body, MAT, integration=integration_, essential={"surface": surface},
-                    body_force=lambda X: np.asarray(_body_force(jnp.asarray(X))))
+                    body_force=manufactured_body_force)
 
 
 @pytest.fixture(scope="module")
