@@ -93,23 +93,7 @@ def package_sources():
     return sorted(p for p in (ROOT / "jaxrkpm").rglob("*.py*") if p.suffix in (".py", ".pyi"))
 
 
-# Files whose owners are scrubbing their figures (issue 34) while this test lands: each is
-# expected to fail, strictly, so that the entry must go once the file is clean.
-BEING_SCRUBBED: set = set()
-
-
-def _scrub_marks(path):
-    rel = str(path.relative_to(ROOT))
-    marks = [pytest.mark.xfail(strict=True, reason="its owner scrubs its figures (issue 34)")] \
-        if rel in BEING_SCRUBBED else []
-    return pytest.param(path, id=rel, marks=marks)
-
-
-def test_files_being_scrubbed_exist():
-    assert BEING_SCRUBBED <= {str(p.relative_to(ROOT)) for p in package_sources()}
-
-
-@pytest.mark.parametrize("path", [_scrub_marks(p) for p in package_sources()])
+@pytest.mark.parametrize("path", package_sources(), ids=lambda p: str(p.relative_to(ROOT)))
 def test_no_timing_figures_in_the_package_prose(path):
     found = figures_in_python(path.read_text())
     assert not found, (f"timing figures in comments/docstrings of {path.relative_to(ROOT)} "
