@@ -223,3 +223,29 @@ def test_the_cycle_check_catches_a_cycle_through_a_function_level_import(tmp_pat
     finally:
         ROOT = saved
     assert cycles(edges) == [["jaxrkpm.x.a", "jaxrkpm.x.b"]]
+
+
+# ------------------------------------------------------------------ the tests themselves
+TESTS = ROOT / "tests"
+
+
+def _test_sources():
+    return sorted(p for p in TESTS.rglob("*.py") if p.name != "timing_figures.py")
+
+
+@pytest.mark.parametrize("path", _test_sources(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_tests_import_no_experiments_and_read_no_clock(path):
+    """Tests import the package and tests/problems.py, never the benches' scripts; work is
+    checked by counts (iterations, factorisations, compiles), never by a timed speed (that is
+    a bench's job: experiments/bench_*.py). ``time.monotonic`` stays for what is behaviour,
+    not speed: a link's timeout firing on time, a call failing at once instead of hanging."""
+    tree = ast.parse(path.read_text(), str(path))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            assert (node.module or "").split(".")[0] != "experiments", f"{path.name}:{node.lineno} imports experiments"
+        elif isinstance(node, ast.Import):
+            assert all(a.name.split(".")[0] != "experiments" for a in node.names), \
+                f"{path.name}:{node.lineno} imports experiments"
+        elif isinstance(node, ast.Attribute) and node.attr in ("perf_counter", "process_time") \
+                or isinstance(node, ast.Attribute) and node.attr == "time" and getattr(node.value, "id", "") == "time":
+            raise AssertionError(f"{path.name}:{node.lineno} reads a clock ({ast.unparse(node)})")
