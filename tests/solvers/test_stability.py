@@ -11,7 +11,6 @@ k^2 of the pinned elastica of length L / 2: P / P_E = (2 K(m) / pi)^2 and the be
 shortening is L (2 - 2 E(m) / K(m)); the strip also shortens axially by P L / (E' h)
 (extensible correction, cos(theta) ~ 1 in it).
 """
-import time
 
 import jax
 import jax.numpy as jnp
@@ -121,29 +120,18 @@ def test_square_reaches_full_load_on_stable_states(fung_block, case):
 def test_failure_costs_a_small_multiple_of_a_converging_solve(fung_block):
     """A solve that cannot proceed (60% compression: the path stops near 31%, where the Fung
     square's tangent loses positive definiteness and no stable state is found) gives up after
-    a bounded amount of work (solve_path's budget: failed attempts may cost FAILED_WORK x the
-    larger of its useful work and steps x easy, plus 2 x max_iter): its Newton iterations at
-    most 4x, and its run time at most 15x, those of a converging solve of the same model,
-    steps and size."""
-    def timed(c):
-        best = np.inf
-        for _ in range(2):          # the first call of each compiles (the same function)
-            t0 = time.perf_counter()
-            sol = fung_block.solve({"edge": jnp.array([-c, 0.0])}, steps=10, throw=False)
-            sol.u.block_until_ready()
-            best = min(best, time.perf_counter() - t0)
-        return sol, best
-
-    good, t_good = timed(0.2)
-    bad, t_bad = timed(0.6)
+    a bounded amount of work (the load path's budget: failed attempts may cost failed_work x
+    the larger of its useful work and steps x easy, plus 2 x max_iter): its Newton iterations
+    at most 4x those of a converging solve of the same model, steps and size (work is counted
+    in iterations, not timed: no test asserts a wall-clock time)."""
+    good = fung_block.solve({"edge": jnp.array([-0.2, 0.0])}, steps=10, throw=False)
+    bad = fung_block.solve({"edge": jnp.array([-0.6, 0.0])}, steps=10, throw=False)
     assert good.converged and not bad.converged and 0.3 < 0.6 * float(bad.t) < 0.4
-    print(f"converging: {int(good.iterations)} iterations, {t_good:.3f} s; failing ({bad.outcome.name} at "
-          f"{60 * float(bad.t):.1f}%): {int(bad.iterations)} iterations, {int(bad.cuts)} cuts, {t_bad:.3f} s: "
-          f"ratio {t_bad / t_good:.1f}")
-    # measured here: 82 vs 30 iterations, time ratio 8 (without the budget and the stop after a
-    # failed switch: 163 iterations, ratio 16)
+    print(f"converging: {int(good.iterations)} iterations; failing ({bad.outcome.name} at "
+          f"{60 * float(bad.t):.1f}%): {int(bad.iterations)} iterations, {int(bad.cuts)} cuts")
+    # without the budget and the stop after a failed switch the failing solve took about twice
+    # the iterations it takes now
     assert int(bad.iterations) <= 4 * int(good.iterations)
-    assert t_bad <= 15 * t_good
 
 
 # ------------------------------------------- the stable-branch solve on one small critical point
