@@ -176,18 +176,18 @@ def test_the_default_integration_of_a_mesh_body_is_the_accurate_one(tmp_path):
     manufactured solution of test_mesh.py) is several times more accurate with Gauss points
     than with SCNI, which is exact only for affine fields."""
     pytest.importorskip("skfem")
-    from tests.discretise.test_mesh import _body_force, u_exact
+    from tests.problems import MANUFACTURED_MATERIAL, manufactured_body_force, manufactured_u
 
     body = jr.Body.from_mesh(skfem_box(tmp_path / "box.vtu"))
     surface = body.surface_particles()
     errors = {}
     for integration in (None, "scni"):
         kw = {} if integration is None else {"integration": integration}
-        model = jr.Model(body, MAT, essential={"surface": surface},
-                         body_force=lambda X: np.asarray(_body_force(X)), **kw)
-        sol = model.solve({"surface": np.asarray(u_exact(body.X[surface]))})
-        e = np.asarray(model.particle_displacements(sol)) - np.asarray(u_exact(body.X))
-        ref = np.asarray(u_exact(body.X))
+        model = jr.Model(body, MANUFACTURED_MATERIAL, essential={"surface": surface},
+                         body_force=manufactured_body_force, **kw)
+        sol = model.solve({"surface": np.asarray(manufactured_u(body.X[surface]))})
+        ref = np.asarray(manufactured_u(body.X))
+        e = np.asarray(model.particle_displacements(sol)) - ref
         errors[model.integration] = np.sqrt(np.sum(body.volumes[:, None] * e ** 2)
                                             / np.sum(body.volumes[:, None] * ref ** 2))
     print(f"manufactured solution on the {body.n}-particle box: relative errors {errors}")
