@@ -218,12 +218,20 @@ def t_memory(f):
 
 
 def t_generic(f):
-    rows = [[k, num(v)] for k, v in f.items() if not isinstance(v, (dict, list))]
+    """Scalars in one table; a dict of like records (e.g. one per scheme) as a table of its own,
+    a row per record and a column per scalar field."""
+    rows, tables = [[k, num(v)] for k, v in f.items() if not isinstance(v, (dict, list))], []
     for k, v in f.items():
-        if isinstance(v, dict):
+        if not isinstance(v, dict):
+            continue
+        if v and all(isinstance(r, dict) and "median" not in r for r in v.values()):
+            cols = [c for c in dict.fromkeys(c for r in v.values() for c in r)
+                    if all(not isinstance(r.get(c), (dict, list)) for r in v.values())]
+            tables.append((k, [k, *cols], [[name, *(num(r.get(c, "")) for c in cols)] for name, r in v.items()]))
+        else:
             rows += [[f"{k}: {k2}", num(v2) if not isinstance(v2, dict) else spread(v2)] for k2, v2 in v.items()
                      if not isinstance(v2, list)]
-    return [("Figures", ["quantity", "value"], rows)]
+    return [("Figures", ["quantity", "value"], rows), *tables]
 
 
 TABLES = {"bench_solve": t_solve, "bench_scni": t_scni, "bench_tracking": t_tracking, "bench_sweep": t_sweep,
