@@ -1,13 +1,17 @@
-"""Shared set-up of the test processes: float64, and one persistent XLA compilation cache for
-the whole run. The two xdist workers, the notebook kernels and the CLI subprocesses compile
-many of the same solvers; with the cache each is compiled once (the variables are set before
-jax is imported, and the subprocesses inherit them)."""
+"""Shared set-up of the test processes: float64, less XLA optimisation work, and one persistent
+XLA compilation cache for the whole run. The two xdist workers, the notebook kernels and the
+CLI subprocesses compile many of the same solvers; with the cache each is compiled once (the
+variables are set before jax is imported, and the subprocesses inherit them)."""
 import os
 from pathlib import Path
 
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
                       str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"))
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
+# The suite's time is mostly XLA compiling programs that then run for milliseconds, so the tests
+# ask XLA:CPU for less optimisation work (JAX's flag for this case: it changes how the machine
+# code is made, not what it computes); the benches and the users' runs keep XLA's defaults.
+os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 
 import jax  # noqa: E402
 
