@@ -52,6 +52,32 @@ def pytest_cmdline_main(config):
     option = config.option
     if option.numprocesses is None and option.dist == "no" and not option.tx:
         option.numprocesses, option.dist = 2, "loadfile"
+        option.loadscopereorder = False    # keep SLOW_FIRST's order (below)
     if option.maxworkerrestart is None:
         option.maxworkerrestart = 0
 
+
+
+# The files that take longest, first: each worker takes the next file when it is nearly done, so
+# with the long ones queued last one worker could still be in a 400 s file while the other has
+# run out of work (longest-processing-time-first scheduling; the order is that of a clean run's
+# durations). The other files keep pytest's order after them.
+SLOW_FIRST = (
+    "tests/test_notebooks.py",
+    "tests/solvers/test_solver.py",
+    "tests/model/test_jacobian.py",
+    "tests/thesis/test_needle3d.py",
+    "tests/thesis/test_reproduce.py",
+    "tests/discretise/test_mesh.py",
+    "tests/control/test_batching.py",
+    "tests/thesis/test_needle.py",
+    "tests/solvers/test_stability.py",
+    "tests/mechanics/test_springs.py",
+    "tests/discretise/test_scni.py",
+    "tests/discretise/test_mesh_hostile.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {path: i for i, path in enumerate(SLOW_FIRST)}
+    items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))   # stable

@@ -39,3 +39,10 @@ def test_with_xdist_two_workers_per_file_no_restart():
     assert show() == ["2", "loadfile", "0", "2"]
     assert show("-n", "0") == ["0", "no", "0", "0"]
     assert show("-n", "3", "--dist", "load") == ["3", "load", "0", "3"]
+
+
+def test_the_slow_first_files_exist():
+    """tests/conftest.py queues these files first; a renamed one would silently drop out."""
+    from tests.conftest import SLOW_FIRST
+    missing = [path for path in SLOW_FIRST if not (ROOT / path).is_file()]
+    assert not missing, f"tests/conftest.py SLOW_FIRST names files that do not exist: {missing}"
