@@ -41,6 +41,15 @@ from .mechanics.materials import (
     green_lagrange as green_lagrange,
     pk2 as pk2,
 )
+from .mechanics.tissue import (
+    HolzapfelGasserOgden as HolzapfelGasserOgden,
+    MooneyRivlin as MooneyRivlin,
+    NearlyIncompressibleNeoHookean as NearlyIncompressibleNeoHookean,
+    VerondaWestmann as VerondaWestmann,
+    Yeoh as Yeoh,
+    bulk_modulus as bulk_modulus,
+    with_barrier as with_barrier,
+)
 from .model.continuation import arc_length as arc_length, point_load as point_load
 from .model.model import Model as Model, SolveError as SolveError
 from .solvers.continuation import EquilibriumPath as EquilibriumPath, PathStatus as PathStatus

@@ -1,0 +1,230 @@
+"""Soft-tissue strain energies with a volumetric-deviatoric split, W = W_iso(C̄) + U(J).
+
+They are written on the right Cauchy-Green tensor C = I + 2E, with J = sqrt(det C), the
+isochoric C̄ = J^(-2/3) C and its invariants Ī1, Ī2; they are still functions of E, so they
+plug into every term, solver and derivative as the other materials do. The volumetric energy
+of every one is U(J) = κ/2 (ln J)², which grows without bound as J → 0 (a compressed point
+cannot fold flat), so μ is the small-strain shear modulus and κ the bulk modulus of each, in
+the stress unit of the model. A 2D body is in plane strain: C is embedded in 3D with C33 = 1,
+so the invariants are those of the 3D deformation.
+
+Parameters are given by name: κ directly, or Poisson's ratio ``nu`` (κ = 2μ(1 + ν) / (3(1 − 2ν)),
+ν < 1/2); any of them may be a field X (n, d) -> (n,), as for the other materials.
+``with_barrier`` adds U(J) to any material (the thesis' Fung and Quadratic energies stay
+bounded as J → 0 without it).
+"""
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import jax.numpy as jnp
+import numpy as np
+
+from .materials import Material, det
+
+__all__ = ["HolzapfelGasserOgden", "MooneyRivlin", "NearlyIncompressibleNeoHookean", "VerondaWestmann",
+           "Yeoh", "bulk_modulus", "with_barrier"]
+
+
+# ------------------------------------------------------------------ kinematics
+def cauchy_green_3d(E):
+    """C = I + 2E as a 3x3 tensor; a 2D strain is embedded in plane strain (C33 = 1)."""
+    d = E.shape[-1]
+    C = jnp.eye(d) + 2.0 * E
+    if d == 3:
+        return C
+    if d == 2:
+        return jnp.zeros((3, 3), C.dtype).at[:2, :2].set(C).at[2, 2].set(1.0)
+    raise ValueError(f"tissue energies are for 2D (plane strain) and 3D bodies, got a {d}D strain")
+
+
+def isochoric_invariants(C):
+    """(J, Ī1, Ī2) of a 3x3 right Cauchy-Green tensor."""
+    J = jnp.sqrt(det(C))
+    I1 = jnp.trace(C)
+    I2 = 0.5 * (I1 * I1 - jnp.sum(C * C))      # C is symmetric: tr(C²) = C : C
+    scale = J ** (-2.0 / 3.0)
+    return J, scale * I1, scale * scale * I2
+
+
+def volumetric(J, kappa):
+    """U(J) = κ/2 (ln J)²."""
+    return 0.5 * kappa * jnp.log(J) ** 2
+
+
+# ------------------------------------------------------------------ energies
+def _neo_hookean(E, p):
+    J, I1, _ = isochoric_invariants(cauchy_green_3d(E))
+    return 0.5 * p["mu"] * (I1 - 3.0) + volumetric(J, p["kappa"])
+
+
+def _mooney_rivlin(E, p):
+    J, I1, I2 = isochoric_invariants(cauchy_green_3d(E))
+    return p["c10"] * (I1 - 3.0) + p["c01"] * (I2 - 3.0) + volumetric(J, p["kappa"])
+
+
+def _yeoh(E, p):
+    J, I1, _ = isochoric_invariants(cauchy_green_3d(E))
+    x = I1 - 3.0
+    return p["c10"] * x + p["c20"] * x ** 2 + p["c30"] * x ** 3 + volumetric(J, p["kappa"])
+
+
+def _veronda_westmann(E, p):
+    J, I1, I2 = isochoric_invariants(cauchy_green_3d(E))
+    return (p["c1"] * jnp.expm1(p["c2"] * (I1 - 3.0)) - 0.5 * p["c1"] * p["c2"] * (I2 - 3.0)
+            + volumetric(J, p["kappa"]))
+
+
+def _hgo(families: int):
+    def W(E, p):
+        C = cauchy_green_3d(E)
+        J, I1b, _ = isochoric_invariants(C)
+        energy = 0.5 * p["mu"] * (I1b - 3.0) + volumetric(J, p["kappa"])
+        I1, kd = jnp.trace(C), p["dispersion"]
+        for k in range(families):
+            a = jnp.stack([p[f"fibre{k}_x"], p[f"fibre{k}_y"], p[f"fibre{k}_z"]])
+            a = a / jnp.linalg.norm(a)
+            strain = kd * (I1 - 3.0) + (1.0 - 3.0 * kd) * (a @ C @ a - 1.0)
+            # fibres carry tension only; slack at rest too (jnp.maximum's derivative at 0 is ½)
+            strain = jnp.where(strain > 0.0, strain, 0.0)
+            energy = energy + p["k1"] / (2.0 * p["k2"]) * jnp.expm1(p["k2"] * strain ** 2)
+        return energy
+    return W
+
+
+# ------------------------------------------------------------------ parameters
+def bulk_modulus(mu, nu):
+    """κ = 2μ(1 + ν) / (3(1 − 2ν)) for a shear modulus μ (number or field) and Poisson's ratio
+    ν in (−1, 1/2)."""
+    nu = float(nu)
+    if not -1.0 < nu < 0.5:
+        raise ValueError(f"Poisson's ratio nu must lie in (-1, 0.5), got {nu:g} (nu = 0.5 is exactly "
+                         "incompressible, which these energies approach with nu = 0.499 or 0.4999)")
+    factor = 2.0 * (1.0 + nu) / (3.0 * (1.0 - 2.0 * nu))
+    if callable(mu):
+        return lambda X: factor * np.asarray(mu(X), float)
+    return factor * mu
+
+
+def _kappa(name: str, mu, kappa, nu):
+    """κ from exactly one of ``kappa`` and ``nu``."""
+    if (kappa is None) == (nu is None):
+        raise TypeError(f"{name}: give the bulk modulus kappa or Poisson's ratio nu (one of them), "
+                        f"got kappa={kappa!r}, nu={nu!r}")
+    return kappa if nu is None else bulk_modulus(mu, nu)
+
+
+def _shear(name: str, mu_of: Callable, **constants):
+    """μ from the energy's constants where they are numbers (to check it and to derive κ from
+    ν); a field constant gives a field μ."""
+    if any(callable(v) for v in constants.values()):
+        return lambda X: mu_of(**{k: np.asarray(v(X), float) if callable(v) else v for k, v in constants.items()})
+    mu = mu_of(**constants)
+    if not mu > 0:
+        raise ValueError(f"{name}: the small-strain shear modulus {mu_of.__doc__} must be positive, got {mu:g} "
+                         f"from {constants}")
+    return mu
+
+
+def NearlyIncompressibleNeoHookean(mu, kappa=None, *, nu=None) -> Material:
+    """W = μ/2 (Ī1 − 3) + κ/2 (ln J)²: shear modulus ``mu``, bulk modulus ``kappa`` (or Poisson's
+    ratio ``nu``). ``NearlyIncompressibleNeoHookean.from_young(E, nu)`` takes Young's modulus."""
+    k = _kappa("NearlyIncompressibleNeoHookean", mu, kappa, nu)
+    return Material(_neo_hookean, {"mu": mu, "kappa": k}, "NearlyIncompressibleNeoHookean",
+                    positive=("mu", "kappa"))
+
+
+def _from_young(young, nu) -> Material:
+    if not float(young) > 0:
+        raise ValueError(f"Young's modulus must be positive, got {young}")
+    bulk_modulus(1.0, nu)                                    # checks nu
+    return NearlyIncompressibleNeoHookean(young / (2.0 * (1.0 + nu)), nu=nu)
+
+
+NearlyIncompressibleNeoHookean.from_young = _from_young
+
+
+def MooneyRivlin(c10, c01, kappa=None, *, nu=None) -> Material:
+    """W = c10 (Ī1 − 3) + c01 (Ī2 − 3) + κ/2 (ln J)²; small-strain shear modulus μ = 2(c10 + c01)."""
+    def mu_of(c10, c01):
+        """2(c10 + c01)"""
+        return 2.0 * (c10 + c01)
+    mu = _shear("MooneyRivlin", mu_of, c10=c10, c01=c01)
+    return Material(_mooney_rivlin, {"c10": c10, "c01": c01, "kappa": _kappa("MooneyRivlin", mu, kappa, nu)},
+                    "MooneyRivlin", positive=("kappa",))
+
+
+def Yeoh(c10, c20=0.0, c30=0.0, kappa=None, *, nu=None) -> Material:
+    """W = c10 (Ī1 − 3) + c20 (Ī1 − 3)² + c30 (Ī1 − 3)³ + κ/2 (ln J)²; μ = 2 c10."""
+    def mu_of(c10):
+        """2 c10"""
+        return 2.0 * c10
+    mu = _shear("Yeoh", mu_of, c10=c10)
+    return Material(_yeoh, {"c10": c10, "c20": c20, "c30": c30, "kappa": _kappa("Yeoh", mu, kappa, nu)},
+                    "Yeoh", positive=("c10", "kappa"))
+
+
+def VerondaWestmann(c1, c2, kappa=None, *, nu=None) -> Material:
+    """W = c1 (exp(c2 (Ī1 − 3)) − 1) − c1 c2 / 2 (Ī2 − 3) + κ/2 (ln J)² (Veronda & Westmann 1970,
+    used for skin, breast and liver); μ = c1 c2."""
+    def mu_of(c1, c2):
+        """c1 c2"""
+        return c1 * c2
+    mu = _shear("VerondaWestmann", mu_of, c1=c1, c2=c2)
+    return Material(_veronda_westmann, {"c1": c1, "c2": c2, "kappa": _kappa("VerondaWestmann", mu, kappa, nu)},
+                    "VerondaWestmann", positive=("c1", "c2", "kappa"))
+
+
+def HolzapfelGasserOgden(mu, k1, k2, fibres: Sequence, kappa=None, *, nu=None,
+                         dispersion: float = 0.0) -> Material:
+    """Fibre-reinforced tissue (Holzapfel, Gasser & Ogden 2000; dispersion: Gasser et al. 2006):
+    W = μ/2 (Ī1 − 3) + Σ_f k1 / (2 k2) (exp(k2 ⟨E_f⟩²) − 1) + κ/2 (ln J)², with
+    E_f = κ_d (I1 − 3) + (1 − 3κ_d)(a_f · C a_f − 1) for each fibre direction a_f; ⟨·⟩ keeps
+    the tension only (fibres buckle rather than carry compression). The fibre term uses the
+    invariants of C itself, not of C̄, as Nolan et al. (2014) advise for compressible tissue.
+
+    ``fibres``: one or two directions a_f, each a (3,) vector or a field X (n, d) -> (n, 3);
+    they are normalised (in a 2D body, in plane strain, a fibre's out-of-plane part keeps its
+    length). ``dispersion`` κ_d in
+    [0, 1/3] (1/3: isotropic)."""
+    one = callable(fibres) or (not isinstance(fibres, str) and len(fibres) > 0
+                               and all(np.isscalar(x) for x in fibres))
+    fibres = [fibres] if one else list(fibres)
+    if not 1 <= len(fibres) <= 2:
+        raise ValueError(f"HolzapfelGasserOgden: fibres must be one or two directions, got {len(fibres)}")
+    if not 0.0 <= float(dispersion) <= 1.0 / 3.0:
+        raise ValueError(f"HolzapfelGasserOgden: dispersion must lie in [0, 1/3], got {dispersion}")
+    params = {"mu": mu, "k1": k1, "k2": k2, "dispersion": float(dispersion),
+              "kappa": _kappa("HolzapfelGasserOgden", mu, kappa, nu)}
+    for k, a in enumerate(fibres):
+        if callable(a):
+            for i, axis in enumerate("xyz"):
+                params[f"fibre{k}_{axis}"] = (lambda X, a=a, i=i: np.asarray(a(X), float)[:, i])
+            continue
+        a = np.asarray(a, float)
+        if a.shape != (3,) or not np.all(np.isfinite(a)) or not np.linalg.norm(a) > 0:
+            raise ValueError(f"HolzapfelGasserOgden: fibre {k} must be a nonzero finite 3-vector or a field "
+                             f"X -> (n, 3), got {a.tolist() if a.size < 10 else a.shape}")
+        params.update({f"fibre{k}_{axis}": float(a[i]) for i, axis in enumerate("xyz")})
+    return Material(_hgo(len(fibres)), params, "HolzapfelGasserOgden",
+                    positive=("mu", "k1", "k2", "kappa"))
+
+
+def with_barrier(material: Material, kappa=None, *, nu=None, mu=None) -> Material:
+    """``material`` plus the volumetric energy κ/2 (ln J)² (2D: plane strain), so that its
+    compressed points resist J → 0; e.g. the thesis' Fung energy, which stays bounded there.
+    ``kappa``, or ``nu`` with the small-strain shear modulus ``mu`` it refers to."""
+    if "kappa" in material.params:
+        raise ValueError(f"with_barrier: {material.name} already has a parameter 'kappa'")
+    if nu is not None and mu is None:
+        raise TypeError("with_barrier: nu needs the shear modulus mu it refers to (or give kappa)")
+    k = _kappa(f"with_barrier({material.name})", mu, kappa, nu)
+    W = material.W
+
+    def barrier(E, p):
+        J = jnp.sqrt(det(cauchy_green_3d(E)))
+        return W(E, p) + volumetric(J, p["kappa"])
+
+    return Material(barrier, {**material.params, "kappa": k}, f"{material.name}+barrier",
+                    positive=(*material.positive, "kappa"), nonnegative=material.nonnegative,
+                    tensors=material.tensors)
