@@ -8,9 +8,11 @@ from pathlib import Path
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
                       str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"))
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
-# The suite's time is mostly XLA compiling programs that then run for milliseconds, so the tests
+# Most of the suite's time is XLA compiling programs that then run for milliseconds, so the tests
 # ask XLA:CPU for less optimisation work (JAX's flag for this case: it changes how the machine
-# code is made, not what it computes); the benches and the users' runs keep XLA's defaults.
+# code is made, not what it computes); a module whose solves run long (large 3D sweeps) marks
+# itself ``pytestmark = pytest.mark.xla_optimised`` and keeps XLA's defaults, as the benches
+# and the users' runs do.
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 
 import jax  # noqa: E402
@@ -30,6 +32,22 @@ from jaxrkpm.base.programs import release_compiled_programs, release_if_crowded 
 def _programs_per_module():
     yield
     release_compiled_programs()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _xla_optimisation(request):
+    """XLA's full optimisation for the modules marked ``xla_optimised`` (set up before their own
+    module fixtures, which compile the long-running programs)."""
+    before = jax.config.read("jax_disable_most_optimizations")
+    if request.node.get_closest_marker("xla_optimised") is not None:
+        jax.config.update("jax_disable_most_optimizations", False)
+    yield
+    jax.config.update("jax_disable_most_optimizations", before)
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "xla_optimised: the module's programs run long: compile them with "
+                                       "XLA's full optimisation (tests/conftest.py)")
 
 
 @pytest.fixture(autouse=True)

@@ -12,6 +12,8 @@ from jaxrkpm.thesis import needle as nd
 from jaxrkpm.thesis.phantom3d import Phantom3D
 from jaxrkpm.solvers.results import Status
 
+pytestmark = pytest.mark.xla_optimised   # 3D sweeps: their run time, not their compile, dominates
+
 SPACING = 0.3
 INCREMENTS = 2
 
