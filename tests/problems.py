@@ -5,8 +5,9 @@ The thesis' objects (the planar square with its paddle, the section 5.3.1 cube, 
 square / cube grids and the "block" (unit square, left edge held, right edge driven) that
 several files solve, and two problems with independent references that the tests and the
 experiments share: the clamped strip that buckles (``strip_model``, against the extensible
-elastica) and the shallow arch that snaps through (``shallow_arch``, arc length against
-displacement control).
+elastica), the shallow arch that snaps through (``shallow_arch``, arc length against
+displacement control), and Cook's membrane and a cantilever block, nearly incompressible,
+against mixed-FEM references (``cook_membrane``, ``cantilever_block``: volumetric locking).
 """
 from __future__ import annotations
 
@@ -264,3 +265,26 @@ def manufactured_body_force(X):
     ``MANUFACTURED_MATERIAL`` (autodiff), as a Model's ``body_force`` takes it."""
     return np.asarray(_manufactured_force(jnp.asarray(X)))
 
+
+
+# Cook's membrane (plane strain): clamped on the left, a dead shear traction of total 5 on the right
+# edge; the vertical displacement of the top-right corner against FElupe's three-field
+# (u-p-J) solution, converged and extrapolated (experiments/cook_reference.py)
+COOK_VERTICES = np.array([[0.0, 0.0], [48.0, 44.0], [48.0, 60.0], [0.0, 44.0]])
+COOK_MU = 80.194
+COOK_REFERENCE = {0.3: 0.54654, 0.499: 0.40155}
+
+
+def lame(mu: float, nu: float) -> float:
+    """lam of Poisson's ratio nu at shear modulus mu."""
+    return 2.0 * mu * nu / (1.0 - 2.0 * nu)
+
+
+def cook_membrane(spacing: float, nu: float, integration: str = "gauss", **model_kw) -> float:
+    """u_y of the top-right corner (48, 60) of Cook's membrane, compressible neo-Hookean at
+    Poisson's ratio nu, solved in one load step."""
+    body = jr.Body.polygon(COOK_VERTICES, spacing)
+    model = jr.Model(body, jr.NeoHookean(lame(COOK_MU, nu), COOK_MU), integration=integration,
+                     essential={"left": body.select(lambda X: X[:, 0] < 1e-9)},
+                     tractions=[(lambda X: X[:, 0] > 48.0 - 1e-9, [0.0, 5.0 / 16.0])], **model_kw)
+    return float(np.asarray(model.displacement(model.solve(), [[48.0, 60.0]])).ravel()[1])

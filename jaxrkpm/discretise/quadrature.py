@@ -194,3 +194,60 @@ def gauss_table(body: Body, a: float, order: int = 2, cell_size: float | None = 
     if body.cells is not None:
         groups = np.repeat(np.arange(len(body.cells)), len(wts) // len(body.cells))
     return table(body, pts, wts, a, support_factor=support_factor, groups=groups)
+
+
+def dilatation_patches(body: Body, table: Table, integration: str = "gauss",
+                       cell_size: float | None = None) -> np.ndarray:
+    """The patch (Q,) of every integration point over which the anti-locking formulation
+    averages the volume change (``jaxrkpm.mechanics.strain.mean_dilatation``), by integration:
+
+    gauss  the background cell of ``cell_size`` (default: the spacing) that holds the point, also
+           on a mesh body: one volumetric constraint per cell of about one particle, the count
+           of the mean-dilatation element Q1/P0 (a patch per mesh cell would lock, a tetrahedral
+           mesh has five or six cells a particle; patches of two spacings are soft)
+    scni   each point: nodal integration already has one volumetric constraint per particle
+    mscni  the nearest particle, whose smoothing cell holds the sub-cell: the sub-cells'
+           constraints are folded back into their particle's, the count of SCNI."""
+    if integration == "scni":
+        return np.arange(len(table.points))
+    if integration == "mscni":
+        return np.asarray(body.nearest(table.points), np.int64).reshape(-1)
+    h = body.spacing if cell_size is None else float(cell_size)
+    span = body.upper - body.lower
+    n = np.maximum(1, np.ceil(span / h - 1e-9).astype(int))
+    cell = np.clip(np.floor((table.points - body.lower) / (span / n)).astype(np.int64), 0, n - 1)
+    return np.ravel_multi_index(tuple(cell.T), tuple(n))
+
+
+def patched(table: Table, patch_of: np.ndarray) -> tuple[Table, np.ndarray]:
+    """``table`` with every point's neighbour list widened to the union of its patch's lists
+    (the added entries carry psi = dpsi = 0, so every field it gives is unchanged), and the
+    patches as groups (G, S) of point indices padded with Q: a patch's points then share one
+    list, so a term that couples them keeps its tangent within that list's pairs."""
+    Q, K = table.idx.shape
+    patch_of = np.asarray(patch_of, np.int64)
+    if patch_of.shape != (Q,):
+        raise ValueError(f"patch_of must have one patch per point, shape ({Q},), got {patch_of.shape}")
+    _, patch_of = np.unique(patch_of, return_inverse=True)
+    N = int(table.idx.max()) + 1
+    keys = np.unique(patch_of[:, None] * N + table.idx.astype(np.int64))
+    owner, member = keys // N, keys % N
+    counts = np.bincount(owner)
+    start = np.r_[0, np.cumsum(counts)[:-1]]
+    Ku = int(counts.max())
+    slot = np.arange(len(keys)) - np.repeat(start, counts)
+    lists = np.repeat(member[start + counts - 1][:, None], Ku, 1)     # padding: the list's last entry
+    lists[owner, slot] = member
+    # where each (point, entry) lands in its patch's list
+    pos = np.searchsorted(keys, patch_of[:, None] * N + table.idx) - start[patch_of][:, None]
+    rows = np.repeat(np.arange(Q), K)
+    psi = np.zeros((Q, Ku))
+    dpsi = np.zeros((Q, Ku, table.dpsi.shape[-1]))
+    np.add.at(psi, (rows, pos.ravel()), table.psi.ravel())
+    np.add.at(dpsi, (rows, pos.ravel()), table.dpsi.reshape(Q * K, -1))
+    idx = lists[patch_of].astype(table.idx.dtype)
+    order = np.argsort(patch_of, kind="stable")
+    pstart = np.r_[0, np.cumsum(counts_p := np.bincount(patch_of))[:-1]]
+    groups = np.full((len(counts_p), counts_p.max()), Q, np.int64)
+    groups[patch_of[order], np.arange(Q) - np.repeat(pstart, counts_p)] = order
+    return Table(table.points, table.weights, idx, psi, dpsi, table.normals), groups

@@ -25,7 +25,9 @@ class Material:
 
     ``params``: name -> float | callable field X (n, d) -> (n,) | array (global tensor).
     ``positive``: names of parameters that must be > 0 everywhere.
-    ``tensors``: optional callable dim -> dict of extra global arrays (e.g. Fung's A, C)."""
+    ``tensors``: optional callable dim -> dict of extra global arrays (e.g. Fung's A, C).
+    ``split``: W = W_iso(C̄) + U(J), a nearly incompressible energy (a model averages its volume
+    change over patches by default: ``jaxrkpm.mechanics.strain.needs_anti_locking``)."""
 
     W: Callable
     params: dict = field(default_factory=dict)
@@ -33,6 +35,7 @@ class Material:
     positive: tuple = ()
     nonnegative: tuple = ()
     tensors: Callable | None = None
+    split: bool = False
 
     def __post_init__(self):
         if not callable(self.W):

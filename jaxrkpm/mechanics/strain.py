@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..discretise.pairs import point_groups
+from ..discretise.quadrature import patched
 from .materials import Material, det, green_lagrange
 from .term import Context, Pairs, Term, static, term, window_plan
 
@@ -29,6 +30,16 @@ def _point_energy(W):
     def psi(F, p):
         return W(green_lagrange(F), p)
     return psi
+
+
+def mean_dilatation(F, w):
+    """F-bar over one patch of points (S, d, d) with weights w (S,): (J̄ / J)^(1/d) F, J̄ the
+    w-weighted mean of J = det F. The deviatoric part of F is the point's own, its volume change
+    the patch's, so a patch carries one volumetric constraint instead of one per point; under
+    an affine field every J equals J̄ and F-bar is F (the patch test is untouched)."""
+    J = det(F)
+    Jbar = jnp.sum(w * J) / jnp.sum(w)
+    return ((Jbar / J) ** (1.0 / F.shape[-1]))[:, None, None] * F
 
 
 def _per_group(f, axes):
@@ -62,6 +73,10 @@ class StrainEnergy(Term):
     block_budget    doubles of (chunk, K, K, d, d) local tangent blocks held at once: small
                     enough that a chunk's blocks stay in cache between the GEMM that writes
                     them and the scatter that sums them (``experiments/bench_cube3d_large.py``)
+    patches         True: the groups are dilatation patches (``dilatation_patches``) and every
+                    point's energy is taken at F-bar (``mean_dilatation``) over its group, the
+                    anti-locking formulation; the tangent blocks are then the Hessian of each
+                    patch's energy in its points' F (``experiments/bench_anti_locking.py``)
     half_part       neighbours per part of a group's list when only one triangle of its
                     (K, K) blocks is formed (K >= 2 half_part): a group's blocks are symmetric,
                     so of the parts' (a, b) products only a <= b are formed and the transposes
@@ -80,6 +95,7 @@ class StrainEnergy(Term):
     name: str = static("strain")
     block_budget: int = static(2**18)
     half_part: int = static(16)
+    patches: bool = static(False)
 
     # --------------------------------------------------------------- by group
     def _merged(self):
@@ -120,9 +136,21 @@ class StrainEnergy(Term):
         force scale needs no second pass through the material)."""
         F = self.group_gradients(d) + (0.0 if aux is None else aux)
         p, axes = self._group_params()
-        Wq = _per_group(_point_energy(self.W), axes)(F, p)
         det_F = jnp.where(self.groups < self.w.shape[0], det(F), jnp.inf)   # padding: not a point
+        if self.patches:
+            return jnp.sum(jax.vmap(self._patch_energy(axes), in_axes=(0, 0, axes))(F, self.by_group(self.w), p)), \
+                jnp.min(det_F)
+        Wq = _per_group(_point_energy(self.W), axes)(F, p)
         return jnp.sum(self.by_group(self.w) * Wq), jnp.min(det_F)
+
+    def _patch_energy(self, axes):
+        """The energy of one patch, sum_s w_s W(F-bar_s), from its points' F (S, d, d), weights
+        (S,) and parameters (the padding slots: F = I, w = 0)."""
+        psi = jax.vmap(_point_energy(self.W), in_axes=(0, axes))
+
+        def energy(F, w, p):
+            return jnp.sum(w * psi(mean_dilatation(F, w), p))
+        return energy
 
     def aux_zeros(self, u):
         """Zeros of the shape of the stress by group (G, S, d, d), in u's dtype."""
@@ -154,6 +182,11 @@ class StrainEnergy(Term):
         (the convergence test's round-off floor, ``jaxrkpm.solvers.newton.Tolerance``)."""
         F = self.group_gradients(d)
         p, axes = self._group_params()
+        if self.patches:   # the weighted stress of a patch and its change, from the patch's energy
+            stress = jax.grad(self._patch_energy(axes))
+            P, dP = jax.vmap(lambda F, w, p: jax.jvp(lambda G: stress(G, w, p), (F,), (F,)),
+                             in_axes=(0, 0, axes))(F, self.by_group(self.w), p)
+            return self._scatter_norm(P), self._scatter_norm(dP)
 
         def stress_and_stiffness(F, p):
             return jax.jvp(lambda G: jax.grad(_point_energy(self.W))(G, p), (F,), (F,))
@@ -173,6 +206,8 @@ class StrainEnergy(Term):
         local blocks never exist all at once. Long lists (K >= 2 half_part) form one triangle
         of each group's blocks: the pair sums U then hold each pair's blocks in one of its two
         orders, and K_IJ = U_IJ + U_JI^T (I != J)."""
+        if self.patches:
+            return self._patch_blocks(d, pairs)
         F = deformation_gradients(self.idx, self.dpsi, d)
         p, axes = self._merged()
         C = material_tangent(self.W, F, p, axes)   # (Q, d, d, d, d)
@@ -235,6 +270,37 @@ class StrainEnergy(Term):
             U = U + jnp.where((pairs.i == pairs.j)[:, None, None], 0.0, jnp.swapaxes(U[pairs.t], -1, -2))
         return U
 
+    def _patch_blocks(self, d, pairs: Pairs):
+        """Tangent blocks of the F-bar energy: per patch, K_km = sum_(s, t) grad Psi_k(s) .
+        d2E/dF_s dF_t . grad Psi_m(t), the patch energy's Hessian in its points' F by autodiff
+        (F-bar couples the points of a patch), swept in windows of patches."""
+        p, axes = self._group_params()
+        F, w, D = self.group_gradients(d), self.by_group(self.w), self.by_group(self.dpsi)
+        G, S = self.groups.shape
+        K, dim = D.shape[2], D.shape[3]
+        hessian = jax.vmap(jax.hessian(self._patch_energy(axes)), in_axes=(0, 0, axes))
+
+        def chunk_sum(acc, start, size, fresh):
+            cut = lambda x: jax.lax.dynamic_slice_in_dim(x, start, size)
+            H = hessian(cut(F), cut(w), {k: cut(v) if axes[k] == 0 else v for k, v in p.items()})
+            Dc = cut(D)
+            T = jnp.einsum("cskj,csajtbl->ckatbl", Dc, H)
+            blocks = jnp.einsum("ckatbl,ctml->ckmab", T, Dc) * fresh[:, None, None, None, None]
+            return acc + jax.ops.segment_sum(blocks.reshape(-1, dim, dim), cut(self.pair_id).reshape(-1),
+                                             num_segments=pairs.count)
+
+        zero = jnp.zeros((pairs.count, dim, dim), d.dtype)
+        windows, chunk = window_plan(G, K * K * dim * dim + K * S * dim**4 + S * S * dim**4, self.block_budget)
+        if windows == 1:
+            return chunk_sum(zero, 0, G, jnp.ones(G, d.dtype))
+
+        def body(i, acc):
+            # the last window is shifted back to end at G: its patches already summed count zero
+            start = jnp.minimum(i * chunk, G - chunk)
+            return chunk_sum(acc, start, chunk, (start + jnp.arange(chunk) >= i * chunk).astype(d.dtype))
+
+        return jax.lax.fori_loop(0, windows, body, zero)
+
     # -------------------------------------------------------------- parameters
     @property
     def params(self) -> dict:
@@ -252,16 +318,40 @@ class StrainEnergy(Term):
         return replace(self, pair_id=jnp.asarray(ids, jnp.int32))
 
 
-def strain_energy(ctx: Context, material: Material) -> StrainEnergy:
-    """The strain energy term of ``material`` over ``ctx.volume`` (its integration points
-    grouped by neighbour list, ``point_groups``), the material's parameters evaluated at the
-    points and its energy checked there."""
+# lam / mu from which an energy written with Lame constants locks: Poisson's ratio 0.45
+LOCKING_LAME_RATIO = 9.0
+
+
+def needs_anti_locking(material: Material, point: dict) -> bool:
+    """Whether ``material`` (its parameters at the points) is nearly incompressible: an energy
+    with a volumetric-deviatoric split (``Material.split``), or one written with Lame constants
+    whose lam / mu reaches ``LOCKING_LAME_RATIO`` (Poisson's ratio 0.45) somewhere."""
+    if material.split:
+        return True
+    if "lam" in point and "mu" in point:
+        return bool(np.any(np.asarray(point["lam"]) >= LOCKING_LAME_RATIO * np.asarray(point["mu"])))
+    return False
+
+
+def strain_energy(ctx: Context, material: Material, anti_locking: bool | None = None,
+                  patch_of: np.ndarray | None = None) -> StrainEnergy:
+    """The strain energy term of ``material`` over ``ctx.volume``, the material's parameters
+    evaluated at the points and its energy checked there. Its integration points are grouped
+    by neighbour list (``point_groups``), or, with ``anti_locking`` (None: where
+    ``needs_anti_locking``), by the dilatation patches ``patch_of`` (Q,)
+    (``jaxrkpm.discretise.quadrature.dilatation_patches``), each point's energy taken at F-bar."""
     table = ctx.volume
-    idx = table.idx.astype(np.int64)
     d = ctx.body.dim
     point = {k: jnp.asarray(v) for k, v in material.point_params(table.points).items()}
     tensors = {k: jnp.asarray(v) for k, v in material.global_params(d).items()}
     material.check_energy(d, {k: v[0] for k, v in point.items()})
-    return StrainEnergy(idx=jnp.asarray(idx, jnp.int32), dpsi=jnp.asarray(table.dpsi), w=jnp.asarray(table.weights),
-                        groups=jnp.asarray(point_groups(idx), jnp.int32), point=point, tensors=tensors,
-                        W=material.W, n=ctx.body.n)
+    on = needs_anti_locking(material, point) if anti_locking is None else bool(anti_locking)
+    if on and patch_of is None:
+        raise ValueError("anti-locking needs the dilatation patches of the integration points (patch_of)")
+    if on:
+        table, groups = patched(table, patch_of)
+    else:
+        groups = point_groups(table.idx.astype(np.int64))
+    return StrainEnergy(idx=jnp.asarray(table.idx, jnp.int32), dpsi=jnp.asarray(table.dpsi),
+                        w=jnp.asarray(table.weights), groups=jnp.asarray(groups, jnp.int32), point=point,
+                        tensors=tensors, W=material.W, n=ctx.body.n, patches=on)

@@ -131,7 +131,7 @@ def NearlyIncompressibleNeoHookean(mu, kappa=None, *, nu=None) -> Material:
     ratio ``nu``). ``NearlyIncompressibleNeoHookean.from_young(E, nu)`` takes Young's modulus."""
     k = _kappa("NearlyIncompressibleNeoHookean", mu, kappa, nu)
     return Material(_neo_hookean, {"mu": mu, "kappa": k}, "NearlyIncompressibleNeoHookean",
-                    positive=("mu", "kappa"))
+                    positive=("mu", "kappa"), split=True)
 
 
 def _from_young(young, nu) -> Material:
@@ -151,7 +151,7 @@ def MooneyRivlin(c10, c01, kappa=None, *, nu=None) -> Material:
         return 2.0 * (c10 + c01)
     mu = _shear("MooneyRivlin", mu_of, c10=c10, c01=c01)
     return Material(_mooney_rivlin, {"c10": c10, "c01": c01, "kappa": _kappa("MooneyRivlin", mu, kappa, nu)},
-                    "MooneyRivlin", positive=("kappa",))
+                    "MooneyRivlin", positive=("kappa",), split=True)
 
 
 def Yeoh(c10, c20=0.0, c30=0.0, kappa=None, *, nu=None) -> Material:
@@ -161,7 +161,7 @@ def Yeoh(c10, c20=0.0, c30=0.0, kappa=None, *, nu=None) -> Material:
         return 2.0 * c10
     mu = _shear("Yeoh", mu_of, c10=c10)
     return Material(_yeoh, {"c10": c10, "c20": c20, "c30": c30, "kappa": _kappa("Yeoh", mu, kappa, nu)},
-                    "Yeoh", positive=("c10", "kappa"))
+                    "Yeoh", positive=("c10", "kappa"), split=True)
 
 
 def VerondaWestmann(c1, c2, kappa=None, *, nu=None) -> Material:
@@ -172,7 +172,7 @@ def VerondaWestmann(c1, c2, kappa=None, *, nu=None) -> Material:
         return c1 * c2
     mu = _shear("VerondaWestmann", mu_of, c1=c1, c2=c2)
     return Material(_veronda_westmann, {"c1": c1, "c2": c2, "kappa": _kappa("VerondaWestmann", mu, kappa, nu)},
-                    "VerondaWestmann", positive=("c1", "c2", "kappa"))
+                    "VerondaWestmann", positive=("c1", "c2", "kappa"), split=True)
 
 
 def HolzapfelGasserOgden(mu, k1, k2, fibres: Sequence, kappa=None, *, nu=None,
@@ -207,7 +207,7 @@ def HolzapfelGasserOgden(mu, k1, k2, fibres: Sequence, kappa=None, *, nu=None,
                              f"X -> (n, 3), got {a.tolist() if a.size < 10 else a.shape}")
         params.update({f"fibre{k}_{axis}": float(a[i]) for i, axis in enumerate("xyz")})
     return Material(_hgo(len(fibres)), params, "HolzapfelGasserOgden",
-                    positive=("mu", "k1", "k2", "kappa"))
+                    positive=("mu", "k1", "k2", "kappa"), split=True)
 
 
 def with_barrier(material: Material, kappa=None, *, nu=None, mu=None) -> Material:

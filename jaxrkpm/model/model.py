@@ -132,6 +132,14 @@ class Model:
                 solves faster but is exact only for affine fields and far less accurate for a
                 smooth large deformation, at every refinement measured
                 (experiments/bench_mesh_integration.py)
+    anti_locking  None (default): on where the material is nearly incompressible (an energy
+                with a volumetric-deviatoric split, or Lame constants with lam >= 9 mu, Poisson's
+                ratio 0.45); True / False: on / off. On, every integration point's energy is
+                taken at F-bar, its volume change averaged over a patch of points (a
+                background cell; a particle's smoothing cell with "mscni"), which removes
+                volumetric locking as nu -> 1/2 (jaxrkpm.discretise.quadrature.dilatation_patches,
+                ``docs/guide/models.md``). Stresses at arbitrary points (``stress``) are the
+                point's own.
     essential   name -> particle indices (or boolean mask) of each essential set
     support     kernel dilation a = support x spacing (eq 3.20)
     body_force  (d,) or X -> (Q, d): dead load per unit reference volume
@@ -160,7 +168,8 @@ class Model:
                  essential: Mapping | None = None, support: float = 2.01, order: int = 2,
                  cell_size: float | None = None, body_force=None, tractions=(),
                  springs: Springs | None = None, terms=(), solver: str = "auto",
-                 factorisation: str = "auto", precision: str = "auto", choice: SolverChoice = SolverChoice()):
+                 factorisation: str = "auto", precision: str = "auto", choice: SolverChoice = SolverChoice(),
+                 anti_locking: bool | None = None):
         if not isinstance(body, Body):
             raise ValueError(f"body must be a jaxrkpm Body, got {type(body).__name__}")
         if not isinstance(material, Material):
@@ -203,7 +212,11 @@ class Model:
         self.sets = EssentialSets.build(body, dict(essential or {}))
         trans = Transformation.build(body, self.sets, self.a, self.support) if len(self.sets.bnd) else None
         ctx = Context(body, self.a, self.support, self.volume, self.surface, self.sets)
-        strain = strain_energy(ctx, material)
+        if anti_locking not in (None, True, False):
+            raise ValueError(f"anti_locking must be None (where the material needs it), True or False, "
+                             f"got {anti_locking!r}")
+        strain = strain_energy(ctx, material, anti_locking,
+                               integ.dilatation_patches(body, self.volume, integration, cell_size))
         built = (strain, self._springs(springs, ctx), dead_load(ctx, body_force, tractions),
                  *self._terms(terms, ctx, {*strain.point, *strain.tensors}))
         pairs, built, pair_i, pair_j = on_pattern(built, body.n, d)
