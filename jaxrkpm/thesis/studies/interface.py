@@ -350,7 +350,7 @@ def sweep_parser():
     from jaxrkpm.thesis.data import INCLUSIONS, TABLE_6_2
     p = _parser("sweep", "jaxrkpm.thesis.studies.sweep", "results/sweep")
     p.add_argument("--paddles", type=number(int, 1, len(TABLE_6_2)), nargs="+", default=None,
-                   help=f"paddle positions of Table 6.2, 1..{len(TABLE_6_2)} (default all)")
+                   help=f"paddle positions of Table 6.2, 1..{len(TABLE_6_2)} (default: all)")
     p.add_argument("--ratios", type=POSITIVE, nargs="+", default=[100.0], help="inclusion stiffness ratios")
     p.add_argument("--inclusions", choices=tuple(INCLUSIONS), nargs="+", default=["right"])
     p.add_argument("--alphas", type=POSITIVE, nargs="+", default=[1.0], help="Fung alpha values")
@@ -364,9 +364,11 @@ def sweep_parser():
     p.add_argument("--jacobians", action="store_true", help="keep every increment's paddle Jacobian")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--executor", default=None, metavar="ADDRESS",
-                       help="a Dask scheduler's address (tcp://host:8786): run the chunks on that cluster")
+                       help="a Dask scheduler's address (tcp://host:8786): run the chunks on that cluster "
+                            "(default: in this process)")
     where.add_argument("--workers", type=number(int, 1, 256), default=None,
-                       help="run the chunks on a local Dask cluster of this many worker processes")
+                       help="run the chunks on a local Dask cluster of this many worker processes, 1..256 "
+                            "(default: in this process)")
     return p
 
 
