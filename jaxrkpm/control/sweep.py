@@ -477,24 +477,38 @@ def _run_local(todo, chunks, evaluate, settings, done):
 
 
 def _run_dask(executor, todo, chunks, evaluate, settings, done):
+    """Chunks as Dask tasks, at most two per worker thread in flight (plus a few): the
+    scheduler holds a window, not the whole sweep, and an interrupted driver loses at most
+    the window's work."""
     import distributed
     client, owned = _dask(executor)
+    inflight = {}
     try:
         client.register_plugin(_settings_plugin(settings))
-        futures = {client.submit(run_chunk, evaluate, chunks(k), settings, True, pure=False): k for k in todo}
-        try:
-            for fut in distributed.as_completed(futures):
-                k = futures[fut]
-                try:
-                    table = fut.result()
-                except Exception as e:   # noqa: BLE001 (KilledWorker: the chunk killed its worker again and again)
-                    table = failed_rows(chunks(k), f"{type(e).__name__}: {e}")
-                done(k, table)
-                fut.release()
-        finally:
-            for fut in futures:
-                fut.cancel()
+        pending = iter(todo)
+        window = max(4, 2 * sum(client.nthreads().values()))
+        running = distributed.as_completed()
+
+        def submit_next():
+            k = next(pending, None)
+            if k is not None:
+                fut = client.submit(run_chunk, evaluate, chunks(k), settings, True, pure=False)
+                inflight[fut] = k
+                running.add(fut)
+        for _ in range(window):
+            submit_next()
+        for fut in running:
+            k = inflight.pop(fut)
+            try:
+                table = fut.result()
+            except Exception as e:   # noqa: BLE001 (KilledWorker: the chunk killed its worker again and again)
+                table = failed_rows(chunks(k), f"{type(e).__name__}: {e}")
+            fut.release()
+            done(k, table)
+            submit_next()
     finally:
+        for fut in inflight:
+            fut.cancel()
         if owned:
             client.close()
 
