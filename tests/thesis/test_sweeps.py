@@ -91,3 +91,13 @@ def test_the_command_writes_and_resumes(swept, tmp_path, capsys):
     assert read_sweep(out / "table").equals(expected.slice(0, 5))
     assert cli.main(argv[:-1]) == 3                                     # other options: another run's folder
     assert "holds the results of another run" in capsys.readouterr().err
+
+
+def test_the_evaluator_travels_without_its_phantom(swept):
+    """What a cluster worker receives: the numbers, not the phantom's models and arrays."""
+    import pickle
+    ev = sweeps.NeedleSweep(INCREMENTS, insertion=INSERTION)
+    ev.like                                                     # built: models, arrays
+    copy = pickle.loads(pickle.dumps(ev))
+    assert len(pickle.dumps(ev)) < 2000 and copy._phantom is None and copy._like is None
+    assert copy.sweep_key == ev.sweep_key and copy.phantom.insertion == INSERTION
