@@ -35,6 +35,13 @@ Jacobian; ``ceiling_speedup`` = loop / floor_s is the most any batching of these
 could gain over the loop on this machine, if it made every overhead vanish and cost no
 more per member than the unbatched kernels.
 
+``--gpu``: the GPU scaling table in one short run: 20, 80, 320, 1,280, 4,096 configurations
+in lock step (vmap), timed warm up to 320 (``--warm-max``; above it the cold call, compile
+included, is the figure: ``batched_cold_per_configuration_s``), the loop at 20 only, one
+warm repeat, the phantom's integration table built once for all models (``--cache-tables``:
+``Model`` rebuilds it per model, host time outside the timed calls that took minutes at
+4,096 models).
+
 ``--devices N`` splits the configurations over N XLA host devices (one per core; shard_map,
 ``needle.insert(n_devices=N)``), the loop stays on one: say so when quoting it."""
 from __future__ import annotations
@@ -69,6 +76,24 @@ from jaxrkpm.thesis import needle as nd  # noqa: E402
 from jaxrkpm.model.model import Model  # noqa: E402
 from jaxrkpm.solvers.implicit import response  # noqa: E402
 from jaxrkpm.solvers.results import Status  # noqa: E402
+
+
+def cache_integration_tables() -> None:
+    """Build each body's Gauss table once for all the bench's models (``Model`` builds it per
+    model; the models here share body, support and order, so the tables are equal)."""
+    from jaxrkpm.discretise import quadrature
+    original, cache = quadrature.gauss_table, {}
+
+    def cached(body, *args, **kwargs):
+        key = (id(body), args, tuple(sorted(kwargs.items())))
+        if key not in cache:
+            cache[key] = (body, original(body, *args, **kwargs))     # the body kept: its id stays its own
+        return cache[key][1]
+    quadrature.gauss_table = cached
+
+
+GPU_PRESET = {"counts": [20, 80, 320, 1280, 4096], "batching": "vmap", "loop_max": 20, "repeats": 1,
+              "warm_max": 320, "cache_tables": True}
 
 
 def configurations(phantom: nd.Phantom, count: int) -> list[Model]:
@@ -173,8 +198,19 @@ def main(argv=None):
                     help="time the Python loop only up to this many configurations")
     ap.add_argument("--devices", type=int, default=1,
                     help="XLA host devices (cores) the batched call splits the configurations over")
+    ap.add_argument("--warm-max", type=int, default=None,
+                    help="time warm repeats only up to this many configurations (above: the cold call only)")
+    ap.add_argument("--cache-tables", action="store_true",
+                    help="build the phantom's integration table once for all models (host time, not timed)")
+    ap.add_argument("--gpu", action="store_true",
+                    help="the GPU scaling table: " + ", ".join(f"--{k.replace('_', '-')} {v}" for k, v in GPU_PRESET.items()))
     records.add_arguments(ap)
     args = ap.parse_args(argv)
+    if args.gpu:
+        for k, v in GPU_PRESET.items():
+            setattr(args, k, v)
+    if args.cache_tables:
+        cache_integration_tables()
     args.batching = args.batching or batching.default_batching()
     if len(jax.devices()) < args.devices:
         raise SystemExit(f"--devices {args.devices}: JAX sees {len(jax.devices())} device(s); set "
@@ -202,6 +238,11 @@ def main(argv=None):
             row["loop_cold_s"] = cold_l
             row["max_abs_difference"] = float(np.max(np.abs(dev_b - dev_l)))
             row["status_agree"] = bool(np.all(st_b == st_l))
+        row["batched_cold_per_configuration_s"] = cold_b / count
+        if args.warm_max is not None and count > args.warm_max:
+            rows.append(row)
+            print(json.dumps(row), file=sys.stderr, flush=True)
+            continue
         tb, tl = [], []
         for _ in range(args.repeats):
             tb.append(timed(batched, *sweep)[0])
@@ -226,7 +267,7 @@ def main(argv=None):
               "batching": args.batching, "devices": args.devices,
               "device": str(jax.devices()[0]), "repeats": args.repeats, "rows": rows,
               "per_configuration_vs_single": {r["configurations"]: r["batched_warm_per_configuration_s"] / base
-                                              for r in rows}}
+                                              for r in rows if "batched_warm_per_configuration_s" in r}}
     if last_loop is not None:
         row, model, (iterations, jacobians, factorisations) = last_loop
         fl = floor(model, phantom, depths, iterations, jacobians, factorisations)

@@ -5,6 +5,14 @@ from . import internal as internal, rig as rig
 from .base.outcome import Outcome as Outcome
 from .base.cache import use_compilation_cache as use_compilation_cache
 from .base.programs import release_if_crowded as release_if_crowded
+from .control.sweep import (
+    SweepFolderError as SweepFolderError,
+    SweepSummary as SweepSummary,
+    read_sweep as read_sweep,
+    results_dataset as results_dataset,
+    sweep as sweep,
+    worker_settings as worker_settings,
+)
 from .control.tracking import (
     TrackResult as TrackResult,
     TrackStatus as TrackStatus,

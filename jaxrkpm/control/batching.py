@@ -16,7 +16,7 @@ from ..mechanics.problem import Problem
 
 
 # ----------------------------------------------------------------------- batching
-def stack_models(models: Sequence[Model]) -> tuple[Problem, tuple]:
+def stack_models(models: Sequence[Model], like: Sequence[Model] = ()) -> tuple[Problem, tuple]:
     """The problems of models that share a body and integration table as one batch:
     (problem, batched). ``batched`` (a tuple of bools, one per leaf of the problem's pytree,
     static) says which leaves carry a leading batch axis: those that differ between the
@@ -26,9 +26,15 @@ def stack_models(models: Sequence[Model]) -> tuple[Problem, tuple]:
     table, pair structure, tensors) are kept once: vmapped, they stay unbatched operands
     (``batch_axes``), so gathers and scatters over the table are not repeated per member
     on a stacked copy (a vmapped assembly over a stacked table cost several times the
-    unbatched one per member: ``experiments/bench_sweep.py``)."""
+    unbatched one per member: ``experiments/bench_sweep.py``).
+
+    ``like``: models that count as members for the padded shapes and for which leaves are
+    batched, but are not stacked: the chunks of a sweep (``jaxrkpm.control.sweep``) given
+    the same ``like`` stack to one shape and one set of batched leaves, so one compiled
+    program serves them all instead of one per chunk."""
     ref = models[0]
-    for m in models[1:]:
+    like = list(like)
+    for m in list(models[1:]) + like:
         if m.body is not ref.body or m.volume.idx.shape != ref.volume.idx.shape:
             raise ValueError("batched models must share one body and integration table")
         if m.sets.free.shape != ref.sets.free.shape:
@@ -41,14 +47,16 @@ def stack_models(models: Sequence[Model]) -> tuple[Problem, tuple]:
         a = np.asarray(xs[0])
         return all(np.shape(x) == a.shape and np.array_equal(np.asarray(x), a) for x in xs[1:])
 
+    B = len(models)
+
     def stack(xs):
         if not np.ndim(xs[0]):
-            return jnp.stack(xs)
+            return jnp.stack(xs[:B])
         shape = np.max([np.shape(x) for x in xs], axis=0)
         return jnp.asarray(np.stack([np.pad(np.asarray(x), [(0, s - n) for s, n in zip(shape, np.shape(x))])
-                                     for x in xs]))
+                                     for x in xs[:B]]))
 
-    flat = [jax.tree.flatten(m.problem()) for m in models]
+    flat = [jax.tree.flatten(m.problem()) for m in list(models) + like]
     treedef = flat[0][1]
     if any(t != treedef for _, t in flat[1:]):
         raise ValueError("batched models must have the same terms (kinds, names and settings)")

@@ -1,5 +1,6 @@
 # The public names of the thesis application, declared once (loaded lazily by __init__.py).
-from . import cli as cli, data as data, needle as needle, phantom3d as phantom3d, rigsim as rigsim, studies as studies
+from . import (cli as cli, data as data, needle as needle, phantom3d as phantom3d, rigsim as rigsim,
+               studies as studies, sweeps as sweeps)
 from .data import (
     CP_2D as CP_2D,
     CP_3D as CP_3D,
@@ -39,5 +40,6 @@ from .needle import (
     static_state as static_state,
     static_sweep as static_sweep,
 )
+from .sweeps import NeedleSweep as NeedleSweep, needle_sweep as needle_sweep, paddle_configurations as paddle_configurations
 from .phantom3d import Phantom3D as Phantom3D, ball_field as ball_field, ellipsoid_point as ellipsoid_point
 from .scenarios import cube as cube, cube_path as cube_path, planar_square as planar_square

@@ -23,6 +23,8 @@ COMMANDS = {
     "rig-sim": ("jaxrkpm.thesis.studies.rig_sim", "the simulated rig of section 5.3.2: vision, robot link, "
                                            "an object the model does not know"),
     "cantilever": ("jaxrkpm.thesis.studies.cantilever", "Timoshenko cantilever: error and convergence rate (verification)"),
+    "sweep": ("jaxrkpm.thesis.studies.sweep", "2D needle sweeps to disk: paddle x inclusion x stiffness, "
+                                          "resumable Parquet, in process or on a Dask cluster"),
     "reproduce": ("jaxrkpm.thesis.studies.reproduce", "every experiment above; report.md with a verdict per row"),
 }
 

@@ -320,7 +320,7 @@ def _insert_batch(driver: LoadPath, prob: Problem, G, dG, lim, idx, psi, *, batc
 
 def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None = "paddle",
            n_devices: int | None = 1, max_iter: int = 25, steps: int = 1, direction=None,
-           batching: str | None = None) -> Insertion:
+           batching: str | None = None, like: Sequence[Model] = ()) -> Insertion:
     """Insert the needle of every model through ``depths`` (n,) in one compiled, batched call
     and record the displacement of ``point`` (d,) at every increment; with ``jacobian_set``,
     also the implicit Jacobian of the point w.r.t. a rigid translation of that set.
@@ -329,7 +329,8 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
     ``batching``: "map" runs the configurations one after another on each device, "vmap"
     all at once in lock step; None (default): "map" on CPU, "vmap" elsewhere (GPU), as
     measured (see ``_insert_batch``);
-    ``n_devices``: shard them over that many devices.
+    ``n_devices``: shard them over that many devices. ``like``: models that set the padded
+    shapes and batched leaves with them (``stack_models``: one program for a sweep's chunks).
 
     Each model keeps its other sets fixed (zero). Failed solves do not raise: their status
     is recorded and the next increment starts from the last converged state."""
@@ -342,7 +343,7 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
     if depths.ndim != 1 or len(depths) == 0 or not np.all(np.isfinite(depths)):
         raise ValueError(f"depths must be a non-empty 1D array of finite needle depths, got {depths!r}")
     ref = models[0]
-    prob, batched = stack_models(models)
+    prob, batched = stack_models(models, like)
     # one member at a time ("map"): modified Newton's branch is a branch (as in an eager
     # solve); in lock step (vmap) it would run both sides, so full Newton stays there
     driver = ref.solver(reuse=ref.newton_reuse if batching == "map" else 0.0)

@@ -52,6 +52,8 @@ REPEATS_MAX = 100               # timed warm runs
 LEVELS_MAX = 6                  # cantilever refinements: h = 1/4 .. 1/128 (257 x 129 particles)
 COMPRESSION_STEPS_MAX = 1_000   # compression steps (--max / --step), a solve each
 DEVICES_MAX = 4096
+SWEEP_CHUNK_MAX = 65_536        # configurations per chunk of a sweep (jaxrkpm.control.sweep.MAX_CHUNK)
+SWEEP_MAX = 10_000_000          # configurations of a sweep (jaxrkpm.control.sweep.MAX_CONFIGURATIONS)
 SEED_MAX = 2 ** 32 - 1          # NumPy's seeds are unsigned 32-bit words
 # peak memory per particle of a 2D model (experiments/bench_memory_2d.py: building, solving and
 # differentiating the planar square at 65 x 65 particles, sparse path, compile included); sizes
@@ -344,7 +346,33 @@ def cantilever_parser():
     return p
 
 
-PARSERS = {"demo": demo_parser, "track": track_parser, "compress": compress_parser,
+def sweep_parser():
+    from jaxrkpm.thesis.data import INCLUSIONS, TABLE_6_2
+    p = _parser("sweep", "jaxrkpm.thesis.studies.sweep", "results/sweep")
+    p.add_argument("--paddles", type=number(int, 1, len(TABLE_6_2)), nargs="+", default=None,
+                   help=f"paddle positions of Table 6.2, 1..{len(TABLE_6_2)} (default: all)")
+    p.add_argument("--ratios", type=POSITIVE, nargs="+", default=[100.0], help="inclusion stiffness ratios")
+    p.add_argument("--inclusions", choices=tuple(INCLUSIONS), nargs="+", default=["right"])
+    p.add_argument("--alphas", type=POSITIVE, nargs="+", default=[1.0], help="Fung alpha values")
+    p.add_argument("--betas", type=POSITIVE, nargs="+", default=[1.0], help="Fung beta values")
+    p.add_argument("--increments", type=number(int, 1, INCREMENTS_MAX), default=15,
+                   help=f"insertion increments, 1..{INCREMENTS_MAX}")
+    p.add_argument("--insertion", type=number(float, 0, 0.5, low_open=True), default=0.15,
+                   help="needle depth at full insertion (fraction of the phantom's height)")
+    p.add_argument("--chunk-size", type=number(int, 1, SWEEP_CHUNK_MAX), default=20,
+                   help=f"configurations per batched call (one file each), 1..{SWEEP_CHUNK_MAX}")
+    p.add_argument("--jacobians", action="store_true", help="keep every increment's paddle Jacobian")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--executor", default=None, metavar="ADDRESS",
+                       help="a Dask scheduler's address (tcp://host:8786): run the chunks on that cluster "
+                            "(default: in this process)")
+    where.add_argument("--workers", type=number(int, 1, 256), default=None,
+                       help="run the chunks on a local Dask cluster of this many worker processes, 1..256 "
+                            "(default: in this process)")
+    return p
+
+
+PARSERS = {"sweep": sweep_parser, "demo": demo_parser, "track": track_parser, "compress": compress_parser,
            "needle": needle_parser, "needle3d": needle3d_parser, "rig-sim": rig_sim_parser, "reproduce": reproduce_parser,
            "cantilever": cantilever_parser}
 

@@ -1,0 +1,633 @@
+"""Sweeps at scale: a table of configurations in, a results table on disk out, written chunk
+by chunk so that an interrupted sweep loses nothing it finished and a rerun of the same call
+does only what is left.
+
+**The call.** ``sweep(configurations, evaluate, out)``: ``configurations`` is a table (a list
+of dicts, a dict of columns, or a ``pyarrow.Table``) with one row per configuration (paddle
+placement, material parameters, inclusion stiffness, ...). The rows are cut into chunks of
+``chunk_size``; ``evaluate(chunk) -> dict of columns`` computes one chunk (``chunk``: a dict
+of NumPy arrays, one per configuration column, plus ``"id"``) and returns one value per row
+for each of its result columns (an array of shape (B, ...) becomes a column of fixed-size
+lists), optionally with ``"status"`` (one name per row, "OK" where not given) and
+``"reason"`` (words, "" where not given). A batched solver evaluates a whole chunk in one
+compiled call (:class:`jaxrkpm.thesis.sweeps.NeedleSweep` is the needle study's evaluator).
+
+**Format: Parquet** (through pyarrow), one file per finished chunk. Parquet is columnar
+(a column of a million rows reads without the others), typed (floats stay float64, lists
+stay lists), compressed, and a folder of Parquet files *is* a table: results are appended by
+adding files, never by rewriting one, and pandas, polars, DuckDB or Spark read the folder
+without jaxrkpm (``pandas.read_parquet(out)``). Zarr/xarray suit dense N-dimensional grids;
+a sweep's results are rows with mixed types and ragged failures, which is a table.
+
+**Resume.** The folder holds ``sweep.json`` (the manifest: a fingerprint of the configuration
+table, the chunk size and the evaluator's key) and ``chunk-NNNNNNN.parquet``, named by chunk
+number. A chunk file is written to a temporary name and renamed into place (atomic on one
+file system), so a chunk file exists only whole; a rerun skips the chunks whose files exist
+and evaluates the others, so each configuration is written exactly once whatever stopped the
+sweep (Ctrl-C, a killed process, a full disk). A folder whose manifest describes another
+sweep (other configurations, chunk size or evaluator) is refused, never mixed.
+
+**Failures are rows.** A configuration the evaluator reports as failed (a solve that did
+not converge) is a row with its status and reason. A chunk whose evaluation raises an
+exception is split in halves and retried until the configurations that raise are found
+alone; each becomes a row with status ``ERROR`` and the exception as its reason. On a
+cluster, a chunk whose worker died ``allowed-failures`` times (Dask's default 3) is written
+as ``ERROR`` rows too. Only an interrupt (``KeyboardInterrupt``) or a failure to write stops
+the sweep; the rerun goes on from there.
+
+**Executors.** In process by default (``executor=None``). ``executor=`` a
+``distributed.Client`` or a scheduler address (``"tcp://host:8786"``) runs the chunks on a
+Dask cluster: Dask because its ``distributed`` package is a pip install, its
+``LocalCluster`` runs worker processes on one machine with no set-up (what the tests use),
+the same ``Client`` connects to a cluster across machines (SSH, Kubernetes, SLURM through
+``dask-jobqueue``), and its scheduler reschedules the tasks of a worker that dies (Ray does
+as much but brings its own object store and daemons, a heavier dependency for chunks that
+are independent tasks). Workers return their chunk's rows and the driver writes them, so
+no shared file system is needed. JAX's settings reach the workers through a worker plugin
+and again in each task (``settings``: float64, the driver's XLA optimisation level, and
+environment variables such as thread limits, set before a worker first imports JAX).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, Callable, NamedTuple
+
+import numpy as np
+
+SWEEP_FILE = "sweep.json"
+FORMAT = "jaxrkpm-sweep"
+VERSION = 1
+ID, STATUS, REASON = "id", "status", "reason"
+OK, ERROR = "OK", "ERROR"
+CHUNK_DIGITS = 7
+MAX_CONFIGURATIONS = 10_000_000     # bounds the table checked before anything is allocated
+MAX_CHUNK = 65_536                  # configurations in one chunk (one evaluate call)
+DEFAULT_CHUNK = 64
+KINDS = ("int", "float", "bool", "str")
+# the JAX settings the driver passes on to the workers where it has them (``worker_settings``)
+FORWARDED_CONFIG = ("jax_enable_x64", "jax_disable_most_optimizations", "jax_default_matmul_precision")
+
+
+class SweepFolderError(ValueError):
+    """The output folder holds another sweep's results, or is in use by a running sweep."""
+
+
+class SweepSummary(NamedTuple):
+    """What :func:`sweep` did: ``out`` the folder, ``configurations`` and ``chunks`` in the
+    sweep, ``skipped`` chunks already on disk, ``evaluated`` chunks this call wrote,
+    ``statuses`` rows per status over the whole table (every chunk on disk)."""
+
+    out: Path
+    configurations: int
+    chunks: int
+    skipped: int
+    evaluated: int
+    statuses: dict
+
+    @property
+    def complete(self) -> bool:
+        return self.skipped + self.evaluated == self.chunks
+
+
+# ------------------------------------------------------------------ the configuration table
+def _pa():
+    import pyarrow as pa
+    return pa
+
+
+def _kind_of(kind) -> str:
+    names = {int: "int", float: "float", bool: "bool", str: "str"}
+    k = names.get(kind, kind)
+    if k not in KINDS:
+        raise ValueError(f"unknown column kind {kind!r}: choose one of {list(KINDS)} (or int, float, bool, str)")
+    return k
+
+
+def _type_kind(t) -> str | None:
+    import pyarrow.types as pt
+    if pt.is_boolean(t):
+        return "bool"
+    if pt.is_integer(t):
+        return "int"
+    if pt.is_floating(t):
+        return "float"
+    if pt.is_string(t) or pt.is_large_string(t):
+        return "str"
+    if (pt.is_list(t) or pt.is_fixed_size_list(t) or pt.is_large_list(t)) and _type_kind(t.value_type) in ("int", "float", "bool"):
+        return "list"
+    return None
+
+
+def configuration_table(configurations, requires: Mapping | None = None,
+                        max_configurations: int = MAX_CONFIGURATIONS):
+    """The configurations as a ``pyarrow.Table`` with an ``id`` column, checked: at most
+    ``max_configurations`` rows (counted before anything is built), columns of numbers,
+    booleans, strings or lists of numbers, no missing values, ``id`` (when given) unique
+    non-negative integers, no column named ``status`` or ``reason`` (result columns), and
+    the columns ``requires`` names ({name: "int" | "float" | "bool" | "str"}) present with
+    those kinds (an int column where a float is required is converted)."""
+    pa = _pa()
+    if isinstance(configurations, pa.Table):
+        n = configurations.num_rows
+    elif isinstance(configurations, Mapping):
+        lengths = {k: len(v) for k, v in configurations.items()}
+        if len(set(lengths.values())) > 1:
+            raise ValueError(f"the configuration columns differ in length: {lengths}")
+        n = next(iter(lengths.values()), 0)
+    elif isinstance(configurations, Sequence) and not isinstance(configurations, (str, bytes)):
+        n = len(configurations)
+    else:
+        raise TypeError("configurations must be a list of dicts (one per configuration), a dict of columns "
+                        f"or a pyarrow.Table, got {type(configurations).__name__}")
+    if n > max_configurations:
+        raise ValueError(f"{n:,} configurations, more than max_configurations = {max_configurations:,}: "
+                         "split the sweep or raise the bound")
+    if n == 0:
+        raise ValueError("the configuration table is empty: give at least one configuration")
+    if isinstance(configurations, pa.Table):
+        table = configurations
+    elif isinstance(configurations, Mapping):
+        table = pa.table({str(k): (np.asarray(v) if isinstance(v, np.ndarray) and v.ndim == 1 else v)
+                          for k, v in configurations.items()})
+    else:
+        first = configurations[0]
+        if not isinstance(first, Mapping):
+            raise TypeError(f"configuration 0 is a {type(first).__name__}, not a dict of column values")
+        keys = list(first)
+        for i, row in enumerate(configurations):
+            if not isinstance(row, Mapping) or set(row) != set(keys):
+                got = sorted(row) if isinstance(row, Mapping) else type(row).__name__
+                raise ValueError(f"configuration {i} has columns {got}, configuration 0 has {sorted(keys)}: "
+                                 "every configuration must give the same columns")
+        table = pa.Table.from_pylist(list(configurations))
+    for name in (STATUS, REASON):
+        if name in table.column_names:
+            raise ValueError(f"a configuration column is named {name!r}, a name of the results: rename it")
+    for name, col in zip(table.column_names, table.columns):
+        kind = _type_kind(col.type)
+        if kind is None:
+            raise TypeError(f"configuration column {name!r} has type {col.type}: columns must hold numbers, "
+                            "booleans, strings or lists of numbers")
+        if col.null_count:
+            rows = np.flatnonzero(np.asarray(col.is_null().to_numpy(zero_copy_only=False)))[:5].tolist()
+            raise ValueError(f"configuration column {name!r} has {col.null_count} missing values (rows {rows}"
+                             f"{', ...' if col.null_count > 5 else ''}): give every configuration a value")
+    if ID in table.column_names:
+        ids = table.column(ID)
+        if _type_kind(ids.type) != "int":
+            raise TypeError(f"the id column must hold integers, got {ids.type}")
+        ids = np.asarray(ids.to_numpy(), np.int64)
+        if ids.min() < 0 or len(np.unique(ids)) != len(ids):
+            raise ValueError("the id column must hold unique non-negative integers (one id per configuration)")
+        table = table.set_column(table.column_names.index(ID), ID, pa.array(ids, pa.int64()))
+    else:
+        table = table.add_column(0, ID, pa.array(np.arange(n, dtype=np.int64)))
+    for name, kind in (requires or {}).items():
+        kind = _kind_of(kind)
+        if name not in table.column_names:
+            missing = [c for c in requires if c not in table.column_names]
+            raise ValueError(f"the configuration table lacks the column(s) {missing} that the evaluator needs "
+                             f"(it has {[c for c in table.column_names if c != ID]})")
+        have = _type_kind(table.column(name).type)
+        if have == kind:
+            continue
+        if kind == "float" and have == "int":
+            i = table.column_names.index(name)
+            table = table.set_column(i, name, table.column(name).cast(pa.float64()))
+            continue
+        raise TypeError(f"configuration column {name!r} holds {have} values ({table.column(name).type}), "
+                        f"the evaluator needs {kind}")
+    return table.combine_chunks()
+
+
+def fingerprint(table, *extra) -> str:
+    """A hash of the configuration table (column names, types and values, row order) and of
+    ``extra`` (the chunk size, the evaluator's key): equal for the same sweep only."""
+    h = hashlib.sha256()
+    for name, col in zip(table.column_names, table.columns):
+        h.update(f"{name}:{col.type}:".encode())
+        if _type_kind(col.type) in ("int", "float", "bool"):
+            h.update(np.ascontiguousarray(col.to_numpy()).tobytes())
+        else:
+            h.update(json.dumps(col.to_pylist()).encode())
+    h.update(json.dumps([str(e) for e in extra]).encode())
+    return h.hexdigest()
+
+
+def evaluator_key(evaluate) -> str:
+    """What names an evaluator in the manifest: its ``sweep_key`` attribute (an evaluator's
+    settings, e.g. the phantom and the increments) or its qualified name."""
+    key = getattr(evaluate, "sweep_key", None)
+    if key is not None:
+        return str(key)
+    f = getattr(evaluate, "func", evaluate)    # functools.partial
+    return f"{getattr(f, '__module__', '?')}.{getattr(f, '__qualname__', type(f).__qualname__)}"
+
+
+# ------------------------------------------------------------------ evaluating a chunk
+def _columns_of(chunk) -> dict:
+    """A chunk (pyarrow.Table) as the dict of NumPy arrays that ``evaluate`` receives."""
+    out = {}
+    for name, col in zip(chunk.column_names, chunk.columns):
+        if _type_kind(col.type) == "list":
+            out[name] = np.array([np.asarray(v, float) for v in col.to_pylist()], dtype=object) \
+                if len({len(v) for v in col.to_pylist()}) > 1 else np.asarray(col.to_pylist())
+        else:
+            out[name] = col.to_numpy(zero_copy_only=False)
+    return out
+
+
+def _arrow_column(name: str, values, rows: int):
+    pa = _pa()
+    if isinstance(values, (pa.Array, pa.ChunkedArray)):
+        if len(values) != rows:
+            raise ValueError(f"evaluate returned {len(values)} values of {name!r} for a chunk of {rows}")
+        return values
+    if isinstance(values, (list, tuple)) and values and isinstance(values[0], str):
+        values = np.asarray(values, dtype=object)
+    arr = np.asarray(values) if not isinstance(values, np.ndarray) else values
+    if arr.ndim == 0 or arr.shape[0] != rows:
+        raise ValueError(f"evaluate returned {name!r} of shape {arr.shape} for a chunk of {rows} configurations "
+                         "(one value per configuration, leading axis)")
+    if hasattr(arr, "dtype") and arr.dtype.kind in "iufb" and arr.ndim > 1:
+        flat = pa.array(np.ascontiguousarray(arr).reshape(-1))
+        for size in reversed(arr.shape[1:]):
+            flat = pa.FixedSizeListArray.from_arrays(flat, size)
+        return flat
+    if arr.dtype.kind in "OUS":
+        return pa.array([None if v is None else str(v) for v in arr], pa.string())
+    return pa.array(arr)
+
+
+def _result_table(chunk, result) -> Any:
+    """The chunk's configuration columns + the evaluator's results + status and reason."""
+    pa = _pa()
+    if not isinstance(result, Mapping):
+        raise TypeError(f"evaluate must return a dict of result columns, got {type(result).__name__}")
+    rows = chunk.num_rows
+    table = chunk
+    for name, values in result.items():
+        if name in chunk.column_names:
+            raise ValueError(f"evaluate returned a column {name!r}, the name of a configuration column: rename it")
+        if name in (STATUS, REASON):
+            continue
+        table = table.append_column(str(name), _arrow_column(str(name), values, rows))
+    status = result.get(STATUS, [OK] * rows)
+    reason = result.get(REASON, [""] * rows)
+    table = table.append_column(STATUS, _arrow_column(STATUS, np.asarray([str(s) for s in status], object), rows))
+    return table.append_column(REASON, _arrow_column(REASON, np.asarray([str(s) for s in reason], object), rows))
+
+
+def failed_rows(chunk, reason: str):
+    """The chunk's configurations as rows with status ``ERROR`` and ``reason``."""
+    pa = _pa()
+    n = chunk.num_rows
+    return chunk.append_column(STATUS, pa.array([ERROR] * n, pa.string())) \
+                .append_column(REASON, pa.array([reason] * n, pa.string()))
+
+
+def _evaluate_isolating(evaluate, chunk):
+    """evaluate the chunk; where it raises, split it in halves until the configurations that
+    raise are alone (each an ``ERROR`` row); the rest keep their results."""
+    pa = _pa()
+    try:
+        return _result_table(chunk, evaluate(_columns_of(chunk)))
+    except Exception as e:            # noqa: BLE001 (a failed configuration is a row, not a crash)
+        if chunk.num_rows == 1:
+            return failed_rows(chunk, f"{type(e).__name__}: {e}")
+    half = chunk.num_rows // 2
+    parts = [_evaluate_isolating(evaluate, chunk.slice(0, half)),
+             _evaluate_isolating(evaluate, chunk.slice(half))]
+    return pa.concat_tables(parts, promote_options="permissive")
+
+
+_EVALUATORS: dict = {}    # per process: evaluators by key (a worker builds one once, not per chunk)
+
+
+def apply_settings(settings: Mapping | None) -> None:
+    """Set ``settings`` in this process: ``{"env": {name: value}, "jax": {option: value}}``;
+    the environment first (read by JAX when it starts), then ``jax.config``."""
+    if not settings:
+        return
+    for name, value in (settings.get("env") or {}).items():
+        os.environ[str(name)] = str(value)
+    if settings.get("jax"):
+        import jax
+        for name, value in settings["jax"].items():
+            jax.config.update(name, value)
+
+
+def run_chunk(evaluate, chunk, settings=None, reuse: bool = False):
+    """One chunk, where it runs (in process or on a worker): settings, then the evaluation
+    (failures isolated to rows); returns the chunk's results as a ``pyarrow.Table``.
+    ``reuse`` (on workers, where every task brings its own unpickled copy of the
+    evaluator): the first evaluator of each class and ``sweep_key`` in this process
+    evaluates, with what it built and compiled for earlier chunks."""
+    # float64 and single-threaded BLAS come with the package, imported with this module
+    apply_settings(settings)
+    key = getattr(evaluate, "sweep_key", None)
+    if reuse and key is not None:
+        kind = type(evaluate)
+        evaluate = _EVALUATORS.setdefault((kind.__module__, kind.__qualname__, str(key)), evaluate)
+    return _evaluate_isolating(evaluate, chunk)
+
+
+def worker_settings(env: Mapping | None = None, jax_options: Mapping | None = None) -> dict:
+    """The settings a sweep passes to its workers: float64 and the driver's values of
+    ``FORWARDED_CONFIG`` (where JAX is imported), ``jax_options`` over them, and ``env``
+    (e.g. ``{"XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}``
+    to keep each worker on one core)."""
+    import sys
+    options = {"jax_enable_x64": True}
+    if "jax" in sys.modules:
+        cfg = sys.modules["jax"].config
+        for name in FORWARDED_CONFIG:
+            try:
+                options[name] = cfg.read(name)
+            except (AttributeError, KeyError):
+                pass
+    options.update(jax_options or {})
+    return {"env": dict(env or {}), "jax": options}
+
+
+# ------------------------------------------------------------------ the folder
+def chunk_path(out: Path, k: int) -> Path:
+    return Path(out) / f"chunk-{k:0{CHUNK_DIGITS}d}.parquet"
+
+
+def _finished_chunks(out: Path) -> dict:
+    """chunk number -> its file, for the chunk files in ``out``."""
+    found = {}
+    for p in Path(out).glob("chunk-*.parquet"):
+        stem = p.stem.split("-", 1)[1]
+        if stem.isdigit():
+            found[int(stem)] = p
+    return found
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def write_atomic(path: Path, write: Callable[[Path], None]) -> None:
+    """``write(tmp)`` to a temporary name beside ``path``, flushed to disk, then renamed to
+    ``path``: ``path`` exists only whole. A failed write removes the temporary file."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        write(tmp)
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    _fsync_dir(path.parent)
+
+
+def _write_chunk(out: Path, k: int, table) -> None:
+    import pyarrow.parquet as pq
+    write_atomic(chunk_path(out, k), lambda tmp: pq.write_table(table, tmp))
+
+
+def _claim(out: Path, manifest: dict) -> None:
+    """Write the manifest into ``out``, or check that the one there is this sweep's."""
+    path = out / SWEEP_FILE
+    if path.exists():
+        try:
+            earlier = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise SweepFolderError(f"{path} is unreadable ({e}): choose another folder or remove it") from None
+        if earlier.get("fingerprint") != manifest["fingerprint"]:
+            diff = [k for k in ("configurations", "chunk_size", "evaluator", "columns")
+                    if earlier.get(k) != manifest.get(k)]
+            what = f"they differ in {', '.join(diff)}" if diff else "the configuration values differ"
+            raise SweepFolderError(f"{out}/ holds the results of another sweep ({what}; its manifest: "
+                                   f"{earlier.get('configurations')} configurations, evaluator "
+                                   f"{earlier.get('evaluator')!r}): choose another folder, or delete it to start over")
+        return
+    strays = [p.name for p in out.iterdir() if not p.name.startswith(".")]
+    if strays:
+        raise SweepFolderError(f"{out}/ already holds files and no sweep manifest ({', '.join(sorted(strays)[:5])}): "
+                               "choose an empty or new folder")
+    write_atomic(path, lambda tmp: tmp.write_text(json.dumps(manifest, indent=1)))
+
+
+def _lock(out: Path):
+    from filelock import FileLock, Timeout
+    lock = FileLock(str(out / ".sweep.lock"))
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        raise SweepFolderError(f"another sweep is writing into {out}/ (its lock {out / '.sweep.lock'} is "
+                               "held): wait for it, or choose another folder") from None
+    return lock
+
+
+# ------------------------------------------------------------------ executors
+def _dask(executor):
+    """(client, owned) for a ``distributed.Client`` or a scheduler address."""
+    try:
+        import distributed
+    except ImportError:
+        raise ImportError("executor= needs Dask distributed: pip install 'jaxrkpm[cluster]' "
+                          "(or pip install 'dask[distributed]')") from None
+    if isinstance(executor, distributed.Client):
+        return executor, False
+    if isinstance(executor, str):
+        return distributed.Client(executor), True
+    raise TypeError(f"executor must be None (in process), a distributed.Client or a Dask scheduler address "
+                    f"('tcp://host:8786'), got {type(executor).__name__}")
+
+
+def _settings_plugin(settings):
+    """A Dask worker plugin that applies ``settings`` when a worker starts (before its first
+    task imports JAX), on the workers there now and on any that join or replace one later."""
+    import distributed
+
+    class JaxSettings(distributed.WorkerPlugin):
+        name = "jaxrkpm-settings"
+
+        def __init__(self, settings):
+            self.settings = settings
+
+        def setup(self, worker):
+            apply_settings(self.settings)
+
+    return JaxSettings(settings)
+
+
+def _run_local(todo, chunks, evaluate, settings, done):
+    for k in todo:
+        done(k, run_chunk(evaluate, chunks(k), None))
+
+
+def _run_dask(executor, todo, chunks, evaluate, settings, done):
+    """Chunks as Dask tasks, at most two per worker thread in flight (plus a few): the
+    scheduler holds a window, not the whole sweep, and an interrupted driver loses at most
+    the window's work."""
+    import distributed
+    client, owned = _dask(executor)
+    inflight = {}
+    try:
+        client.register_plugin(_settings_plugin(settings))
+        pending = iter(todo)
+        window = max(4, 2 * sum(client.nthreads().values()))
+        running = distributed.as_completed()
+
+        def submit_next():
+            k = next(pending, None)
+            if k is not None:
+                fut = client.submit(run_chunk, evaluate, chunks(k), settings, True, pure=False)
+                inflight[fut] = k
+                running.add(fut)
+        for _ in range(window):
+            submit_next()
+        for fut in running:
+            k = inflight.pop(fut)
+            try:
+                table = fut.result()
+            except Exception as e:   # noqa: BLE001 (KilledWorker: the chunk killed its worker again and again)
+                table = failed_rows(chunks(k), f"{type(e).__name__}: {e}")
+            fut.release()
+            done(k, table)
+            submit_next()
+    finally:
+        for fut in inflight:
+            fut.cancel()
+        if owned:
+            client.close()
+
+
+# ------------------------------------------------------------------ the sweep
+def sweep(configurations, evaluate: Callable[[dict], Mapping], out, *, chunk_size: int | None = None,
+          executor=None, progress: bool = True, requires: Mapping | None = None,
+          settings: Mapping | None = None, max_configurations: int = MAX_CONFIGURATIONS) -> SweepSummary:
+    """Evaluate every configuration of ``configurations`` with ``evaluate``, chunk by chunk,
+    into the Parquet results table in folder ``out`` (see the module docstring: format,
+    resume, failures, executors). A rerun of the same call skips the chunks already written.
+
+    ``chunk_size``: configurations per ``evaluate`` call (1..``MAX_CHUNK``; default the
+    evaluator's ``chunk_size`` attribute, else the folder's, else ``DEFAULT_CHUNK``).
+    ``executor``: None (in process), a ``distributed.Client`` or a scheduler address.
+    ``requires``: {column: kind} the table must hold (default ``evaluate.requires``).
+    ``settings``: what the workers set before computing (default :func:`worker_settings`).
+    Returns a :class:`SweepSummary`; read the results with :func:`read_sweep`."""
+    requires = getattr(evaluate, "requires", None) if requires is None else requires
+    table = configuration_table(configurations, requires, max_configurations)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise SweepFolderError(f"cannot write the sweep to {out}/: it is a file")
+    out.mkdir(parents=True, exist_ok=True)
+    if chunk_size is None:
+        chunk_size = getattr(evaluate, "chunk_size", None)
+    if chunk_size is None:
+        try:
+            chunk_size = int(json.loads((out / SWEEP_FILE).read_text())["chunk_size"])
+        except (OSError, ValueError, KeyError, TypeError):
+            chunk_size = DEFAULT_CHUNK
+    if isinstance(chunk_size, (bool, np.bool_)) or not isinstance(chunk_size, (int, np.integer)) \
+            or not 1 <= chunk_size <= MAX_CHUNK:
+        raise ValueError(f"chunk_size must be a whole number of configurations in 1..{MAX_CHUNK}, got {chunk_size!r}")
+    chunk_size = int(chunk_size)
+    n = table.num_rows
+    n_chunks = -(-n // chunk_size)
+    key = evaluator_key(evaluate)
+    manifest = {"format": FORMAT, "version": VERSION, "fingerprint": fingerprint(table, chunk_size, key),
+                "configurations": n, "chunk_size": chunk_size, "chunks": n_chunks, "evaluator": key,
+                "columns": {c: str(t) for c, t in zip(table.column_names, table.schema.types)},
+                "files": f"chunk-{'N' * CHUNK_DIGITS}.parquet: configurations [N * chunk_size, (N + 1) * chunk_size)",
+                "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    lock = _lock(out)
+    try:
+        _claim(out, manifest)
+        for stale in out.glob(".chunk-*.tmp"):    # a write cut short by a killed driver
+            stale.unlink(missing_ok=True)
+        finished = _finished_chunks(out)
+        todo = [k for k in range(n_chunks) if k not in finished]
+
+        def chunks(k):
+            return table.slice(k * chunk_size, chunk_size)
+
+        from tqdm import tqdm
+        bar = tqdm(total=n, initial=sum(chunks(k).num_rows for k in finished if k < n_chunks),
+                   unit="config", desc="sweep", disable=not progress, dynamic_ncols=True)
+        failed = [0]
+
+        def done(k, result):
+            _write_chunk(out, k, result)
+            failed[0] += int(np.sum(np.asarray(result.column(STATUS).to_pylist()) == ERROR))
+            bar.update(result.num_rows)
+            if failed[0]:
+                bar.set_postfix(errors=failed[0])
+        try:
+            settings = worker_settings() if settings is None else settings
+            if executor is None:
+                _run_local(todo, chunks, evaluate, settings, done)
+            else:
+                _run_dask(executor, todo, chunks, evaluate, settings, done)
+        finally:
+            bar.close()
+    finally:
+        lock.release()
+    statuses = status_counts(out)
+    return SweepSummary(out, n, n_chunks, n_chunks - len(todo), len(todo), statuses)
+
+
+# ------------------------------------------------------------------ reading back
+def _files(out: Path) -> list:
+    out = Path(out)
+    if not (out / SWEEP_FILE).exists():
+        raise FileNotFoundError(f"{out}/ holds no sweep (no {SWEEP_FILE}): give the folder a sweep wrote")
+    return [str(p) for _, p in sorted(_finished_chunks(out).items())]
+
+
+def results_dataset(out):
+    """The results in ``out`` as a ``pyarrow.dataset.Dataset`` (lazy: filter and select
+    columns before reading), over the chunk files written so far; the schema unifies the
+    chunks (a chunk of ``ERROR`` rows only lacks the result columns: they read as null)."""
+    import pyarrow.dataset as ds
+    import pyarrow.parquet as pq
+    files = _files(out)
+    schemas = [pq.read_schema(f) for f in files]
+    schema = _pa().unify_schemas(schemas, promote_options="permissive") if schemas else None
+    return ds.dataset(files, schema=schema, format="parquet")
+
+
+def read_sweep(out, columns: Sequence[str] | None = None, check: bool = True):
+    """The whole results table in ``out`` (a ``pyarrow.Table``, sorted by ``id``), one row per
+    configuration of the chunks finished so far; ``columns``: only these. With ``check``,
+    raises if an id appears twice (it never should: each chunk is one file). Convert with
+    ``.to_pandas()`` / ``polars.from_arrow``; or read the folder with any Parquet reader."""
+    dataset = results_dataset(out)
+    cols = None if columns is None else list(dict.fromkeys([ID, *columns]))
+    table = dataset.to_table(columns=cols)
+    if table.num_rows:
+        table = table.sort_by(ID)
+    if check and table.num_rows:
+        ids = table.column(ID).to_numpy()
+        if np.any(np.diff(ids) == 0):
+            raise RuntimeError(f"{out}/: configuration ids appear more than once: the folder mixes sweeps")
+    return table if columns is None or ID in columns else table.drop_columns([ID])
+
+
+def status_counts(out) -> dict:
+    """Rows per status over the chunks written to ``out``."""
+    table = results_dataset(out).to_table(columns=[STATUS])
+    names, counts = np.unique(np.asarray(table.column(STATUS).to_pylist(), dtype=object).astype(str),
+                              return_counts=True) if table.num_rows else ([], [])
+    return {str(k): int(c) for k, c in zip(names, counts)}

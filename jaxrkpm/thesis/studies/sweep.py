@@ -1,0 +1,88 @@
+"""2D needle sweeps to disk: every combination of paddle position (Table 6.2), inclusion,
+inclusion stiffness ratio and Fung alpha, beta, each inserted through the increments with the
+paddle Jacobian at each, a chunk of configurations per batched call.
+
+The results go to DIR/table/ as Parquet, one file per finished chunk (read them with
+jaxrkpm.control.sweep.read_sweep, pandas.read_parquet or any Parquet reader); DIR/summary.json
+counts the statuses. Interrupted (Ctrl-C, a killed worker), the same command again skips the
+finished chunks. --workers N runs the chunks on a local Dask cluster of N processes,
+--executor tcp://host:8786 on a running Dask cluster (pip install 'jaxrkpm[cluster]').
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+
+import numpy as np
+
+from jaxrkpm.thesis.studies import interface
+
+
+def _cluster(args):
+    """(executor, close) for --executor / --workers."""
+    if args.executor:
+        return args.executor, lambda: None
+    if args.workers:
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError:
+            raise interface.OutputError("--workers needs Dask distributed: pip install 'jaxrkpm[cluster]'") from None
+        cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
+                               dashboard_address=None)
+        client = Client(cluster)
+
+        def close():
+            client.close()
+            cluster.close()
+        return client, close
+    return None, lambda: None
+
+
+def main(argv=None) -> dict:
+    args = interface.parse("sweep", argv)
+    from jaxrkpm.thesis.data import TABLE_6_2
+    paddles = args.paddles or list(range(1, len(TABLE_6_2) + 1))
+    count = math.prod(len(x) for x in (paddles, args.ratios, args.inclusions, args.alphas, args.betas))
+    if count > interface.SWEEP_MAX:
+        interface.PARSERS["sweep"]().error(f"the options make {count:,} configurations, more than "
+                                           f"{interface.SWEEP_MAX:,}: split the sweep")
+    results = interface.results("sweep", args, staged=False)
+    from jaxrkpm.control.sweep import read_sweep
+    from jaxrkpm.thesis import sweeps
+    with results as out:
+        cfg = sweeps.paddle_configurations(paddles, args.ratios, args.inclusions, args.alphas, args.betas)
+        executor, close = _cluster(args)
+        try:
+            done = sweeps.needle_sweep(out / "table", cfg, increments=args.increments, chunk_size=args.chunk_size,
+                                       executor=executor, progress=sys.stderr.isatty(), insertion=args.insertion,
+                                       keep_jacobians=args.jacobians)
+        finally:
+            close()
+        table = read_sweep(out / "table", ["id", "paddle", "inclusion", "stiffness_ratio", "final_deviation", "status"])
+        dev = np.abs(np.asarray(table.column("final_deviation").to_numpy(zero_copy_only=False), float))
+        summary = {"configurations": done.configurations, "chunks": done.chunks, "skipped_chunks": done.skipped,
+                   "evaluated_chunks": done.evaluated, "statuses": done.statuses, "table": "table/"}
+        if np.isfinite(dev).any():
+            i = int(np.nanargmin(dev))
+            summary["best"] = {k: table.column(k)[i].as_py() for k in ("id", "paddle", "inclusion", "stiffness_ratio")
+                               if k in table.column_names}
+            summary["best"]["final_deviation"] = float(table.column("final_deviation")[i].as_py())
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        reached, words = result(summary)
+        results.finish(summary, reached, words, args.json)
+    return summary
+
+
+def result(summary: dict) -> tuple[bool, str]:
+    """Goal: a row for every configuration and none an ERROR (a solve that fails is a result)."""
+    statuses = summary.get("statuses", {})
+    rows = sum(statuses.values())
+    words = (f"{rows}/{summary['configurations']} configurations in table/ ({summary['skipped_chunks']} of "
+             f"{summary['chunks']} chunks already there): "
+             + ", ".join(f"{n} {s}" for s, n in sorted(statuses.items())))
+    if "best" in summary:
+        b = summary["best"]
+        words += (f"; smallest |final deviation| {abs(b['final_deviation']):.2e} at paddle {b['paddle']}, "
+                  f"{b['inclusion']} x {b['stiffness_ratio']:g}")
+    return rows == summary["configurations"] and "ERROR" not in statuses, words

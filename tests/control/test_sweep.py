@@ -1,0 +1,212 @@
+"""Sweeps to disk (``jaxrkpm.control.sweep``): each configuration written exactly once, a rerun
+after an interruption gives the same table, failures are rows, bad tables and foreign folders
+are refused, and a two-worker Dask cluster (processes) writes the same table as the local run,
+also when a worker is killed mid-chunk. The evaluators are tiny JAX programs (the needle
+evaluator is tested in tests/thesis/test_sweeps.py)."""
+import os
+import signal
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from jaxrkpm.control import sweep as sw
+
+N, CHUNK = 23, 5          # five chunks, the last one short
+RAISES = 13               # the configuration whose evaluation raises
+
+
+def configurations():
+    x = np.linspace(-1.0, 3.0, N)
+    return [{"x": float(v), "k": i % 4, "name": f"c{i}"} for i, v in enumerate(x)]
+
+
+class Square:
+    """y = x^2 + k and a (B, 3) vector, in JAX; a negative x is a NEGATIVE row with a reason;
+    configuration RAISES raises (the chunk that holds it is split to find it); ``x64`` and
+    ``env`` say what the process computing it was set to."""
+
+    requires = {"x": "float", "k": "int"}
+    sweep_key = "tests.control.test_sweep.Square"
+
+    def __call__(self, chunk):
+        import jax.numpy as jnp
+        if np.any(chunk["id"] == RAISES):
+            raise ValueError(f"configuration {RAISES} raises")
+        x = jnp.asarray(chunk["x"])
+        y = x * x + jnp.asarray(chunk["k"])
+        neg = np.asarray(chunk["x"]) < 0
+        return {"y": np.asarray(y), "vec": np.stack([np.asarray(x), np.asarray(y), np.asarray(x) * 0 + 1], 1),
+                "x64": np.full(len(x), y.dtype == jnp.float64),
+                "status": np.where(neg, "NEGATIVE", "OK"),
+                "reason": np.where(neg, "x < 0", "")}
+
+
+class InterruptAfter(Square):
+    """Square, but Ctrl-C (KeyboardInterrupt) on its ``calls``-th call."""
+
+    def __init__(self, calls):
+        self.calls, self.seen = calls, []
+
+    def __call__(self, chunk):
+        self.seen.append(int(chunk["id"][0]))
+        if len(self.seen) == self.calls:
+            raise KeyboardInterrupt
+        return super().__call__(chunk)
+
+
+class Counting(Square):
+    def __init__(self):
+        self.seen = []
+
+    def __call__(self, chunk):
+        self.seen.append(int(chunk["id"][0]))
+        return super().__call__(chunk)
+
+
+class KillOnce(Square):
+    """Square, but the worker running the chunk of configuration 7 kills its own process the
+    first time (a marker file remembers it)."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __call__(self, chunk):
+        if 7 in chunk["id"] and not os.path.exists(self.marker):
+            open(self.marker, "w").close()
+            os.kill(os.getpid(), signal.SIGKILL)
+        return super().__call__(chunk)
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ref") / "sweep"
+    summary = sw.sweep(configurations(), Square(), out, chunk_size=CHUNK, progress=False)
+    return out, summary, sw.read_sweep(out)
+
+
+def test_every_configuration_once_with_results_and_failures(reference):
+    out, summary, table = reference
+    assert summary.chunks == 5 and summary.evaluated == 5 and summary.skipped == 0 and summary.complete
+    assert table.column("id").to_pylist() == list(range(N))
+    assert sorted(p.name for p in out.glob("chunk-*.parquet")) == [f"chunk-{k:07d}.parquet" for k in range(5)]
+    rows = table.to_pylist()
+    x = np.linspace(-1.0, 3.0, N)
+    for i, row in enumerate(rows):
+        assert row["x"] == x[i] and row["name"] == f"c{i}"
+        if i == RAISES:   # the configuration that raised: a row, its results null
+            assert row["status"] == "ERROR" and "ValueError: configuration 13 raises" in row["reason"]
+            assert row["y"] is None and row["vec"] is None
+            continue
+        assert row["y"] == pytest.approx(x[i] ** 2 + i % 4, abs=1e-15)
+        assert row["vec"] == pytest.approx([x[i], row["y"], 1.0])
+        assert row["x64"] is True
+        assert row["status"] == ("NEGATIVE" if x[i] < 0 else "OK")
+    assert summary.statuses == {"ERROR": 1, "NEGATIVE": int(np.sum(x < 0)), "OK": N - 1 - int(np.sum(x < 0))}
+    # the format is plain Parquet: a reader without jaxrkpm sees the same rows
+    import pyarrow.dataset as ds
+    assert ds.dataset(str(out), format="parquet", exclude_invalid_files=True).count_rows() == N
+
+
+def test_rerun_after_interrupt_writes_the_rest_once(reference, tmp_path):
+    _, _, expected = reference
+    out = tmp_path / "sweep"
+    stopped = InterruptAfter(3)
+    with pytest.raises(KeyboardInterrupt):
+        sw.sweep(configurations(), stopped, out, chunk_size=CHUNK, progress=False)
+    assert len(list(out.glob("chunk-*.parquet"))) == 2          # the two chunks finished before Ctrl-C
+    (out / ".chunk-0000002.parquet.999.tmp").write_bytes(b"half a file")   # a write cut short
+    again = Counting()
+    summary = sw.sweep(configurations(), again, out, progress=False)      # chunk size from the manifest
+    assert summary.skipped == 2 and summary.evaluated == 3
+    assert 0 not in again.seen and 5 not in again.seen                    # finished chunks not redone
+    assert not list(out.glob(".*.tmp"))
+    assert sw.read_sweep(out).equals(expected)
+    summary = sw.sweep(configurations(), Counting(), out, progress=False)   # nothing left to do
+    assert summary.evaluated == 0 and sw.read_sweep(out).equals(expected)
+
+
+def test_a_chunk_that_breaks_the_contract_is_error_rows(tmp_path):
+    out = tmp_path / "s"
+    summary = sw.sweep({"x": [1.0, 2.0, 3.0]}, lambda chunk: {"y": np.zeros(len(chunk["x"]) + 1)}, out, chunk_size=3, progress=False)
+    table = sw.read_sweep(out)
+    assert summary.statuses == {"ERROR": 3}
+    assert all("shape (2,) for a chunk of 1 configurations" in r for r in table.column("reason").to_pylist())
+
+
+@pytest.mark.parametrize("table, error, match", [
+    ({"x": [1.0, 2.0]}, ValueError, r"lacks the column\(s\) \['k'\]"),
+    ({"x": ["a", "b"], "k": [1, 2]}, TypeError, "'x' holds str values"),
+    ({"x": [1.0, 2.0], "k": [1.5, 2.0]}, TypeError, "'k' holds float values"),
+    ({"x": [1.0, None], "k": [1, 2]}, ValueError, "missing values"),
+    ({"x": [1.0, 2.0], "k": [1, 2], "id": [3, 3]}, ValueError, "unique"),
+    ({"x": [1.0, 2.0], "k": [1, 2], "status": ["a", "b"]}, ValueError, "name of the results"),
+    ({"x": [1.0, 2.0], "k": [1]}, ValueError, "differ in length"),
+    ([{"x": 1.0, "k": 1}, {"x": 2.0}], ValueError, "configuration 1 has columns"),
+    ([], ValueError, "empty"),
+    ("x", TypeError, "list of dicts"),
+])
+def test_bad_tables_are_refused_before_any_work(tmp_path, table, error, match):
+    with pytest.raises(error, match=match):
+        sw.sweep(table, Square(), tmp_path / "s", progress=False)
+    assert not (tmp_path / "s" / sw.SWEEP_FILE).exists()
+
+
+def test_sizes_are_bounded(tmp_path):
+    with pytest.raises(ValueError, match="more than max_configurations = 10"):
+        sw.sweep({"x": np.zeros(11), "k": np.zeros(11, int)}, Square(), tmp_path / "s", max_configurations=10)
+    for bad in (0, sw.MAX_CHUNK + 1, 2.0):
+        with pytest.raises(ValueError, match="chunk_size"):
+            sw.sweep({"x": [1.0], "k": [1]}, Square(), tmp_path / "s", chunk_size=bad)
+
+
+def test_a_folder_of_another_sweep_is_refused(reference, tmp_path):
+    out, _, _ = reference
+    other = configurations()[:-1]
+    with pytest.raises(sw.SweepFolderError, match="another sweep.*differ in configurations"):
+        sw.sweep(other, Square(), out, progress=False)
+    with pytest.raises(sw.SweepFolderError, match="chunk_size"):
+        sw.sweep(configurations(), Square(), out, chunk_size=4, progress=False)
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(sw.SweepFolderError, match="no sweep manifest"):
+        sw.sweep(other, Square(), tmp_path, progress=False)
+    from filelock import FileLock
+    with FileLock(str(out / ".sweep.lock")):
+        with pytest.raises(sw.SweepFolderError, match="another sweep is writing"):
+            sw.sweep(configurations(), Square(), out, progress=False)
+    with pytest.raises(FileNotFoundError, match="holds no sweep"):
+        sw.read_sweep(tmp_path)
+
+
+# ------------------------------------------------------------------ on a Dask cluster
+@pytest.fixture(scope="module")
+def client():
+    distributed = pytest.importorskip("distributed")
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                       dashboard_address=None, silence_logs=50)
+    c = distributed.Client(cluster)
+    yield c
+    c.close()
+    cluster.close()
+
+
+def test_two_workers_write_the_local_table(reference, client, tmp_path):
+    _, _, expected = reference
+    out = tmp_path / "cluster"
+    settings = sw.worker_settings(env={"JAXRKPM_SWEEP_TEST": "set"})
+    summary = sw.sweep(configurations(), Square(), out, chunk_size=CHUNK, executor=client, progress=False,
+                       settings=settings)
+    assert summary.evaluated == 5 and summary.complete
+    assert sw.read_sweep(out).equals(expected)     # x64 column: float64 on the workers too
+    seen = client.run(lambda: (os.environ.get("JAXRKPM_SWEEP_TEST"),
+                               __import__("jax").config.read("jax_enable_x64")))
+    assert len(seen) == 2 and set(seen.values()) == {("set", True)}
+
+
+def test_a_killed_workers_chunk_is_redone(reference, client, tmp_path):
+    _, _, expected = reference
+    out, marker = tmp_path / "killed", tmp_path / "killed-once"
+    summary = sw.sweep(configurations(), KillOnce(marker), out, chunk_size=CHUNK, executor=client, progress=False)
+    assert marker.exists()                          # a worker died running chunk 1
+    assert summary.evaluated == 5 and summary.complete
+    assert sw.read_sweep(out).equals(expected)     # its chunk redone elsewhere, nothing lost or twice

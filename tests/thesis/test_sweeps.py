@@ -1,0 +1,103 @@
+"""The needle study's sweep to disk (``jaxrkpm.thesis.sweeps``, ``jaxrkpm sweep``): rows equal
+the batched insertion of the same models (``needle.insert``, itself checked against the loop
+of eager solves in tests/control/test_batching.py), an out-of-range configuration is an
+INVALID row, every chunk runs one compiled program, and the command writes the same table
+and resumes. Two small increments to 4% depth, where every solve converges."""
+import json
+
+import numpy as np
+import pytest
+
+from jaxrkpm.control.batching import stack_models
+from jaxrkpm.control.sweep import read_sweep
+from jaxrkpm.solvers.results import Status
+from jaxrkpm.thesis import cli, needle as nd, sweeps
+
+INCREMENTS, INSERTION, CHUNK = 2, 0.04, 4
+
+
+@pytest.fixture(scope="module")
+def swept(tmp_path_factory):
+    cfg = sweeps.paddle_configurations(ratios=(100.0,), inclusions=("right",))
+    cfg = {k: list(v) + [v[0]] for k, v in cfg.items()}
+    cfg["paddle"][-1] = 9                                   # out of Table 6.2's range
+    out = tmp_path_factory.mktemp("needle") / "table"
+    summary = sweeps.needle_sweep(out, cfg, increments=INCREMENTS, chunk_size=CHUNK, progress=False,
+                                  insertion=INSERTION)
+    return out, summary, read_sweep(out)
+
+
+def test_rows_are_the_batched_insertion(swept):
+    out, summary, table = swept
+    assert summary.chunks == 2 and summary.statuses == {"CONVERGED": 5, "INVALID": 1}
+    ev = sweeps.NeedleSweep(INCREMENTS, insertion=INSERTION)
+    ph = ev.phantom
+    models = [nd.Model(ph.body, ev.material("right", 100.0, 1.0, 1.0), ph.integration, essential=ph.sets(p),
+                       support=ph.support) for p in (1, 2, 3, 4)]
+    run = nd.insert(models, ph.depths(INCREMENTS), ph.target, direction=ph.needle_direction, like=ev.like)
+    dev = np.asarray(run.target_u)[..., 0]
+    rows = table.to_pylist()
+    for j in range(4):
+        assert rows[j]["paddle"] == j + 1 and rows[j]["status"] == "CONVERGED" and rows[j]["reason"] == ""
+        np.testing.assert_allclose(rows[j]["deviation"], dev[j], rtol=0, atol=1e-12)
+        assert rows[j]["final_deviation"] == pytest.approx(dev[j, -1], abs=1e-12)
+        assert rows[j]["increment_status"] == [Status.CONVERGED] * INCREMENTS
+        assert rows[j]["controllability"] == pytest.approx(
+            nd.controllability(np.asarray(run.jacobian)[j, 0], ph.lateral), rel=1e-10)
+    devs = [r["final_deviation"] for r in rows[:5]]
+    assert np.all(np.abs(devs) > 1e-3) and len(set(np.round(devs, 6))) == 5   # the target moved; the paddles differ
+    bad = rows[5]
+    assert bad["status"] == "INVALID" and "paddle 9 out of range 1..5" in bad["reason"]
+    assert np.isnan(bad["final_deviation"]) and bad["iterations"] == -1
+
+
+def test_like_pads_every_chunk_to_one_shape(swept):
+    """``stack_models(like=)``: the members' leaves are those of the plain stack, zero-padded
+    where ``like`` is larger, and the batched leaves are those that differ anywhere."""
+    ev = sweeps.NeedleSweep(INCREMENTS, insertion=INSERTION)
+    ph = ev.phantom
+    models = [nd.Model(ph.body, ev.material("right", 100.0, 1.0, 1.0), ph.integration, essential=ph.sets(p),
+                       support=ph.support) for p in (5, 5)]
+    import jax
+    plain, b0 = stack_models(models)
+    padded, b1 = stack_models(models, ev.like)
+    assert not any(b0) and all(b1[i] for i, b in enumerate(b0) if b)   # identical members: nothing batched alone
+    assert any(b1)
+    for x, y, b in zip(jax.tree.leaves(plain), jax.tree.leaves(padded), b1):
+        x, y = np.asarray(x), np.asarray(y)
+        if b:
+            assert y.shape[0] == 2
+            y = y[0]
+        sl = tuple(slice(0, n) for n in x.shape)
+        np.testing.assert_array_equal(y[sl], x)
+        rest = y.copy()
+        rest[sl] = 0
+        assert not np.any(rest)
+
+
+def test_the_command_writes_and_resumes(swept, tmp_path, capsys):
+    out = tmp_path / "run"
+    argv = ["sweep", "--out", str(out), "--increments", str(INCREMENTS), "--insertion", str(INSERTION),
+            "--chunk-size", str(CHUNK), "--paddles", "1", "2", "3", "4", "5"]
+    assert cli.main(argv) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert line.startswith(f"wrote {out}/: run.json, summary.json, table/; 5/5 configurations") and "5 CONVERGED" in line
+    _, _, expected = swept
+    assert read_sweep(out / "table").equals(expected.slice(0, 5))     # the same rows as the API's
+    (out / "table" / "chunk-0000001.parquet").unlink()                 # as if stopped before the last chunk
+    assert cli.main(argv) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["skipped_chunks"] == 1 and summary["evaluated_chunks"] == 1
+    assert read_sweep(out / "table").equals(expected.slice(0, 5))
+    assert cli.main(argv[:-1]) == 3                                     # other options: another run's folder
+    assert "holds the results of another run" in capsys.readouterr().err
+
+
+def test_the_evaluator_travels_without_its_phantom(swept):
+    """What a cluster worker receives: the numbers, not the phantom's models and arrays."""
+    import pickle
+    ev = sweeps.NeedleSweep(INCREMENTS, insertion=INSERTION)
+    ev.like                                                     # built: models, arrays
+    copy = pickle.loads(pickle.dumps(ev))
+    assert len(pickle.dumps(ev)) < 2000 and copy._phantom is None and copy._like is None
+    assert copy.sweep_key == ev.sweep_key and copy.phantom.insertion == INSERTION
