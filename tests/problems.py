@@ -269,10 +269,12 @@ def manufactured_body_force(X):
 
 # Cook's membrane (plane strain): clamped on the left, a dead shear traction of total 5 on the right
 # edge; the vertical displacement of the top-right corner against FElupe's three-field
-# (u-p-J) solution, converged and extrapolated (experiments/cook_reference.py)
+# (u-p-J) solution, converged and extrapolated (experiments/cook_reference.py and its JSON,
+# which holds the meshes, the extrapolation and its error estimate, a few 1e-5 in 2D and 1e-3 in 3D)
 COOK_VERTICES = np.array([[0.0, 0.0], [48.0, 44.0], [48.0, 60.0], [0.0, 44.0]])
 COOK_MU = 80.194
-COOK_REFERENCE = {0.3: 0.54654, 0.499: 0.40155}
+COOK_REFERENCE = {0.3: 0.546557, 0.45: 0.438293, 0.49: 0.408384, 0.499: 0.401577}
+BLOCK_REFERENCE = {0.3: 0.60756, 0.45: 0.53913, 0.49: 0.52190, 0.499: 0.51806}
 
 
 def lame(mu: float, nu: float) -> float:
@@ -280,11 +282,24 @@ def lame(mu: float, nu: float) -> float:
     return 2.0 * mu * nu / (1.0 - 2.0 * nu)
 
 
-def cook_membrane(spacing: float, nu: float, integration: str = "gauss", **model_kw) -> float:
+def cook_membrane(spacing: float, nu: float, integration: str = "gauss", count: bool = False, **model_kw):
     """u_y of the top-right corner (48, 60) of Cook's membrane, compressible neo-Hookean at
-    Poisson's ratio nu, solved in one load step."""
+    Poisson's ratio nu, solved in one load step (``count``: and the particles)."""
     body = jr.Body.polygon(COOK_VERTICES, spacing)
     model = jr.Model(body, jr.NeoHookean(lame(COOK_MU, nu), COOK_MU), integration=integration,
                      essential={"left": body.select(lambda X: X[:, 0] < 1e-9)},
                      tractions=[(lambda X: X[:, 0] > 48.0 - 1e-9, [0.0, 5.0 / 16.0])], **model_kw)
-    return float(np.asarray(model.displacement(model.solve(), [[48.0, 60.0]])).ravel()[1])
+    value = float(np.asarray(model.displacement(model.solve(), [[48.0, 60.0]])).ravel()[1])
+    return (value, body.n) if count else value
+
+
+def cantilever_block(spacing: float, nu: float, integration: str = "gauss", count: bool = False, **model_kw):
+    """u_z of the point (4, 0.5, 1) of the block [0, 4] x [0, 1]^2, the face x = 0 clamped and
+    the face x = 4 under a dead traction (0, 0, 0.5), compressible neo-Hookean (mu = COOK_MU) at
+    Poisson's ratio nu, one load step (``count``: and the particles)."""
+    body = jr.Body.grid((round(4 / spacing) + 1, round(1 / spacing) + 1, round(1 / spacing) + 1), spacing)
+    model = jr.Model(body, jr.NeoHookean(lame(COOK_MU, nu), COOK_MU), integration=integration,
+                     essential={"wall": body.select(lambda X: X[:, 0] < 1e-9)},
+                     tractions=[(lambda X: X[:, 0] > 4.0 - 1e-9, [0.0, 0.0, 0.5])], **model_kw)
+    value = float(np.asarray(model.displacement(model.solve(), [[4.0, 0.5, 1.0]])).ravel()[2])
+    return (value, body.n) if count else value

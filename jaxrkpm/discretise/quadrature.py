@@ -199,19 +199,16 @@ def gauss_table(body: Body, a: float, order: int = 2, cell_size: float | None = 
 def dilatation_patches(body: Body, table: Table, integration: str = "gauss",
                        cell_size: float | None = None) -> np.ndarray:
     """The patch (Q,) of every integration point over which the anti-locking formulation
-    averages the volume change (``jaxrkpm.mechanics.strain.mean_dilatation``), by integration:
-
-    gauss  the background cell of ``cell_size`` (default: the spacing) that holds the point, also
-           on a mesh body: one volumetric constraint per cell of about one particle, the count
-           of the mean-dilatation element Q1/P0 (a patch per mesh cell would lock, a tetrahedral
-           mesh has five or six cells a particle; patches of two spacings are soft)
-    scni   each point: nodal integration already has one volumetric constraint per particle
-    mscni  the nearest particle, whose smoothing cell holds the sub-cell: the sub-cells'
-           constraints are folded back into their particle's, the count of SCNI."""
+    averages the volume change (``jaxrkpm.mechanics.strain.mean_dilatation``): the background
+    cell of ``cell_size`` (default: the spacing) that holds the point, for Gauss points (also on
+    a mesh body) and for the cells and sub-cells of MSCNI. That is one volumetric constraint per
+    cell of about one particle, the count of the mean-dilatation element Q1/P0: a patch per mesh
+    cell would lock (a tetrahedral mesh has five or six cells a particle), patches of two
+    spacings are too soft, and folding MSCNI's sub-cells into their own particle's cell alone
+    leaves it stiffer (``experiments/cook_membrane.py``). SCNI keeps a patch per point: nodal
+    integration already has one volumetric constraint per particle, and fewer make it soft."""
     if integration == "scni":
         return np.arange(len(table.points))
-    if integration == "mscni":
-        return np.asarray(body.nearest(table.points), np.int64).reshape(-1)
     h = body.spacing if cell_size is None else float(cell_size)
     span = body.upper - body.lower
     n = np.maximum(1, np.ceil(span / h - 1e-9).astype(int))

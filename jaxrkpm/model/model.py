@@ -135,8 +135,8 @@ class Model:
     anti_locking  None (default): on where the material is nearly incompressible (an energy
                 with a volumetric-deviatoric split, or Lame constants with lam >= 9 mu, Poisson's
                 ratio 0.45); True / False: on / off. On, every integration point's energy is
-                taken at F-bar, its volume change averaged over a patch of points (a
-                background cell; a particle's smoothing cell with "mscni"), which removes
+                taken at F-bar, its volume change averaged over the points of a background
+                cell (Gauss and MSCNI; SCNI is left as it is), which removes
                 volumetric locking as nu -> 1/2 (jaxrkpm.discretise.quadrature.dilatation_patches,
                 ``docs/guide/models.md``). Stresses at arbitrary points (``stress``) are the
                 point's own.
