@@ -1,7 +1,9 @@
 """Execute every research notebook top to bottom (nbclient) and check they are stored stripped.
 
 The notebooks assert their own numbers (patch values, Jacobian agreement, waypoints reached),
-so an execution error is a failed check, not only a crash.
+so an execution error is a failed check, not only a crash. They run here at a smaller size
+(``JAXRKPM_NOTEBOOK_QUICK=1``: fewer increments, iterations and waypoints; the same asserts),
+the users' default sizes being those of the studies they show.
 """
 from pathlib import Path
 
@@ -34,6 +36,7 @@ def test_stored_without_outputs(path):
 def test_notebook_runs(path, monkeypatch):
     monkeypatch.setenv("MPLBACKEND", "Agg")
     monkeypatch.setenv("OPENBLAS_NUM_THREADS", "1")
+    monkeypatch.setenv("JAXRKPM_NOTEBOOK_QUICK", "1")     # the notebooks' small sizes (module docstring)
     nb = nbformat.read(path, as_version=4)
     client = nbclient.NotebookClient(nb, timeout=CELL_TIMEOUT_S, kernel_name="python3",
                                      resources={"metadata": {"path": str(ROOT)}})

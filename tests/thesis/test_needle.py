@@ -12,7 +12,8 @@ import pytest
 from jaxrkpm.thesis import needle as nd
 from jaxrkpm.solvers.results import Status
 
-INCREMENTS = 15
+INCREMENTS = 5   # the thesis' 15 run in the needle study and notebook 03 (whose test size is this one's, so
+                 # the two share their compiled sweeps in the suite's cache); the findings hold at 5
 
 
 @pytest.fixture(scope="module")
@@ -149,7 +150,7 @@ def test_continuous_paddle_and_optimised_placement(phantom, sweeps):
     dm = nd.final_deviation_and_gradient(model, phantom, 3.5 - e, depths)[0]
     assert g != 0.0 and abs(g - (dp - dm) / (2 * e)) < 1e-6 * abs(g)
     sw = sweeps["left"]
-    opt = nd.optimize_paddle(phantom, "left", start=float(sw.best), iterations=6)
+    opt = nd.optimize_paddle(phantom, "left", start=float(sw.best), increments=INCREMENTS, iterations=6)
     print("optimised paddle (left):", opt.q, opt.deviation, "discrete", sw.final[sw.best - 1])
     assert abs(opt.deviation) < 0.5 * abs(sw.final[sw.best - 1])
     assert 1.0 <= opt.q <= len(phantom.paddles)

@@ -1,5 +1,6 @@
 """The 3D needle-insertion phantom (chapter 6 lifted to a half-ellipsoid mesh body) through the
-generic needle functions, and shape servoing (Algorithm 3) on a mesh body loaded from a file.
+generic needle functions (shape servoing on its mesh loaded from a file:
+tests/thesis/test_needle3d_servoing.py).
 
 One coarse phantom (~230 particles) and one set of compiled models for the module; few
 increments (the 3D compiles dominate)."""
@@ -7,7 +8,6 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-import jaxrkpm as jr
 from jaxrkpm.thesis import needle as nd
 from jaxrkpm.thesis.phantom3d import Phantom3D
 from jaxrkpm.solvers.results import Status
@@ -161,23 +161,6 @@ def test_optimised_patch_through_the_solve(phantom, sweep):
     discrete = sweep.final[best - 1]
     assert abs(opt.start_deviation - discrete) < 1e-3 * abs(discrete), (opt.start_deviation, discrete)
     assert abs(opt.deviation) < 0.75 * abs(discrete), (opt.deviation, discrete)
-
-
-def test_shape_servoing_on_loaded_mesh(tmp_path, phantom):
-    """Algorithm 3 (``control.track``) on a body loaded from a mesh file: a skin patch driven,
-    an interior control point following a short path, every waypoint reached."""
-    from jaxrkpm.control.tracking import track
-    path = tmp_path / "phantom.vtu"
-    phantom.mesh().write(path)
-    body = jr.Body.from_mesh(str(path))
-    np.testing.assert_allclose(body.X, phantom.body.X, atol=1e-12)
-    model = jr.Model(body, phantom.material(), essential={"base": phantom.base, "paddle": phantom.patch(1)},
-                     support=phantom.support)
-    cp = np.array([[0.3, 0.0, 0.25]])
-    waypoints = np.array([[0.0, 0.0, 0.0], [0.004, 0.0, 0.002], [0.004, 0.003, 0.004]])
-    res = track(model, waypoints, "paddle", cp, gain=0.5, clamp=0.01, tol=1e-4)
-    assert res.status.name == "DONE", res.message
-    assert np.all(res.reached >= 0) and res.max_waypoint_error < 1e-4
 
 
 def test_bad_input():
