@@ -88,8 +88,9 @@ def test_contact_patch(pressed_block):
 
 
 # -------------------------------------------------------------------- derivatives
-def _fd_vs_implicit(model, sol, params, name, keys, points, eps):
-    """(implicit Jacobian d u(points) / d (params[name][keys]), central differences)."""
+def _fd_vs_implicit(model, sol, params, name, keys, points, eps, fd=True):
+    """(implicit Jacobian d u(points) / d (params[name][keys]), central differences (None
+    without ``fd``))."""
     base = {k: jnp.asarray(v) for k, v in params[name].items()}
     flat0 = jnp.concatenate([jnp.atleast_1d(base[k]) for k in keys])
     sizes = [jnp.atleast_1d(base[k]).size for k in keys]
@@ -108,6 +109,8 @@ def _fd_vs_implicit(model, sol, params, name, keys, points, eps):
         return model.displacement(s, points).ravel()
 
     J = jax.jacfwd(lambda x: u(x, sol))(flat0)
+    if not fd:
+        return np.asarray(J), None
     cols = []
     for i in range(flat0.size):
         e = jnp.zeros_like(flat0).at[i].set(eps)
@@ -153,7 +156,7 @@ def test_pose_jacobian_2d_frictional(paddle_2d):
     print(f"2D pose Jacobian, mu = 0.3 (lagged): rel. difference to central FD {err:.2e}")
     assert err < 1e-6
     # friction stiffens the tangential response to the paddle's sideways motion
-    J0, _ = _fd_vs_implicit(model, sol, params, "paddle", ("position",), np.array([[0.1, 0.5]]), 1e-5)
+    J0, _ = _fd_vs_implicit(model, sol, params, "paddle", ("position",), np.array([[0.1, 0.5]]), 1e-5, fd=False)
     assert abs(J[0, 0]) > abs(J0[0, 0])
 
 
@@ -174,8 +177,65 @@ def test_pose_jacobian_3d():
 def test_bad_input_is_named():
     body = jr.Body.grid((3, 3), 0.5)
     with pytest.raises(ValueError, match="overlaps"):
-        jr.Model(body, MAT, essential={"b": [0]}, terms=[jr.Contact(jr.Sphere(0.3), position=(0.5, 0.5))])
+        jr.Model(body, MAT, essential={"b": [0]}, terms=[jr.Contact(jr.Sphere(0.3), position=(0.5, 1.0))])
     with pytest.raises(ValueError, match="shape"):
         jr.Contact(object(), position=(0, 0))
     with pytest.raises(ValueError, match="gap"):
         jr.Contact(jr.Sphere(0.3), position=(0, 2), gap=0.0)
+
+
+# ------------------------------------------------------------- friction vs glued
+@pytest.fixture(scope="module")
+def clamped_block():
+    """A 1 x 1 block, bottom clamped, its top pressed down by ``D``: by a rigid plate
+    (frictionless, and with mu = 0.3 as one lagged step from load 0: the anchors at the start,
+    the normal pressure lagged and iterated twice) and by a glued plate (the top held by an
+    essential set)."""
+    body = jr.Body.grid((5, 5), 0.25)
+    bottom = body.select(lambda X: X[:, 1] < 1e-9)
+    plate = jr.Contact(jr.HalfSpace((0.0, -1.0)), position=(0.0, 1.0 + GAP), gap=GAP, pressure=0.3, name="plate",
+                       where=lambda X: X[:, 1] > 1 - 1e-9, slip=2e-3)
+    contact = jr.Model(body, MAT, integration="scni", essential={"bottom": bottom}, terms=[plate])
+    glued = jr.Model(body, MAT, integration="scni",
+                     essential={"bottom": bottom, "top": body.select(lambda X: X[:, 1] > 1 - 1e-9)})
+    return body, contact, glued
+
+
+D = 0.05
+CORNER = np.array([[1.0, 1.0]])
+
+
+@pytest.mark.parametrize("lam", [0.0, 1.0])
+def test_friction_against_a_glued_plate(clamped_block, lam):
+    body, contact, glued = clamped_block
+    pose = {"position": jnp.array([0.0, 1.0 + GAP - D])}
+    free = contact.solve(params={"plate": pose, "lam": lam}, steps=4, max_iter=60)
+    res = jr.contact_forces(contact, free, "plate", {"plate": pose})
+    anchors = contact.params["plate"]["anchor"]          # the start of the step: no slip yet
+    sol, pressure = free, res.pressure
+    for _ in range(2):                                   # the lagged normal pressure, iterated
+        p = {"plate": {**pose, "mu": jnp.asarray(0.3), "pressure": pressure, "anchor": anchors}, "lam": lam}
+        sol = contact.solve(params=p, steps=4, max_iter=60)   # one lagged step: from load 0
+        fr = jr.contact_forces(contact, sol, "plate", p)
+        pressure = fr.pressure
+    # the glued plate at the same top displacement
+    top = float(np.mean(np.asarray(contact.displacement(sol, body.X[body.X[:, 1] > 1 - 1e-9])[:, 1])))
+    gl = glued.solve({"top": (0.0, top)}, params={"lam": lam}, steps=2)
+    ux = [abs(float(m.displacement(s, CORNER)[0, 0])) for m, s in ((contact, free), (contact, sol), (glued, gl))]
+    fy = [float(res.force[1]), float(fr.force[1]), -float(glued.reaction(gl, "top")[1])]
+    ratio = float(np.max(np.abs(np.asarray(fr.tangential)))) / abs(float(fr.force[1]))
+    print(f"lam {lam}: top corner |u_x| frictionless {ux[0]:.3e}, mu 0.3 {ux[1]:.3e}, glued {ux[2]:.3e}; "
+          f"force {fy[0]:.6f} / {fy[1]:.6f} / {fy[2]:.6f}; friction / normal {ratio:.3f}")
+    # every point within the friction cone (the regularised law's force is at most mu p)
+    f = np.asarray(fr.point_force)
+    n = np.asarray(fr.normals)
+    fn = np.sum(f * n, 1)
+    ft = np.linalg.norm(f - fn[:, None] * n, axis=1)
+    assert np.all(fn >= 0) and np.all(ft <= 0.3 * np.asarray(fr.pressure) * np.asarray(
+        contact.problem(p).term("plate").w) * (1 + 1e-9) + 1e-15)
+    if lam == 0.0:   # no lateral tendency: all three agree
+        assert max(ux) < 1e-6
+        assert fy[1] == pytest.approx(fy[2], rel=1e-2) and fy[0] == pytest.approx(fy[2], rel=1e-2)
+    else:            # the top wants to spread: friction holds it partly, the glue wholly
+        assert ux[0] > 2 * ux[1] and ux[1] > 10 * ux[2] and ux[2] < 1e-8
+        assert abs(fy[1] - fy[2]) > 1e-3 * abs(fy[2])
