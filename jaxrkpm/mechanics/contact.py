@@ -394,7 +394,14 @@ class Contact(TermSpec):
     where        X (M, d) -> (M,) bool on the boundary facet centres: the part that may touch
                  (default: the whole boundary)
     floor        g_min / ghat: below g_min the barrier is continued quadratically
-    name         keys its parameters in ``Model.solve(params={name: {...}})``"""
+    name         keys its parameters in ``Model.solve(params={name: {...}})``
+
+    Accuracy: a touching point stands off the tool by less than ``gap`` (about gap/2 at
+    p = p0); no point enters the tool while its pressure stays below about 20 p0 (above
+    g_min = floor x gap below about 10 p0, at the default floor); ``contact_forces(...).min_gap``
+    reports it. The contact points are the boundary particles (lumped boundary weights); the
+    tool's pose moves linearly with the load scale from the given pose (load 0) to the pose
+    in ``params`` (load 1)."""
 
     shape: object
     position: tuple

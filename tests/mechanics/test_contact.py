@@ -150,8 +150,7 @@ def test_pose_jacobian_2d_frictional(paddle_2d):
     res = jr.contact_forces(model, fr, "paddle", p)
     # the lag's anchors are the state itself: no slip, no friction until the tool moves
     assert np.abs(np.asarray(res.tangential)).max() < 1e-8 * np.abs(np.asarray(res.normal)).max()
-    J, fd = _fd_vs_implicit(model, fr, p, "paddle", ("position", "rotation"),
-                            np.array([[0.1, 0.5], [0.0, 0.0]]), 1e-5)
+    J, fd = _fd_vs_implicit(model, fr, p, "paddle", ("position",), np.array([[0.1, 0.5], [0.0, 0.0]]), 1e-5)
     err = np.abs(J - fd).max() / np.abs(J).max()
     print(f"2D pose Jacobian, mu = 0.3 (lagged): rel. difference to central FD {err:.2e}")
     assert err < 1e-6
