@@ -23,7 +23,7 @@ def case(n, depth, repeats, steps):
 
     body = jr.Body.grid((n, n), 1.0 / (n - 1))
     tol = 1e-9
-    mid = lambda X: (X[:, 1] > 1 - tol) & (np.abs(X[:, 0] - 0.5) < 1 / 6 + tol)   # noqa: E731
+    mid = lambda X: (X[:, 1] > 1 - tol) & (np.abs(X[:, 0] - 0.5) < 1 / 6 + tol)
     bottom = body.select(lambda X: X[:, 1] < tol)
     mat = jr.NeoHookean(lam=1.0, mu=1.0)
     gap = 1e-3

@@ -43,12 +43,11 @@ def run(spacing=0.02, width=1.0, depth=1.0, radius=1.0, young=1.0, nu=0.3, depth
     build = time.perf_counter() - t0
     estar = young / (1 - nu ** 2)
     out = []
-    sol = None
     for dd in depths:
         params = {"disc": {"position": jnp.array([0.0, radius + 2 * gap - dd])},
                   "wall": {"position": jnp.array([-gap, 0.0])}}
         t0 = time.perf_counter()
-        sol = model.solve(params=params, steps=steps) if sol is None else model.solve(params=params, steps=steps)
+        sol = model.solve(params=params, steps=steps)   # each load from load 0
         t = time.perf_counter() - t0
         r = jr.contact_forces(model, sol, "disc", params)
         x = np.asarray(r.points)[:, 0]

@@ -466,7 +466,7 @@ def _boundary_nodes(body, where, name):
     """The distinct corners (S, d) of the body's boundary facets (whose centres satisfy
     ``where``) and their lumped measures (S,): each facet's measure shared equally by its
     corners (a quad's four, a triangle's three, a segment's two)."""
-    facets, normals = body.boundary_facets()
+    facets = body.boundary_facets()[0]
     if where is not None:
         mask = np.asarray(where(facets.mean(1)), bool)
         if mask.shape != (len(facets),):
@@ -475,7 +475,7 @@ def _boundary_nodes(body, where, name):
         if not mask.any():
             raise ValueError(f"contact {name!r}: where selects no boundary facet")
         facets = facets[mask]
-    M, nv, dim = facets.shape
+    nv, dim = facets.shape[1:]
     if dim == 2:
         measure = np.linalg.norm(facets[:, 1] - facets[:, 0], axis=1)
     elif nv == 3:
