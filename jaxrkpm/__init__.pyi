@@ -36,6 +36,15 @@ from .io.output import (
     write_series as write_series,
     write_solution as write_solution,
 )
+from .mechanics.contact import (
+    Box as Box,
+    Capsule as Capsule,
+    Contact as Contact,
+    ContactResult as ContactResult,
+    HalfSpace as HalfSpace,
+    Sphere as Sphere,
+    contact_forces as contact_forces,
+)
 from .mechanics.loads import Springs as Springs
 from .mechanics.pressure import Pressure as Pressure
 from .mechanics.materials import (

@@ -13,6 +13,7 @@ from .control.batching import batch_axes, default_batching, map_batch, run_batch
 from .control.tracking import ControlledModel, Tracker, predicted_change, response_trend, track_loop
 from .discretise.constraints import EssentialSets, Transformation
 from .mechanics.constraint import Essential
+from .mechanics.contact import ContactTerm
 from .mechanics.loads import DeadLoad, SpringTerm
 from .mechanics.pressure import PressureTerm
 from .mechanics.problem import Problem
@@ -39,7 +40,7 @@ __all__ = [
     "batch_axes", "default_batching", "map_batch", "run_batched", "stack_models",
     "ControlledModel", "Tracker", "predicted_change", "response_trend", "track_loop",
     "EssentialSets", "Transformation",
-    "Essential", "DeadLoad", "SpringTerm", "PressureTerm", "Problem", "StrainEnergy",
+    "Essential", "ContactTerm", "DeadLoad", "SpringTerm", "PressureTerm", "Problem", "StrainEnergy",
     "Context", "Pairs", "Term", "TermSpec", "static", "term",
     "SolverChoice",
     "BranchSwitch", "StableDescent", "ArcLength",

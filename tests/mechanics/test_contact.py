@@ -1,0 +1,240 @@
+"""Contact with rigid tools (jaxrkpm.mechanics.contact): the barrier keeps the body out of the
+tool, a flat plate gives a uniform state, and the solution is differentiable in the tool's
+pose (implicit Jacobian against central differences), frictionless and frictional."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxrkpm as jr
+from jaxrkpm.mechanics.contact import barrier, rotation
+
+GAP = 1e-3
+MAT = jr.NeoHookean(lam=1.0, mu=1.0)
+
+
+def test_barrier_is_c2_at_its_range_and_finite_below_the_floor():
+    kappa, ghat, floor = 2.0, 1e-3, 0.1
+    db = jax.jit(jax.grad(barrier))
+    d2b = jax.jit(jax.grad(jax.grad(barrier)))
+    for f in (barrier, db, d2b):    # b, b', b'' vanish at ghat (C2)
+        assert abs(float(f(ghat * (1 - 1e-9), kappa, ghat, floor))) < 1e-6 * kappa
+        assert float(f(ghat * 1.5, kappa, ghat, floor)) == 0.0
+    g = jnp.linspace(-ghat, ghat, 101)
+    b = jax.jit(jax.vmap(barrier, (0, None, None, None)))(g, kappa, ghat, floor)
+    p = -jax.jit(jax.vmap(db, (0, None, None, None)))(g, kappa, ghat, floor)
+    assert np.all(np.isfinite(np.asarray(b))) and np.all(np.diff(np.asarray(p)) <= 0)   # p falls with g
+    # the spec's p0: the pressure at half the gap
+    spec = jr.Contact(jr.Sphere(1.0), position=(0.0, 0.0), gap=ghat, pressure=3.0)
+    k = spec.pressure / (ghat * (np.log(2) + 0.5))
+    assert float(-db(ghat / 2, k, ghat, floor)) == pytest.approx(3.0, rel=1e-12)
+
+
+def test_rotation_is_smooth_at_the_identity():
+    J = jax.jacfwd(lambda w: rotation(w, 3))(jnp.zeros(3))
+    W = np.zeros((3, 3, 3))
+    for a in range(3):
+        e = np.zeros(3)
+        e[a] = 1
+        W[:, :, a] = np.cross(e, np.eye(3)).T     # d R / d w_a = [e_a]x
+    assert np.allclose(np.asarray(J), W, atol=1e-14)
+    R = rotation(jnp.array([0.3, -0.2, 0.5]), 3)
+    assert np.allclose(np.asarray(R @ R.T), np.eye(3), atol=1e-14)
+
+
+# ---------------------------------------------------------------------- patch test
+@pytest.fixture(scope="module")
+def pressed_block():
+    """A 1 x 1 block (SCNI) squeezed between two rigid frictionless plates moving in by
+    ``d`` each (its centre particle held: by symmetry it carries no load)."""
+    n = 5
+    body = jr.Body.grid((n, n), 1.0 / (n - 1), origin=(-0.5, -0.5))
+    centre = body.select(lambda X: np.hypot(*X.T) < 1e-9)
+    top = jr.Contact(jr.HalfSpace((0.0, -1.0)), position=(0.0, 0.5 + GAP), gap=GAP, pressure=0.3, name="top",
+                     where=lambda X: X[:, 1] > 0.5 - 1e-9)
+    bot = jr.Contact(jr.HalfSpace((0.0, 1.0)), position=(0.0, -0.5 - GAP), gap=GAP, pressure=0.3, name="bot",
+                     where=lambda X: X[:, 1] < -0.5 + 1e-9)
+    model = jr.Model(body, MAT, integration="scni", essential={"c": centre}, terms=[top, bot])
+    d = 0.05
+    params = {"top": {"position": jnp.array([0.0, 0.5 + GAP - d])},
+              "bot": {"position": jnp.array([0.0, -0.5 - GAP + d])}}
+    return model, model.solve(params=params, steps=4), params
+
+
+def test_contact_patch(pressed_block):
+    model, sol, params = pressed_block
+    body = model.body
+    res = jr.contact_forces(model, sol, "top", params)
+    bot = jr.contact_forces(model, sol, "bot", params)
+    S = np.asarray(model.stress(sol, 0.9 * body.X))
+    syy = S[:, 1, 1]
+    spread = np.ptp(syy) / abs(syy.mean())
+    p = np.asarray(res.pressure)
+    print(f"contact patch: sigma_yy {syy.mean():.6f}, spread {spread:.2e}; pressure {p.min():.6f} .. "
+          f"{p.max():.6f}; gaps {float(res.min_gap):.3e} .. {float(np.max(res.gap)):.3e} (ghat {GAP}); "
+          f"|sigma_xx|, |sigma_xy| <= {np.abs(S[:, 0, 0]).max():.2e}, {np.abs(S[:, 0, 1]).max():.2e}")
+    # no interpenetration, within the barrier's range, all points touch
+    assert 0 < float(res.min_gap) and float(np.max(res.gap)) < GAP and bool(np.all(res.active))
+    # the plates' forces balance, are normal and compressive
+    assert float(res.force[1]) < 0 and np.allclose(np.asarray(res.force), -np.asarray(bot.force), rtol=1e-8)
+    assert abs(float(res.tangential[0])) < 1e-10 * abs(float(res.force[1]))
+    assert np.allclose(np.asarray(model.reaction(sol, "c")), 0.0, atol=1e-9 * abs(float(res.force[1])))
+    # the resultant is the stress times the face (deformed width x sigma_yy, 2D)
+    width = float(np.ptp(np.asarray(res.points)[:, 0]))   # the deformed top face
+    assert float(res.force[1]) == pytest.approx(syy.mean() * width, rel=2e-3)
+    # uniform: the lumped nodal rule is not SCNI's nodal boundary rule exactly (see the report)
+    assert spread < 2e-3
+    assert np.ptp(p) / p.mean() < 0.1
+
+
+# -------------------------------------------------------------------- derivatives
+def _fd_vs_implicit(model, sol, params, name, keys, points, eps, fd=True):
+    """(implicit Jacobian d u(points) / d (params[name][keys]), central differences (None
+    without ``fd``))."""
+    base = {k: jnp.asarray(v) for k, v in params[name].items()}
+    flat0 = jnp.concatenate([jnp.atleast_1d(base[k]) for k in keys])
+    sizes = [jnp.atleast_1d(base[k]).size for k in keys]
+
+    def unflat(x):
+        out, i = dict(base), 0
+        for k, s in zip(keys, sizes):
+            out[k] = x[i:i + s].reshape(jnp.shape(base[k]))
+            i += s
+        return out
+
+    def u(x, initial=None):
+        p = {**params, name: unflat(x)}
+        s = model.solve(params=p, steps=4, rtol=1e-12) if initial is None else \
+            model.solve(params=p, initial=initial, rtol=1e-12)
+        return model.displacement(s, points).ravel()
+
+    J = jax.jacfwd(lambda x: u(x, sol))(flat0)
+    if not fd:
+        return np.asarray(J), None
+    cols = []
+    for i in range(flat0.size):
+        e = jnp.zeros_like(flat0).at[i].set(eps)
+        cols.append((u(flat0 + e, sol) - u(flat0 - e, sol)) / (2 * eps))
+    return np.asarray(J), np.asarray(jnp.stack(cols, 1))
+
+
+@pytest.fixture(scope="module")
+def paddle_2d():
+    """A 1 x 1 block held at its bottom, pressed by a tilted box paddle with rounded edges."""
+    body = jr.Body.grid((5, 5), 0.25, origin=(-0.5, -0.5))
+    paddle = jr.Contact(jr.Box((0.2, 0.05), 0.05), position=(0.1, 0.65), rotation=0.1,
+                        gap=GAP, pressure=0.1, name="paddle", where=lambda X: X[:, 1] > 0.5 - 1e-9)
+    model = jr.Model(body, MAT, essential={"bottom": body.select(lambda X: X[:, 1] < -0.5 + 1e-9)},
+                     terms=[paddle])
+    start = model.params["paddle"]
+    params = {"paddle": {"position": start["position"] + jnp.array([0.0, -0.06]), "rotation": jnp.asarray(0.12)}}
+    return model, model.solve(params=params, steps=4, rtol=1e-12), params
+
+
+def test_pose_jacobian_2d_frictionless(paddle_2d):
+    model, sol, params = paddle_2d
+    res = jr.contact_forces(model, sol, "paddle", params)
+    assert int(np.sum(res.active)) >= 1 and float(res.min_gap) > 0
+    J, fd = _fd_vs_implicit(model, sol, params, "paddle", ("position", "rotation"),
+                            np.array([[0.1, 0.5], [0.0, 0.0]]), 1e-5)
+    err = np.abs(J - fd).max() / np.abs(J).max()
+    print(f"2D pose Jacobian, frictionless: |J| {np.abs(J).max():.3e}, rel. difference to central FD {err:.2e}")
+    assert np.abs(J).max() > 0.1 and err < 1e-6
+
+
+def test_pose_jacobian_2d_frictional(paddle_2d):
+    model, sol, params = paddle_2d
+    lag = jr.contact_forces(model, sol, "paddle", params).lag
+    p = {"paddle": {**params["paddle"], "mu": jnp.asarray(0.3), **lag}}
+    fr = model.solve(params=p, initial=sol, rtol=1e-12)
+    res = jr.contact_forces(model, fr, "paddle", p)
+    # the lag's anchors are the state itself: no slip, no friction until the tool moves
+    assert np.abs(np.asarray(res.tangential)).max() < 1e-8 * np.abs(np.asarray(res.normal)).max()
+    J, fd = _fd_vs_implicit(model, fr, p, "paddle", ("position",), np.array([[0.1, 0.5], [0.0, 0.0]]), 1e-5)
+    err = np.abs(J - fd).max() / np.abs(J).max()
+    print(f"2D pose Jacobian, mu = 0.3 (lagged): rel. difference to central FD {err:.2e}")
+    assert err < 1e-6
+    # friction stiffens the tangential response to the paddle's sideways motion
+    J0, _ = _fd_vs_implicit(model, sol, params, "paddle", ("position",), np.array([[0.1, 0.5]]), 1e-5, fd=False)
+    assert abs(J[0, 0]) > abs(J0[0, 0])
+
+
+def test_pose_jacobian_3d():
+    body = jr.Body.grid((3, 3, 3), 0.5, origin=(-0.5, -0.5, -0.5))
+    ball = jr.Contact(jr.Sphere(0.4), position=(0.05, 0.0, 0.5 + 0.4 + 2 * GAP), gap=GAP, pressure=0.1,
+                      name="ball", where=lambda X: X[:, 2] > 0.5 - 1e-9)
+    model = jr.Model(body, MAT, essential={"bottom": body.select(lambda X: X[:, 2] < -0.5 + 1e-9)},
+                     terms=[ball])
+    params = {"ball": {"position": model.params["ball"]["position"] + jnp.array([0.0, 0.0, -0.05])}}
+    sol = model.solve(params=params, steps=4, rtol=1e-12)
+    J, fd = _fd_vs_implicit(model, sol, params, "ball", ("position",), np.array([[0.0, 0.0, 0.5]]), 1e-5)
+    err = np.abs(J - fd).max() / np.abs(J).max()
+    print(f"3D pose Jacobian (sphere): rel. difference to central FD {err:.2e}")
+    assert np.abs(J).max() > 0.1 and err < 1e-6
+
+
+def test_bad_input_is_named():
+    body = jr.Body.grid((3, 3), 0.5)
+    with pytest.raises(ValueError, match="overlaps"):
+        jr.Model(body, MAT, essential={"b": [0]}, terms=[jr.Contact(jr.Sphere(0.3), position=(0.5, 1.0))])
+    with pytest.raises(ValueError, match="shape"):
+        jr.Contact(object(), position=(0, 0))
+    with pytest.raises(ValueError, match="gap"):
+        jr.Contact(jr.Sphere(0.3), position=(0, 2), gap=0.0)
+
+
+# ------------------------------------------------------------- friction vs glued
+@pytest.fixture(scope="module")
+def clamped_block():
+    """A 1 x 1 block, bottom clamped, its top pressed down by ``D``: by a rigid plate
+    (frictionless, and with mu = 0.3 as one lagged step from load 0: the anchors at the start,
+    the normal pressure lagged and iterated twice) and by a glued plate (the top held by an
+    essential set)."""
+    body = jr.Body.grid((5, 5), 0.25)
+    bottom = body.select(lambda X: X[:, 1] < 1e-9)
+    plate = jr.Contact(jr.HalfSpace((0.0, -1.0)), position=(0.0, 1.0 + GAP), gap=GAP, pressure=0.3, name="plate",
+                       where=lambda X: X[:, 1] > 1 - 1e-9, slip=2e-3)
+    contact = jr.Model(body, MAT, integration="scni", essential={"bottom": bottom}, terms=[plate])
+    glued = jr.Model(body, MAT, integration="scni",
+                     essential={"bottom": bottom, "top": body.select(lambda X: X[:, 1] > 1 - 1e-9)})
+    return body, contact, glued
+
+
+D = 0.05
+CORNER = np.array([[1.0, 1.0]])
+
+
+@pytest.mark.parametrize("lam", [0.0, 1.0])
+def test_friction_against_a_glued_plate(clamped_block, lam):
+    body, contact, glued = clamped_block
+    pose = {"position": jnp.array([0.0, 1.0 + GAP - D])}
+    free = contact.solve(params={"plate": pose, "lam": lam}, steps=4, max_iter=60)
+    res = jr.contact_forces(contact, free, "plate", {"plate": pose})
+    anchors = contact.params["plate"]["anchor"]          # the start of the step: no slip yet
+    sol, pressure = free, res.pressure
+    for _ in range(2):                                   # the lagged normal pressure, iterated
+        p = {"plate": {**pose, "mu": jnp.asarray(0.3), "pressure": pressure, "anchor": anchors}, "lam": lam}
+        sol = contact.solve(params=p, steps=4, max_iter=60)   # one lagged step: from load 0
+        fr = jr.contact_forces(contact, sol, "plate", p)
+        pressure = fr.pressure
+    # the glued plate at the same top displacement
+    top = float(np.mean(np.asarray(contact.displacement(sol, body.X[body.X[:, 1] > 1 - 1e-9])[:, 1])))
+    gl = glued.solve({"top": (0.0, top)}, params={"lam": lam}, steps=2)
+    ux = [abs(float(m.displacement(s, CORNER)[0, 0])) for m, s in ((contact, free), (contact, sol), (glued, gl))]
+    fy = [float(res.force[1]), float(fr.force[1]), float(glued.reaction(gl, "top", params={"lam": lam})[1])]   # on the body
+    ratio = float(np.max(np.abs(np.asarray(fr.tangential)))) / abs(float(fr.force[1]))
+    print(f"lam {lam}: top corner |u_x| frictionless {ux[0]:.3e}, mu 0.3 {ux[1]:.3e}, glued {ux[2]:.3e}; "
+          f"force {fy[0]:.6f} / {fy[1]:.6f} / {fy[2]:.6f}; friction / normal {ratio:.3f}")
+    # every point within the friction cone (the regularised law's force is at most mu p)
+    f = np.asarray(fr.point_force)
+    n = np.asarray(fr.normals)
+    fn = np.sum(f * n, 1)
+    ft = np.linalg.norm(f - fn[:, None] * n, axis=1)
+    assert np.all(fn >= 0) and np.all(ft <= 0.3 * np.asarray(fr.pressure) * np.asarray(
+        contact.problem(p).term("plate").w) * (1 + 1e-9) + 1e-15)
+    if lam == 0.0:   # no lateral tendency: friction changes nothing, nothing slides
+        assert max(ux) < 1e-4 * D and ux[2] < 1e-8
+        assert fy[1] == pytest.approx(fy[0], rel=1e-6) and fy[1] == pytest.approx(fy[2], rel=1e-2)
+    else:            # the top wants to spread: friction holds it partly, the glue wholly
+        assert ux[0] > 2 * ux[1] and ux[1] > 10 * ux[2] and ux[2] < 1e-8
+        assert abs(fy[1] - fy[2]) > 1e-3 * abs(fy[2]) and abs(fy[1] - fy[0]) > 1e-3 * abs(fy[0])
