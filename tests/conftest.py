@@ -79,7 +79,7 @@ def pytest_cmdline_main(config):
 # The files that take longest, first: each worker takes the next file when it is nearly done, so
 # with the long ones queued last one worker could still be in a 400 s file while the other has
 # run out of work (longest-processing-time-first scheduling; the order is that of a clean run's
-# durations, the profile of the tree at a6466cb less this branch's savings). The other files keep
+# durations; the files new since, by their own measured durations). The other files keep
 # pytest's order after them.
 SLOW_FIRST = (
     "tests/solvers/test_solver.py",
@@ -88,7 +88,9 @@ SLOW_FIRST = (
     "tests/model/test_jacobian.py",
     "tests/solvers/test_stability.py",
     "tests/discretise/test_mesh.py",
+    "tests/mechanics/test_contact.py",
     "tests/thesis/test_needle.py",
+    "tests/mechanics/test_anti_locking.py",
     "tests/thesis/test_reproduce.py",
     "tests/discretise/test_scni.py",
     "tests/mechanics/test_springs.py",
