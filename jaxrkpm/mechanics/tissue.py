@@ -20,7 +20,7 @@ from typing import Callable, Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from .materials import Material, det
+from .materials import Material, check_poisson, check_young, det
 
 __all__ = ["HolzapfelGasserOgden", "MooneyRivlin", "NearlyIncompressibleNeoHookean", "VerondaWestmann",
            "Yeoh", "bulk_modulus", "with_barrier"]
@@ -96,10 +96,7 @@ def _hgo(families: int):
 def bulk_modulus(mu, nu):
     """κ = 2μ(1 + ν) / (3(1 − 2ν)) for a shear modulus μ (number or field) and Poisson's ratio
     ν in (−1, 1/2)."""
-    nu = float(nu)
-    if not -1.0 < nu < 0.5:
-        raise ValueError(f"Poisson's ratio nu must lie in (-1, 0.5), got {nu:g} (nu = 0.5 is exactly "
-                         "incompressible, which these energies approach with nu = 0.499 or 0.4999)")
+    nu = check_poisson(nu)
     factor = 2.0 * (1.0 + nu) / (3.0 * (1.0 - 2.0 * nu))
     if callable(mu):
         return lambda X: factor * np.asarray(mu(X), float)
@@ -114,14 +111,14 @@ def _kappa(name: str, mu, kappa, nu):
     return kappa if nu is None else bulk_modulus(mu, nu)
 
 
-def _shear(name: str, mu_of: Callable, **constants):
-    """μ from the energy's constants where they are numbers (to check it and to derive κ from
-    ν); a field constant gives a field μ."""
+def _shear(name: str, formula: str, mu_of: Callable, **constants):
+    """μ = ``mu_of(**constants)`` (written ``formula`` in the error message) where the constants
+    are numbers (to check it and to derive κ from ν); a field constant gives a field μ."""
     if any(callable(v) for v in constants.values()):
         return lambda X: mu_of(**{k: np.asarray(v(X), float) if callable(v) else v for k, v in constants.items()})
     mu = mu_of(**constants)
     if not mu > 0:
-        raise ValueError(f"{name}: the small-strain shear modulus {mu_of.__doc__} must be positive, got {mu:g} "
+        raise ValueError(f"{name}: the small-strain shear modulus {formula} must be positive, got {mu:g} "
                          f"from {constants}")
     return mu
 
@@ -135,9 +132,7 @@ def NearlyIncompressibleNeoHookean(mu, kappa=None, *, nu=None) -> Material:
 
 
 def _from_young(young, nu) -> Material:
-    if not float(young) > 0:
-        raise ValueError(f"Young's modulus must be positive, got {young}")
-    bulk_modulus(1.0, nu)                                    # checks nu
+    young, nu = check_young(young), check_poisson(nu)
     return NearlyIncompressibleNeoHookean(young / (2.0 * (1.0 + nu)), nu=nu)
 
 
@@ -146,20 +141,14 @@ NearlyIncompressibleNeoHookean.from_young = _from_young
 
 def MooneyRivlin(c10, c01, kappa=None, *, nu=None) -> Material:
     """W = c10 (Ī1 − 3) + c01 (Ī2 − 3) + κ/2 (ln J)²; small-strain shear modulus μ = 2(c10 + c01)."""
-    def mu_of(c10, c01):
-        """2(c10 + c01)"""
-        return 2.0 * (c10 + c01)
-    mu = _shear("MooneyRivlin", mu_of, c10=c10, c01=c01)
+    mu = _shear("MooneyRivlin", "2(c10 + c01)", lambda c10, c01: 2.0 * (c10 + c01), c10=c10, c01=c01)
     return Material(_mooney_rivlin, {"c10": c10, "c01": c01, "kappa": _kappa("MooneyRivlin", mu, kappa, nu)},
                     "MooneyRivlin", positive=("kappa",))
 
 
 def Yeoh(c10, c20=0.0, c30=0.0, kappa=None, *, nu=None) -> Material:
     """W = c10 (Ī1 − 3) + c20 (Ī1 − 3)² + c30 (Ī1 − 3)³ + κ/2 (ln J)²; μ = 2 c10."""
-    def mu_of(c10):
-        """2 c10"""
-        return 2.0 * c10
-    mu = _shear("Yeoh", mu_of, c10=c10)
+    mu = _shear("Yeoh", "2 c10", lambda c10: 2.0 * c10, c10=c10)
     return Material(_yeoh, {"c10": c10, "c20": c20, "c30": c30, "kappa": _kappa("Yeoh", mu, kappa, nu)},
                     "Yeoh", positive=("c10", "kappa"))
 
@@ -167,12 +156,22 @@ def Yeoh(c10, c20=0.0, c30=0.0, kappa=None, *, nu=None) -> Material:
 def VerondaWestmann(c1, c2, kappa=None, *, nu=None) -> Material:
     """W = c1 (exp(c2 (Ī1 − 3)) − 1) − c1 c2 / 2 (Ī2 − 3) + κ/2 (ln J)² (Veronda & Westmann 1970,
     used for skin, breast and liver); μ = c1 c2."""
-    def mu_of(c1, c2):
-        """c1 c2"""
-        return c1 * c2
-    mu = _shear("VerondaWestmann", mu_of, c1=c1, c2=c2)
+    mu = _shear("VerondaWestmann", "c1 c2", lambda c1, c2: c1 * c2, c1=c1, c2=c2)
     return Material(_veronda_westmann, {"c1": c1, "c2": c2, "kappa": _kappa("VerondaWestmann", mu, kappa, nu)},
                     "VerondaWestmann", positive=("c1", "c2", "kappa"))
+
+
+def _evaluated_once(field: Callable) -> Callable:
+    """``field`` (X -> (n, 3)) remembering its last points and values, so that its three
+    components (three parameter fields) cost one evaluation at the same points."""
+    last = {}
+
+    def values(X):
+        X = np.asarray(X, float)
+        if "X" not in last or last["X"].shape != X.shape or not np.array_equal(last["X"], X):
+            last["X"], last["a"] = X.copy(), np.asarray(field(X), float)
+        return last["a"]
+    return values
 
 
 def HolzapfelGasserOgden(mu, k1, k2, fibres: Sequence, kappa=None, *, nu=None,
@@ -185,8 +184,7 @@ def HolzapfelGasserOgden(mu, k1, k2, fibres: Sequence, kappa=None, *, nu=None,
 
     ``fibres``: one or two directions a_f, each a (3,) vector or a field X (n, d) -> (n, 3);
     they are normalised (in a 2D body, in plane strain, a fibre's out-of-plane part keeps its
-    length). ``dispersion`` κ_d in
-    [0, 1/3] (1/3: isotropic)."""
+    length). ``dispersion`` κ_d in [0, 1/3] (1/3: isotropic)."""
     one = callable(fibres) or (not isinstance(fibres, str) and len(fibres) > 0
                                and all(np.isscalar(x) for x in fibres))
     fibres = [fibres] if one else list(fibres)
@@ -198,8 +196,9 @@ def HolzapfelGasserOgden(mu, k1, k2, fibres: Sequence, kappa=None, *, nu=None,
               "kappa": _kappa("HolzapfelGasserOgden", mu, kappa, nu)}
     for k, a in enumerate(fibres):
         if callable(a):
+            field = _evaluated_once(a)
             for i, axis in enumerate("xyz"):
-                params[f"fibre{k}_{axis}"] = (lambda X, a=a, i=i: np.asarray(a(X), float)[:, i])
+                params[f"fibre{k}_{axis}"] = (lambda X, field=field, i=i: field(X)[:, i])
             continue
         a = np.asarray(a, float)
         if a.shape != (3,) or not np.all(np.isfinite(a)) or not np.linalg.norm(a) > 0:
