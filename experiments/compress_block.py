@@ -37,6 +37,10 @@ from jaxrkpm.solvers.minimise import stable_beyond
 CASES = {
     "compression": (lambda: jr.Fung(alpha=1.0, beta=1.0), (-0.2, 0.0)),
     "compression_shear": (lambda: jr.Quadratic(alpha=1.0), (-0.2, 0.1)),
+    # the same with the volumetric barrier kappa/2 (ln J)^2 (issue 38), kappa = the material's
+    # small-strain shear modulus (Fung: 2 (C_1212 + A_1212) = 509; Quadratic alpha = 1: 1/2)
+    "compression_barrier": (lambda: jr.with_barrier(jr.Fung(alpha=1.0, beta=1.0), kappa=509.0), (-0.2, 0.0)),
+    "compression_shear_barrier": (lambda: jr.with_barrier(jr.Quadratic(alpha=1.0), kappa=0.5), (-0.2, 0.1)),
 }
 
 _TANGENT = jax.jit(lambda prob, u, g: prob.tangent(u, g))

@@ -15,15 +15,18 @@ bounded as J → 0 without it).
 """
 from __future__ import annotations
 
+from functools import partial
 from typing import Callable, Sequence
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_derivatives import SymbolicZero
 
 from .materials import Material, check_poisson, check_young, det
 
-__all__ = ["HolzapfelGasserOgden", "MooneyRivlin", "NearlyIncompressibleNeoHookean", "VerondaWestmann",
-           "Yeoh", "bulk_modulus", "with_barrier"]
+__all__ = ["HolzapfelGasserOgden", "MooneyRivlin", "NearlyIncompressibleNeoHookean", "Ogden",
+           "VerondaWestmann", "Yeoh", "bulk_modulus", "with_barrier"]
 
 
 # ------------------------------------------------------------------ kinematics
@@ -45,6 +48,77 @@ def isochoric_invariants(C):
     I2 = 0.5 * (I1 * I1 - jnp.sum(C * C))      # C is symmetric: tr(C²) = C : C
     scale = J ** (-2.0 / 3.0)
     return J, scale * I1, scale * scale * I2
+
+
+# ------------------------------------------------------------------ spectral functions
+# Ogden's energy is a sum of powers of the principal stretches. Eigenvectors are not
+# differentiable where eigenvalues repeat (the undeformed state, any equal stretches), but
+# tr f(C) and the matrix function f(C) are: d tr f(C) = f'(C) : dC, and df(C) has the
+# Daleckii-Krein form Q (Γ ∘ Qᵀ dC Q) Qᵀ with Γ_ij the divided differences of f, f' at equal
+# eigenvalues. Written as custom JVPs, stress and tangent are exact at repeated stretches.
+_CLOSE = 1e-6        # relative eigenvalue gap below which Γ takes f' at the midpoint
+
+
+def _power_derivative(lam, a, n: int):
+    """(d/dλ)^n λ^a = a (a − 1) ... (a − n + 1) λ^(a − n)."""
+    c = 1.0
+    for k in range(n):
+        c = c * (a - k)
+    return c * lam ** (a - n)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(2,))
+def _power_matrix(C, a, n: int):
+    """Q diag((d/dλ)^n λ^a) Qᵀ for a symmetric positive definite C = Q diag(λ) Qᵀ (n = 0: C^a)."""
+    lam, Q = jnp.linalg.eigh(C)
+    return (Q * _power_derivative(lam, a, n)) @ Q.T
+
+
+def _power_matrix_jvp(n, primals, tangents):
+    C, a = primals
+    dC, da = tangents
+    lam, Q = jnp.linalg.eigh(C)
+    li, lj = lam[:, None], lam[None, :]
+    gap = li - lj
+    close = jnp.abs(gap) <= _CLOSE * jnp.maximum(li, lj)
+    fi, fj = _power_derivative(li, a, n), _power_derivative(lj, a, n)
+    gamma = jnp.where(close, _power_derivative(0.5 * (li + lj), a, n + 1),
+                      (fi - fj) / jnp.where(close, 1.0, gap))
+    out = (Q * _power_derivative(lam, a, n)) @ Q.T
+    if isinstance(dC, SymbolicZero):
+        d_out = jnp.zeros_like(out)
+    else:
+        d_out = Q @ (gamma * (Q.T @ dC @ Q)) @ Q.T
+    if not isinstance(da, SymbolicZero):        # a parameter derivative (calibration)
+        dphi = jax.jvp(lambda b: _power_derivative(lam, b, n), (a,), (da,))[1]
+        d_out = d_out + (Q * dphi) @ Q.T
+    return out, d_out
+
+
+_power_matrix.defjvp(_power_matrix_jvp, symbolic_zeros=True)
+
+
+@jax.custom_jvp
+def power_trace(C, a):
+    """tr(C^a) = Σ λ_i^a over the eigenvalues of a symmetric positive definite C, with stress
+    and tangent defined where eigenvalues repeat (d tr C^a = a C^(a−1) : dC)."""
+    return jnp.sum(jnp.linalg.eigvalsh(C) ** a)
+
+
+def _power_trace_jvp(primals, tangents):
+    C, a = primals
+    dC, da = tangents
+    out = power_trace(C, a)
+    d_out = jnp.zeros_like(out)
+    if not isinstance(dC, SymbolicZero):
+        d_out = d_out + jnp.sum(_power_matrix(C, a, 1) * dC)
+    if not isinstance(da, SymbolicZero):
+        lam = jnp.linalg.eigvalsh(C)
+        d_out = d_out + da * jnp.sum(lam ** a * jnp.log(lam))
+    return out, d_out
+
+
+power_trace.defjvp(_power_trace_jvp, symbolic_zeros=True)
 
 
 def volumetric(J, kappa):
@@ -73,6 +147,20 @@ def _veronda_westmann(E, p):
     J, I1, I2 = isochoric_invariants(cauchy_green_3d(E))
     return (p["c1"] * jnp.expm1(p["c2"] * (I1 - 3.0)) - 0.5 * p["c1"] * p["c2"] * (I2 - 3.0)
             + volumetric(J, p["kappa"]))
+
+
+def _ogden(terms: int):
+    def W(E, p):
+        C = cauchy_green_3d(E)
+        J = jnp.sqrt(det(C))
+        Cbar = J ** (-2.0 / 3.0) * C
+        energy = volumetric(J, p["kappa"])
+        for k in range(1, terms + 1):
+            mu, alpha = p[f"mu{k}"], p[f"alpha{k}"]
+            # Σ_i λ̄_i^α = tr(C̄^(α/2))
+            energy = energy + mu / alpha * (power_trace(Cbar, 0.5 * alpha) - 3.0)
+        return energy
+    return W
 
 
 def _hgo(families: int):
@@ -172,6 +260,31 @@ def _evaluated_once(field: Callable) -> Callable:
             last["X"], last["a"] = X.copy(), np.asarray(field(X), float)
         return last["a"]
     return values
+
+
+def Ogden(mu: Sequence, alpha: Sequence, kappa=None, *, nu=None) -> Material:
+    """W = Σ_p μ_p / α_p (λ̄1^α_p + λ̄2^α_p + λ̄3^α_p − 3) + κ/2 (ln J)² on the isochoric
+    principal stretches λ̄_i = J^(−1/3) λ_i (Ogden 1972): ``mu`` and ``alpha`` are sequences of
+    up to three terms (numbers or fields); small-strain shear modulus μ = Σ_p μ_p α_p / 2, and
+    each μ_p α_p must be positive (the usual stability condition). α = 2, μ_1 = μ is the
+    neo-Hookean energy. Stress and tangent are exact at equal stretches (the undeformed state
+    included): the stretch powers are a trace of a matrix power with its own derivative rule."""
+    mu, alpha = (list(mu), list(alpha)) if not (callable(mu) or np.isscalar(mu)) else ([mu], [alpha])
+    if not 1 <= len(mu) <= 3 or len(mu) != len(alpha):
+        raise ValueError(f"Ogden: mu and alpha must be sequences of the same length, 1 to 3 terms, got "
+                         f"{len(mu)} and {len(alpha)}")
+    for k, (m, a) in enumerate(zip(mu, alpha), 1):
+        if callable(m) or callable(a):
+            continue
+        if not (np.isfinite(m) and np.isfinite(a) and a != 0 and m * a > 0):
+            raise ValueError(f"Ogden: term {k} needs a nonzero alpha and mu * alpha > 0, got mu={m:g}, "
+                             f"alpha={a:g}")
+    constants = {f"mu{k}": m for k, m in enumerate(mu, 1)} | {f"alpha{k}": a for k, a in enumerate(alpha, 1)}
+    terms = len(mu)
+    shear = _shear("Ogden", "Σ μ_p α_p / 2",
+                   lambda **c: 0.5 * sum(c[f"mu{k}"] * c[f"alpha{k}"] for k in range(1, terms + 1)), **constants)
+    return Material(_ogden(terms), {**constants, "kappa": _kappa("Ogden", shear, kappa, nu)}, "Ogden",
+                    positive=("kappa",))
 
 
 def HolzapfelGasserOgden(mu, k1, k2, fibres: Sequence, kappa=None, *, nu=None,

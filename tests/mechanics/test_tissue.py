@@ -12,12 +12,15 @@ import jaxrkpm as jr
 from jaxrkpm.mechanics.tissue import cauchy_green_3d
 
 MU = 1.3
+OGDEN_MU, OGDEN_ALPHA = (0.63, 0.0012, -0.01), (1.3, 5.0, -2.0)
 ENERGIES = {
     "neo_hookean": (jr.NearlyIncompressibleNeoHookean(MU, 50.0), MU),
     "mooney_rivlin": (jr.MooneyRivlin(0.4, 0.25, 50.0), 2 * (0.4 + 0.25)),
     "yeoh": (jr.Yeoh(0.5, 0.2, 0.05, 50.0), 1.0),
     "veronda_westmann": (jr.VerondaWestmann(0.8, 1.5, 50.0), 0.8 * 1.5),
     "hgo": (jr.HolzapfelGasserOgden(MU, 2.0, 0.8, [(1.0, 0.0, 0.0)], 50.0), MU),
+    # three-term Ogden (rubber-like constants of Ogden 1972, scaled), μ = Σ μ_p α_p / 2
+    "ogden": (jr.Ogden(OGDEN_MU, OGDEN_ALPHA, 50.0), 0.5 * float(np.dot(OGDEN_MU, OGDEN_ALPHA))),
 }
 
 
@@ -25,7 +28,7 @@ def point(material, dim=3):
     """W(E) at one point with the material's plain parameters."""
     p = {k: jnp.asarray(float(np.asarray(v).reshape(-1)[0])) for k, v in material.params.items()}
     p.update({k: jnp.asarray(v) for k, v in material.global_params(dim).items()})
-    return lambda E: material.W(E, p)
+    return jax.jit(lambda E: material.W(E, p))
 
 
 def strain_of(F):
@@ -92,6 +95,8 @@ INCOMPRESSIBLE = {   # closed forms of P11 in incompressible uniaxial tension, I
                         lambda l: MU * (l - l ** -2) + 2 * 2.0 * l * (l * l - 1) * np.exp(0.8 * (l * l - 1) ** 2)),
     "hgo_across_fibre": (jr.HolzapfelGasserOgden(MU, 2.0, 0.8, [(0.0, 1.0, 0.0)], 1e4 * MU),
                          lambda l: MU * (l - l ** -2)),
+    "ogden": (jr.Ogden(OGDEN_MU, OGDEN_ALPHA, 1e4), lambda l: sum(
+        m * (l ** (a - 1) - l ** (-a / 2 - 1)) for m, a in zip(OGDEN_MU, OGDEN_ALPHA))),
 }
 
 
@@ -185,6 +190,43 @@ def test_parameters_by_name_and_checked():
         jr.with_barrier(jr.NearlyIncompressibleNeoHookean(1.0, 10.0), 5.0)
     with pytest.raises(TypeError, match="nu needs the shear modulus"):
         jr.with_barrier(jr.Fung(), nu=0.45)
+
+
+def test_ogden_is_exact_at_equal_stretches():
+    """Ogden's stretch powers go through no eigenvector derivative: stress and tangent are
+    finite at the undeformed state and at equi-biaxial stretch (repeated eigenvalues), the
+    tangent there matches finite differences of the stress, α = 2 is the neo-Hookean energy
+    (stress and tangent), the small-strain shear modulus is Σ μ_p α_p / 2, and the energy is
+    objective."""
+    ogden = point(jr.Ogden(OGDEN_MU, OGDEN_ALPHA, kappa=40.0))
+    two = point(jr.Ogden([MU], [2.0], nu=0.45))
+    neo = point(jr.NearlyIncompressibleNeoHookean(MU, nu=0.45))
+    stress, tangent = jax.jit(jax.grad(ogden)), jax.jit(jax.hessian(ogden))
+    stress2, tangent2 = jax.jit(jax.grad(two)), jax.jit(jax.hessian(two))
+    stress_nh, tangent_nh = jax.jit(jax.grad(neo)), jax.jit(jax.hessian(neo))
+    rng = np.random.default_rng(5)
+    for F in (jnp.eye(3), jnp.diag(jnp.array([1.2, 1.2, 0.7])), jnp.diag(jnp.array([0.8, 1.1, 1.1])),
+              jnp.eye(3) + 0.1 * jnp.asarray(rng.standard_normal((3, 3)))):
+        E = strain_of(F)
+        S, D = stress(E), tangent(E)
+        assert np.all(np.isfinite(np.asarray(S))) and np.all(np.isfinite(np.asarray(D)))
+        dE = jnp.asarray(sym(rng, 3))
+        h = 1e-6
+        fd = (stress(E + h * dE) - stress(E - h * dE)) / (2 * h)
+        assert np.abs(np.asarray(fd - jnp.einsum("ijkl,kl->ij", D, dE))).max() < 1e-7
+        assert np.abs(np.asarray(stress2(E) - stress_nh(E))).max() < 1e-13
+        assert np.abs(np.asarray(tangent2(E) - tangent_nh(E))).max() < 1e-12
+    # shear modulus: d²W/dγ² of simple shear at γ = 0 (J = 1: no volumetric part)
+    shear = jax.grad(jax.grad(lambda g: ogden(strain_of(jnp.eye(3).at[0, 1].set(g)))))(0.0)
+    assert float(shear) == pytest.approx(0.5 * np.dot(OGDEN_MU, OGDEN_ALPHA), rel=1e-12)
+    Q = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    Q = jnp.asarray(Q * np.sign(np.linalg.det(Q)))
+    F = jnp.eye(3) + 0.2 * jnp.asarray(rng.standard_normal((3, 3)))
+    assert float(ogden(strain_of(Q @ F))) == pytest.approx(float(ogden(strain_of(F))), rel=1e-12)
+    with pytest.raises(ValueError, match=r"Ogden: term 2 needs a nonzero alpha and mu \* alpha > 0"):
+        jr.Ogden([1.0, 1.0], [2.0, -1.0], 10.0)
+    with pytest.raises(ValueError, match="same length"):
+        jr.Ogden([1.0, 1.0], [2.0], 10.0)
 
 
 def test_affine_patch_with_scni_at_nu_049():

@@ -48,9 +48,20 @@ FORCE_UNITS = "model units: force per unit thickness"
 MODES = {"straight": (-1.0, 0.0), "shear": (-1.0, -1.0)}
 
 
+# the small-strain shear modulus of the study's Fung material (alpha = beta = 1, Table 5.2):
+# mu = 2 (alpha C_1212 + beta A_1212)
+FUNG_SHEAR_MODULUS = 2.0 * (1.0 * 0.5 + 1.0 * 254.0)
+# Poisson's ratio of the tissue-like choices (soft tissue: 0.45-0.499)
+TISSUE_POISSON = 0.45
+
 MATERIALS = {
     # thesis eq 5.2 / Table 5.2 (the study's material)
     "fung": lambda: jr.Fung(alpha=1.0, beta=1.0),
+    # the same with the volumetric barrier kappa/2 (ln J)^2, kappa = the Fung shear modulus:
+    # a compressed point cannot fold flat (the Fung energy stays bounded as det F -> 0)
+    "fung-barrier": lambda: jr.with_barrier(jr.Fung(alpha=1.0, beta=1.0), kappa=FUNG_SHEAR_MODULUS),
+    # nearly incompressible neo-Hookean tissue, nu = 0.45, with the Fung shear modulus
+    "neo-hookean": lambda: jr.NearlyIncompressibleNeoHookean(FUNG_SHEAR_MODULUS, nu=TISSUE_POISSON),
     # control: a compressible neo-Hookean solid with Fung's small-strain shear and bulk
     # moduli order (mu = 2 A_1212, lam = 2 A_1122), which stays elliptic in compression
     "neohookean": lambda: jr.NeoHookean(lam=766.0, mu=508.0),
