@@ -120,8 +120,8 @@ def test_cli_static(tmp_path):
 def test_material_laws():
     """--material: the thesis' Fung by default; nearly incompressible neo-Hookean (nu = 0.45)
     with Fung's small-strain shear modulus 2 (0.5 alpha + 254 beta); Fung with the barrier
-    (kappa = that modulus); the inclusion scales every stiffness; the phantom in
-    neo-Hookean tissue inserts to full depth."""
+    (kappa = that modulus); the inclusion scales every stiffness (the solves are those of
+    every material: test_needle3d solves the tissue default)."""
     import jaxrkpm as jr
     assert nd.Phantom().material().name == "Fung"
     neo = nd.Phantom(material_law="neo-hookean", alpha=2.0, beta=0.5)
@@ -136,9 +136,6 @@ def test_material_laws():
     assert p["kappa"] == pytest.approx([50900.0, 509.0]) and p["alpha"] == pytest.approx([100.0, 1.0])
     with pytest.raises(ValueError, match=r"unknown material_law 'rubber': choose one of \['fung', 'fung-barrier'"):
         nd.Phantom(material_law="rubber")
-    model, sol = nd.static_state(nd.Phantom(material_law="neo-hookean"), "none", None, 3)
-    assert float(sol.t) == 1.0 and int(sol.status) == Status.CONVERGED
-    assert np.abs(np.asarray(model.displacement(sol, [neo.target]))).max() > 1e-3
 
 
 def test_bad_input(phantom):

@@ -216,21 +216,21 @@ def test_hostile_phantom_input_blames_the_right_parameter():
     assert Phantom3D().depths(3)[-1] == pytest.approx(Phantom3D().insertion)
 
 
-def test_default_is_tissue(phantom):
+def test_default_is_tissue():
     """The default phantom is nearly incompressible neo-Hookean tissue (mu = 1, nu = 0.45): its
-    insertion converges, the target moves along the needle, less laterally than axially, and
-    the volume change at the target is smaller than with the compressible law (nu = 0.4)."""
+    insertion converges, the target moves up the needle in the symmetry plane, nearly
+    keeping its volume."""
     tissue = Phantom3D(spacing=SPACING)
     material = tissue.material()
     assert tissue.material_law == "neo-hookean" and material.name == "NearlyIncompressibleNeoHookean"
     assert material.params["mu"] == 1.0 and material.params["kappa"] == pytest.approx(jr.bulk_modulus(1.0, 0.45))
     assert Phantom3D(material_law="fung-barrier").material().name == "Fung+barrier"
-    J = {}
-    for p in (tissue, phantom):
-        model, sol = nd.static_state(p, "none", None, INCREMENTS)
-        assert float(sol.t) == 1.0 and int(sol.status) == Status.CONVERGED
-        J[p.material_law] = float(np.linalg.det(np.asarray(model.deformation_gradient(sol, [p.target]))[0]))
-    assert abs(J["neo-hookean"] - 1) < abs(J["neohookean"] - 1), J
+    model, sol = nd.static_state(tissue, "none", None, INCREMENTS)
+    assert float(sol.t) == 1.0 and int(sol.status) == Status.CONVERGED
+    u = np.asarray(model.displacement(sol, [tissue.target]))[0]
+    assert abs(u[1]) < 1e-12 and u[2] > 1e-3, u             # as the compressible phantom's target
+    J = float(np.linalg.det(np.asarray(model.deformation_gradient(sol, [tissue.target]))[0]))
+    assert abs(J - 1) < 0.05, J
 
 
 def test_cli_static(tmp_path, phantom, sweep):
