@@ -60,6 +60,7 @@ from .mechanics.materials import (
 )
 from .mechanics.tissue import (
     HolzapfelGasserOgden as HolzapfelGasserOgden,
+    Ogden as Ogden,
     MooneyRivlin as MooneyRivlin,
     NearlyIncompressibleNeoHookean as NearlyIncompressibleNeoHookean,
     VerondaWestmann as VerondaWestmann,

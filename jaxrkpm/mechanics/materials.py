@@ -210,6 +210,24 @@ def Fung(alpha: float = 1.0, beta: float = 1.0, A=None, C=None) -> Material:
                     tensors=tensors)
 
 
+def check_young(young) -> float:
+    """Young's modulus as a float, checked positive (a number, not a field)."""
+    young = float(young)
+    if not young > 0:
+        raise ValueError(f"Young's modulus must be positive, got {young:g}")
+    return young
+
+
+def check_poisson(nu) -> float:
+    """Poisson's ratio as a float, checked in (-1, 1/2): the one range check of every material
+    that takes ν."""
+    nu = float(nu)
+    if not -1.0 < nu < 0.5:
+        raise ValueError(f"Poisson's ratio nu must lie in (-1, 0.5), got {nu:g} (nu = 0.5 is exactly "
+                         "incompressible, which nearly incompressible energies approach with nu = 0.499)")
+    return nu
+
+
 def SaintVenantKirchhoff(lam: float, mu: float) -> Material:
     """W = lam/2 tr(E)^2 + mu E:E. In 2D this is plane strain; for plane stress use
     ``SaintVenantKirchhoff.plane_stress(E, nu)``."""
@@ -219,19 +237,15 @@ def SaintVenantKirchhoff(lam: float, mu: float) -> Material:
 
 def _svk_plane_stress(young: float, nu: float) -> Material:
     """2D SVK whose small-strain limit is plane-stress linear elasticity."""
-    if not young > 0:
-        raise ValueError(f"Young's modulus must be positive, got {young}")
-    if not -1 < nu < 0.5:
-        raise ValueError(f"Poisson's ratio must lie in (-1, 0.5), got {nu}")
+    check_young(young)
+    nu = check_poisson(nu)
     mu = young / (2 * (1 + nu))
     return SaintVenantKirchhoff(young * nu / (1 - nu**2), mu)
 
 
 def _svk_from_young(young: float, nu: float) -> Material:
-    if not young > 0:
-        raise ValueError(f"Young's modulus must be positive, got {young}")
-    if not -1 < nu < 0.5:
-        raise ValueError(f"Poisson's ratio must lie in (-1, 0.5), got {nu}")
+    check_young(young)
+    nu = check_poisson(nu)
     return SaintVenantKirchhoff(young * nu / ((1 + nu) * (1 - 2 * nu)), young / (2 * (1 + nu)))
 
 

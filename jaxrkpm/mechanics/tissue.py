@@ -15,15 +15,18 @@ bounded as J → 0 without it).
 """
 from __future__ import annotations
 
+from functools import partial
 from typing import Callable, Sequence
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_derivatives import SymbolicZero
 
-from .materials import Material, det
+from .materials import Material, check_poisson, check_young, det
 
-__all__ = ["HolzapfelGasserOgden", "MooneyRivlin", "NearlyIncompressibleNeoHookean", "VerondaWestmann",
-           "Yeoh", "bulk_modulus", "with_barrier"]
+__all__ = ["HolzapfelGasserOgden", "MooneyRivlin", "NearlyIncompressibleNeoHookean", "Ogden",
+           "VerondaWestmann", "Yeoh", "bulk_modulus", "with_barrier"]
 
 
 # ------------------------------------------------------------------ kinematics
@@ -45,6 +48,77 @@ def isochoric_invariants(C):
     I2 = 0.5 * (I1 * I1 - jnp.sum(C * C))      # C is symmetric: tr(C²) = C : C
     scale = J ** (-2.0 / 3.0)
     return J, scale * I1, scale * scale * I2
+
+
+# ------------------------------------------------------------------ spectral functions
+# Ogden's energy is a sum of powers of the principal stretches. Eigenvectors are not
+# differentiable where eigenvalues repeat (the undeformed state, any equal stretches), but
+# tr f(C) and the matrix function f(C) are: d tr f(C) = f'(C) : dC, and df(C) has the
+# Daleckii-Krein form Q (Γ ∘ Qᵀ dC Q) Qᵀ with Γ_ij the divided differences of f, f' at equal
+# eigenvalues. Written as custom JVPs, stress and tangent are exact at repeated stretches.
+_CLOSE = 1e-6        # relative eigenvalue gap below which Γ takes f' at the midpoint
+
+
+def _power_derivative(lam, a, n: int):
+    """(d/dλ)^n λ^a = a (a − 1) ... (a − n + 1) λ^(a − n)."""
+    c = 1.0
+    for k in range(n):
+        c = c * (a - k)
+    return c * lam ** (a - n)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(2,))
+def _power_matrix(C, a, n: int):
+    """Q diag((d/dλ)^n λ^a) Qᵀ for a symmetric positive definite C = Q diag(λ) Qᵀ (n = 0: C^a)."""
+    lam, Q = jnp.linalg.eigh(C)
+    return (Q * _power_derivative(lam, a, n)) @ Q.T
+
+
+def _power_matrix_jvp(n, primals, tangents):
+    C, a = primals
+    dC, da = tangents
+    lam, Q = jnp.linalg.eigh(C)
+    li, lj = lam[:, None], lam[None, :]
+    gap = li - lj
+    close = jnp.abs(gap) <= _CLOSE * jnp.maximum(li, lj)
+    fi, fj = _power_derivative(li, a, n), _power_derivative(lj, a, n)
+    gamma = jnp.where(close, _power_derivative(0.5 * (li + lj), a, n + 1),
+                      (fi - fj) / jnp.where(close, 1.0, gap))
+    out = (Q * _power_derivative(lam, a, n)) @ Q.T
+    if isinstance(dC, SymbolicZero):
+        d_out = jnp.zeros_like(out)
+    else:
+        d_out = Q @ (gamma * (Q.T @ dC @ Q)) @ Q.T
+    if not isinstance(da, SymbolicZero):        # a parameter derivative (calibration)
+        dphi = jax.jvp(lambda b: _power_derivative(lam, b, n), (a,), (da,))[1]
+        d_out = d_out + (Q * dphi) @ Q.T
+    return out, d_out
+
+
+_power_matrix.defjvp(_power_matrix_jvp, symbolic_zeros=True)
+
+
+@jax.custom_jvp
+def power_trace(C, a):
+    """tr(C^a) = Σ λ_i^a over the eigenvalues of a symmetric positive definite C, with stress
+    and tangent defined where eigenvalues repeat (d tr C^a = a C^(a−1) : dC)."""
+    return jnp.sum(jnp.linalg.eigvalsh(C) ** a)
+
+
+def _power_trace_jvp(primals, tangents):
+    C, a = primals
+    dC, da = tangents
+    out = power_trace(C, a)
+    d_out = jnp.zeros_like(out)
+    if not isinstance(dC, SymbolicZero):
+        d_out = d_out + jnp.sum(_power_matrix(C, a, 1) * dC)
+    if not isinstance(da, SymbolicZero):
+        lam = jnp.linalg.eigvalsh(C)
+        d_out = d_out + da * jnp.sum(lam ** a * jnp.log(lam))
+    return out, d_out
+
+
+power_trace.defjvp(_power_trace_jvp, symbolic_zeros=True)
 
 
 def volumetric(J, kappa):
@@ -75,6 +149,20 @@ def _veronda_westmann(E, p):
             + volumetric(J, p["kappa"]))
 
 
+def _ogden(terms: int):
+    def W(E, p):
+        C = cauchy_green_3d(E)
+        J = jnp.sqrt(det(C))
+        Cbar = J ** (-2.0 / 3.0) * C
+        energy = volumetric(J, p["kappa"])
+        for k in range(1, terms + 1):
+            mu, alpha = p[f"mu{k}"], p[f"alpha{k}"]
+            # Σ_i λ̄_i^α = tr(C̄^(α/2))
+            energy = energy + mu / alpha * (power_trace(Cbar, 0.5 * alpha) - 3.0)
+        return energy
+    return W
+
+
 def _hgo(families: int):
     def W(E, p):
         C = cauchy_green_3d(E)
@@ -96,10 +184,7 @@ def _hgo(families: int):
 def bulk_modulus(mu, nu):
     """κ = 2μ(1 + ν) / (3(1 − 2ν)) for a shear modulus μ (number or field) and Poisson's ratio
     ν in (−1, 1/2)."""
-    nu = float(nu)
-    if not -1.0 < nu < 0.5:
-        raise ValueError(f"Poisson's ratio nu must lie in (-1, 0.5), got {nu:g} (nu = 0.5 is exactly "
-                         "incompressible, which these energies approach with nu = 0.499 or 0.4999)")
+    nu = check_poisson(nu)
     factor = 2.0 * (1.0 + nu) / (3.0 * (1.0 - 2.0 * nu))
     if callable(mu):
         return lambda X: factor * np.asarray(mu(X), float)
@@ -114,14 +199,14 @@ def _kappa(name: str, mu, kappa, nu):
     return kappa if nu is None else bulk_modulus(mu, nu)
 
 
-def _shear(name: str, mu_of: Callable, **constants):
-    """μ from the energy's constants where they are numbers (to check it and to derive κ from
-    ν); a field constant gives a field μ."""
+def _shear(name: str, formula: str, mu_of: Callable, **constants):
+    """μ = ``mu_of(**constants)`` (written ``formula`` in the error message) where the constants
+    are numbers (to check it and to derive κ from ν); a field constant gives a field μ."""
     if any(callable(v) for v in constants.values()):
         return lambda X: mu_of(**{k: np.asarray(v(X), float) if callable(v) else v for k, v in constants.items()})
     mu = mu_of(**constants)
     if not mu > 0:
-        raise ValueError(f"{name}: the small-strain shear modulus {mu_of.__doc__} must be positive, got {mu:g} "
+        raise ValueError(f"{name}: the small-strain shear modulus {formula} must be positive, got {mu:g} "
                          f"from {constants}")
     return mu
 
@@ -135,9 +220,7 @@ def NearlyIncompressibleNeoHookean(mu, kappa=None, *, nu=None) -> Material:
 
 
 def _from_young(young, nu) -> Material:
-    if not float(young) > 0:
-        raise ValueError(f"Young's modulus must be positive, got {young}")
-    bulk_modulus(1.0, nu)                                    # checks nu
+    young, nu = check_young(young), check_poisson(nu)
     return NearlyIncompressibleNeoHookean(young / (2.0 * (1.0 + nu)), nu=nu)
 
 
@@ -146,20 +229,14 @@ NearlyIncompressibleNeoHookean.from_young = _from_young
 
 def MooneyRivlin(c10, c01, kappa=None, *, nu=None) -> Material:
     """W = c10 (Ī1 − 3) + c01 (Ī2 − 3) + κ/2 (ln J)²; small-strain shear modulus μ = 2(c10 + c01)."""
-    def mu_of(c10, c01):
-        """2(c10 + c01)"""
-        return 2.0 * (c10 + c01)
-    mu = _shear("MooneyRivlin", mu_of, c10=c10, c01=c01)
+    mu = _shear("MooneyRivlin", "2(c10 + c01)", lambda c10, c01: 2.0 * (c10 + c01), c10=c10, c01=c01)
     return Material(_mooney_rivlin, {"c10": c10, "c01": c01, "kappa": _kappa("MooneyRivlin", mu, kappa, nu)},
                     "MooneyRivlin", positive=("kappa",), split=True)
 
 
 def Yeoh(c10, c20=0.0, c30=0.0, kappa=None, *, nu=None) -> Material:
     """W = c10 (Ī1 − 3) + c20 (Ī1 − 3)² + c30 (Ī1 − 3)³ + κ/2 (ln J)²; μ = 2 c10."""
-    def mu_of(c10):
-        """2 c10"""
-        return 2.0 * c10
-    mu = _shear("Yeoh", mu_of, c10=c10)
+    mu = _shear("Yeoh", "2 c10", lambda c10: 2.0 * c10, c10=c10)
     return Material(_yeoh, {"c10": c10, "c20": c20, "c30": c30, "kappa": _kappa("Yeoh", mu, kappa, nu)},
                     "Yeoh", positive=("c10", "kappa"), split=True)
 
@@ -167,12 +244,47 @@ def Yeoh(c10, c20=0.0, c30=0.0, kappa=None, *, nu=None) -> Material:
 def VerondaWestmann(c1, c2, kappa=None, *, nu=None) -> Material:
     """W = c1 (exp(c2 (Ī1 − 3)) − 1) − c1 c2 / 2 (Ī2 − 3) + κ/2 (ln J)² (Veronda & Westmann 1970,
     used for skin, breast and liver); μ = c1 c2."""
-    def mu_of(c1, c2):
-        """c1 c2"""
-        return c1 * c2
-    mu = _shear("VerondaWestmann", mu_of, c1=c1, c2=c2)
+    mu = _shear("VerondaWestmann", "c1 c2", lambda c1, c2: c1 * c2, c1=c1, c2=c2)
     return Material(_veronda_westmann, {"c1": c1, "c2": c2, "kappa": _kappa("VerondaWestmann", mu, kappa, nu)},
                     "VerondaWestmann", positive=("c1", "c2", "kappa"), split=True)
+
+
+def _evaluated_once(field: Callable) -> Callable:
+    """``field`` (X -> (n, 3)) remembering its last points and values, so that its three
+    components (three parameter fields) cost one evaluation at the same points."""
+    last = {}
+
+    def values(X):
+        X = np.asarray(X, float)
+        if "X" not in last or last["X"].shape != X.shape or not np.array_equal(last["X"], X):
+            last["X"], last["a"] = X.copy(), np.asarray(field(X), float)
+        return last["a"]
+    return values
+
+
+def Ogden(mu: Sequence, alpha: Sequence, kappa=None, *, nu=None) -> Material:
+    """W = Σ_p μ_p / α_p (λ̄1^α_p + λ̄2^α_p + λ̄3^α_p − 3) + κ/2 (ln J)² on the isochoric
+    principal stretches λ̄_i = J^(−1/3) λ_i (Ogden 1972): ``mu`` and ``alpha`` are sequences of
+    up to three terms (numbers or fields); small-strain shear modulus μ = Σ_p μ_p α_p / 2, and
+    each μ_p α_p must be positive (the usual stability condition). α = 2, μ_1 = μ is the
+    neo-Hookean energy. Stress and tangent are exact at equal stretches (the undeformed state
+    included): the stretch powers are a trace of a matrix power with its own derivative rule."""
+    mu, alpha = (list(mu), list(alpha)) if not (callable(mu) or np.isscalar(mu)) else ([mu], [alpha])
+    if not 1 <= len(mu) <= 3 or len(mu) != len(alpha):
+        raise ValueError(f"Ogden: mu and alpha must be sequences of the same length, 1 to 3 terms, got "
+                         f"{len(mu)} and {len(alpha)}")
+    for k, (m, a) in enumerate(zip(mu, alpha), 1):
+        if callable(m) or callable(a):
+            continue
+        if not (np.isfinite(m) and np.isfinite(a) and a != 0 and m * a > 0):
+            raise ValueError(f"Ogden: term {k} needs a nonzero alpha and mu * alpha > 0, got mu={m:g}, "
+                             f"alpha={a:g}")
+    constants = {f"mu{k}": m for k, m in enumerate(mu, 1)} | {f"alpha{k}": a for k, a in enumerate(alpha, 1)}
+    terms = len(mu)
+    shear = _shear("Ogden", "Σ μ_p α_p / 2",
+                   lambda **c: 0.5 * sum(c[f"mu{k}"] * c[f"alpha{k}"] for k in range(1, terms + 1)), **constants)
+    return Material(_ogden(terms), {**constants, "kappa": _kappa("Ogden", shear, kappa, nu)}, "Ogden",
+                    positive=("kappa",), split=True)
 
 
 def HolzapfelGasserOgden(mu, k1, k2, fibres: Sequence, kappa=None, *, nu=None,
@@ -185,8 +297,7 @@ def HolzapfelGasserOgden(mu, k1, k2, fibres: Sequence, kappa=None, *, nu=None,
 
     ``fibres``: one or two directions a_f, each a (3,) vector or a field X (n, d) -> (n, 3);
     they are normalised (in a 2D body, in plane strain, a fibre's out-of-plane part keeps its
-    length). ``dispersion`` κ_d in
-    [0, 1/3] (1/3: isotropic)."""
+    length). ``dispersion`` κ_d in [0, 1/3] (1/3: isotropic)."""
     one = callable(fibres) or (not isinstance(fibres, str) and len(fibres) > 0
                                and all(np.isscalar(x) for x in fibres))
     fibres = [fibres] if one else list(fibres)
@@ -198,8 +309,9 @@ def HolzapfelGasserOgden(mu, k1, k2, fibres: Sequence, kappa=None, *, nu=None,
               "kappa": _kappa("HolzapfelGasserOgden", mu, kappa, nu)}
     for k, a in enumerate(fibres):
         if callable(a):
+            field = _evaluated_once(a)
             for i, axis in enumerate("xyz"):
-                params[f"fibre{k}_{axis}"] = (lambda X, a=a, i=i: np.asarray(a(X), float)[:, i])
+                params[f"fibre{k}_{axis}"] = (lambda X, field=field, i=i: field(X)[:, i])
             continue
         a = np.asarray(a, float)
         if a.shape != (3,) or not np.all(np.isfinite(a)) or not np.linalg.norm(a) > 0:

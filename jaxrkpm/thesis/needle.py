@@ -26,7 +26,8 @@ from ..base.outcome import Outcome
 from ..control.batching import BATCHING, batch_axes, default_batching, map_batch, run_batched, stack_models
 from ..discretise.body import Body
 from ..mechanics.loads import Springs
-from ..mechanics.materials import Fung
+from ..mechanics.materials import Fung, Material
+from ..mechanics.tissue import NearlyIncompressibleNeoHookean, with_barrier
 from ..model.model import Model
 from ..mechanics.problem import Problem
 from ..solvers.implicit import point_jacobian, response, solve_path_diff
@@ -34,6 +35,36 @@ from ..solvers.path import LoadPath
 from ..solvers.results import Limits, Status
 from .data import INCLUSIONS, PHANTOM_OUTLINE, TABLE_6_2
 from .data import NEEDLE as THESIS  # noqa: F401  (re-exported: needle.THESIS, the reference values)
+
+# the phantoms' material laws (Phantom.material_law, Phantom3D.material_law, --material):
+# the thesis' Fung; Fung with the volumetric barrier kappa/2 (ln J)^2; nearly incompressible
+# neo-Hookean tissue. The tissue-like ones take Fung's small-strain shear modulus
+# mu = 2 (alpha C_1212 + beta A_1212) (Table 5.2 tensors: 2 (0.5 alpha + 254 beta)).
+TISSUE_LAWS = ("fung", "fung-barrier", "neo-hookean")
+TISSUE_POISSON = 0.45          # soft tissue: 0.45-0.499
+
+
+def fung_shear_modulus(alpha, beta):
+    """Small-strain shear modulus of the thesis' Fung energy with the Table 5.2 tensors."""
+    return 2.0 * (0.5 * alpha + 254.0 * beta)
+
+
+def tissue_material(law: str, alpha: float, beta: float, factor=None, nu: float = TISSUE_POISSON,
+                    mu: float | None = None) -> Material:
+    """The material named ``law`` (one of :data:`TISSUE_LAWS`) with Fung constants ``alpha``,
+    ``beta``; ``factor`` (X -> (n,)) scales every stiffness (the inclusion); "neo-hookean"
+    has Poisson's ratio ``nu`` and shear modulus ``mu`` (default: Fung's); the barrier's
+    bulk modulus is Fung's shear modulus."""
+    if law not in TISSUE_LAWS:
+        raise ValueError(f"unknown material {law!r}: choose one of {list(TISSUE_LAWS)}")
+    mu = fung_shear_modulus(alpha, beta) if mu is None else float(mu)
+    scaled = (lambda c: c) if factor is None else (lambda c: (lambda X: c * factor(X)))
+    if law == "neo-hookean":
+        return NearlyIncompressibleNeoHookean(scaled(mu), nu=nu)
+    fung = Fung(alpha=scaled(alpha), beta=scaled(beta))
+    if law == "fung":
+        return fung
+    return with_barrier(fung, kappa=scaled(fung_shear_modulus(alpha, beta)))
 
 
 IMMOBILE = ("bottom", "top")
@@ -82,7 +113,9 @@ class Phantom(NeedleTrack):
     """The Figure 6.1 phantom: unit square with the corner x + y < 0.5 cut away, lattice
     particles at ``spacing``, the ``needle_particles`` particles on the needle line nearest
     the entry (0.5, 0) pushed along +y by ``insertion`` (15%), target (0.5, 0.4), Fung
-    material of chapter 5 (Table 6.1 tensors), inclusions x ``stiffness_ratio``.
+    material of chapter 5 (Table 6.1 tensors; ``material_law`` "fung-barrier" or "neo-hookean"
+    (ν = 0.45) for the tissue-like laws of :func:`tissue_material`), inclusions x
+    ``stiffness_ratio``.
 
     ``immobile``: "bottom" (default) holds the bottom edge right of the needle entry;
     "top" holds the edge y = 1 (another reading of the figure; the text does not say which
@@ -102,9 +135,12 @@ class Phantom(NeedleTrack):
     beta: float = 1.0
     support: float = 2.5
     integration: str = "gauss"
+    material_law: str = "fung"
     _cache: dict = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self):
+        if self.material_law not in TISSUE_LAWS:
+            raise ValueError(f"unknown material_law {self.material_law!r}: choose one of {list(TISSUE_LAWS)}")
         if not (np.isfinite(self.insertion) and self.insertion > 0):
             raise ValueError(f"insertion must be a positive depth, got {self.insertion}")
         if self.immobile not in IMMOBILE:
@@ -148,16 +184,17 @@ class Phantom(NeedleTrack):
         return 1.0, float(len(self.paddles))
 
     def material(self, inclusion: str = "none"):
-        """Fung (eq 6.1); inside the inclusion square alpha and beta are x stiffness_ratio."""
+        """``material_law`` (default the thesis' Fung, eq 6.1; see :func:`tissue_material`);
+        inside the inclusion square every stiffness is x stiffness_ratio."""
         if inclusion not in INCLUSIONS:
             raise ValueError(f"unknown inclusion {inclusion!r}: choose {list(INCLUSIONS)}")
         box = INCLUSIONS[inclusion]
         if box is None:
-            return Fung(alpha=self.alpha, beta=self.beta)
+            return tissue_material(self.material_law, self.alpha, self.beta)
         h = 0.5 * self.spacing
         (x0, x1), (y0, y1) = box
         factor = inclusion_field(((x0 - h, x1 + h), (y0 - h, y1 + h)), self.stiffness_ratio)
-        return Fung(alpha=lambda X: self.alpha * factor(X), beta=lambda X: self.beta * factor(X))
+        return tissue_material(self.material_law, self.alpha, self.beta, factor)
 
     def particle(self, point) -> int:
         """The particle at ``point`` (a lattice node of the phantom)."""

@@ -38,15 +38,18 @@ import numpy as np
 
 from ..mechanics.loads import Springs
 from ..discretise.body import Body
-from ..mechanics.materials import Fung, NeoHookean
+from ..mechanics.materials import NeoHookean
 from ..model.model import Model
-from .needle import NeedleTrack
+from .needle import TISSUE_LAWS, TISSUE_POISSON, NeedleTrack, tissue_material
 from .data import INCLUSIONS_3D, PHANTOM_3D
 
 __all__ = ["Phantom3D", "ellipsoid_point", "ball_field", "MATERIALS_3D"]
 
 # the material laws the phantom offers (Phantom3D.material_law); see Phantom3D for the choice
-MATERIALS_3D = ("neohookean", "fung")
+# "neo-hookean" (default): nearly incompressible tissue, nu = 0.45; "neohookean": the
+# compressible neo-Hookean solid (lam = 4, mu = 1: nu = 0.4) the phantom had before
+MATERIALS_3D = ("neo-hookean", "neohookean", "fung", "fung-barrier")
+assert set(TISSUE_LAWS) <= set(MATERIALS_3D)
 
 
 def _is_number(v) -> bool:
@@ -85,9 +88,12 @@ class Phantom3D(NeedleTrack):
     patch_radius   a paddle patch: the skin near its centre (see ``patch_size``)
     paddle_footprint  the patch (1-based) whose contact points form the continuous paddle
                    (``paddle_points``): start the optimiser there (``with_footprint``)
-    material_law   "neohookean" (default) or "fung" (chapter 6's law with the 3D Table 5.2
-                   pattern); see ``material``
-    mu, lam        neo-Hookean constants; alpha, beta the Fung ones
+    material_law   "neo-hookean" (default: nearly incompressible neo-Hookean tissue, shear
+                   modulus ``mu``, Poisson's ratio ``nu`` = 0.45), "neohookean" (compressible,
+                   ``lam`` and ``mu``: ν = 0.4, the default before), "fung" (chapter 6's law
+                   with the 3D Table 5.2 pattern) or "fung-barrier" (the same with the
+                   volumetric barrier); see ``material``
+    mu, lam, nu    neo-Hookean constants; alpha, beta the Fung ones
     integration    "gauss" (Gauss points on the tetrahedra, ``order`` per direction: 1 = one
                    point per tetrahedron, half the cost of order 2 with the same
                    convergence at every increment) or "scni"/"mscni"
@@ -107,9 +113,10 @@ class Phantom3D(NeedleTrack):
     patch_radius: float = PHANTOM_3D["patch_radius"]
     paddle_footprint: int = 1
     stiffness_ratio: float = 100.0
-    material_law: str = "neohookean"
+    material_law: str = "neo-hookean"
     mu: float = 1.0
     lam: float = 4.0
+    nu: float = TISSUE_POISSON
     alpha: float = 1.0
     beta: float = 1.0
     support: float = 2.0
@@ -331,12 +338,12 @@ class Phantom3D(NeedleTrack):
     def material(self, inclusion: str = "none"):
         """The phantom's material, x ``stiffness_ratio`` inside the inclusion ball.
 
-        Neo-Hookean by default (lam = 4, mu = 1: Poisson's ratio 0.4, a compressible soft
-        solid with constants that mean something in 3D); ``material_law="fung"`` runs
-        chapter 6's law with the Table 5.2 pattern extended to 3D (its tensors are the 2D
-        thesis' numbers). Both converge at every increment to the default insertion
-        (spacing 0.25: 3-4 Newton iterations per increment); the Fung phantom is ~2x
-        stiffer there (target axial motion 0.0077 vs 0.0155)."""
+        Nearly incompressible neo-Hookean tissue by default (mu = 1, Poisson's ratio ``nu`` =
+        0.45, W = mu/2 (I1bar - 3) + kappa/2 (ln J)^2); ``material_law="neohookean"`` the
+        compressible neo-Hookean solid (lam = 4, mu = 1: nu = 0.4) that was the default before;
+        ``"fung"`` chapter 6's law with the Table 5.2 pattern extended to 3D (its tensors are
+        the 2D thesis' numbers), ``"fung-barrier"`` the same with the volumetric barrier
+        (:func:`jaxrkpm.thesis.needle.tissue_material`)."""
         if inclusion not in INCLUSIONS_3D:
             raise ValueError(f"unknown inclusion {inclusion!r}: choose {list(INCLUSIONS_3D)}")
         spec = INCLUSIONS_3D[inclusion]
@@ -344,10 +351,9 @@ class Phantom3D(NeedleTrack):
         if spec is not None:
             offset, radius = spec
             factor = ball_field(np.asarray(self.target) + np.asarray(offset), radius, self.stiffness_ratio)
-        if self.material_law == "fung":
-            if factor is None:
-                return Fung(alpha=self.alpha, beta=self.beta)
-            return Fung(alpha=lambda X: self.alpha * factor(X), beta=lambda X: self.beta * factor(X))
+        if self.material_law in TISSUE_LAWS:
+            return tissue_material(self.material_law, self.alpha, self.beta, factor, nu=self.nu,
+                                   mu=self.mu if self.material_law == "neo-hookean" else None)
         if factor is None:
             return NeoHookean(lam=self.lam, mu=self.mu)
         return NeoHookean(lam=lambda X: self.lam * factor(X), mu=lambda X: self.mu * factor(X))

@@ -12,12 +12,15 @@ import jaxrkpm as jr
 from jaxrkpm.mechanics.tissue import cauchy_green_3d
 
 MU = 1.3
+OGDEN_MU, OGDEN_ALPHA = (0.63, 0.0012, -0.01), (1.3, 5.0, -2.0)
 ENERGIES = {
     "neo_hookean": (jr.NearlyIncompressibleNeoHookean(MU, 50.0), MU),
     "mooney_rivlin": (jr.MooneyRivlin(0.4, 0.25, 50.0), 2 * (0.4 + 0.25)),
     "yeoh": (jr.Yeoh(0.5, 0.2, 0.05, 50.0), 1.0),
     "veronda_westmann": (jr.VerondaWestmann(0.8, 1.5, 50.0), 0.8 * 1.5),
     "hgo": (jr.HolzapfelGasserOgden(MU, 2.0, 0.8, [(1.0, 0.0, 0.0)], 50.0), MU),
+    # three-term Ogden (rubber-like constants of Ogden 1972, scaled), μ = Σ μ_p α_p / 2
+    "ogden": (jr.Ogden(OGDEN_MU, OGDEN_ALPHA, 50.0), 0.5 * float(np.dot(OGDEN_MU, OGDEN_ALPHA))),
 }
 
 
@@ -92,6 +95,8 @@ INCOMPRESSIBLE = {   # closed forms of P11 in incompressible uniaxial tension, I
                         lambda l: MU * (l - l ** -2) + 2 * 2.0 * l * (l * l - 1) * np.exp(0.8 * (l * l - 1) ** 2)),
     "hgo_across_fibre": (jr.HolzapfelGasserOgden(MU, 2.0, 0.8, [(0.0, 1.0, 0.0)], 1e4 * MU),
                          lambda l: MU * (l - l ** -2)),
+    "ogden": (jr.Ogden(OGDEN_MU, OGDEN_ALPHA, 1e4), lambda l: sum(
+        m * (l ** (a - 1) - l ** (-a / 2 - 1)) for m, a in zip(OGDEN_MU, OGDEN_ALPHA))),
 }
 
 
@@ -108,13 +113,19 @@ def test_uniaxial_tension_in_the_incompressible_limit(name):
 
 def test_dispersed_fibres_and_fibre_fields():
     """κ_d = 1/3 (fully dispersed) makes the fibre term isotropic: the same energy for a
-    stretch along x and along y; a fibre field equals the constant direction it returns."""
+    stretch along x and along y; a fibre field equals the constant direction it returns, and is evaluated once."""
     iso = point(jr.HolzapfelGasserOgden(MU, 2.0, 0.8, [(1.0, 0.0, 0.0)], 50.0, dispersion=1 / 3))
     Ex, Ey = strain_of(jnp.diag(jnp.array([1.2, 1.0, 1.0]))), strain_of(jnp.diag(jnp.array([1.0, 1.2, 1.0])))
     assert float(iso(Ex)) == pytest.approx(float(iso(Ey)), rel=1e-13)
-    field = jr.HolzapfelGasserOgden(MU, 2.0, 0.8, lambda X: np.tile([0.0, 2.0, 0.0], (len(X), 1)), 50.0)
+    calls = []
+
+    def fibre(X):
+        calls.append(len(X))
+        return np.tile([0.0, 2.0, 0.0], (len(X), 1))
+    field = jr.HolzapfelGasserOgden(MU, 2.0, 0.8, fibre, 50.0)
     X = np.zeros((4, 3))
     params = field.point_params(X)
+    assert calls == [4]                                   # one evaluation for the three components
     assert np.allclose(params["fibre0_y"], 2.0) and np.allclose(params["fibre0_x"], 0.0)
     p = {k: jnp.asarray(v[0]) for k, v in params.items()}
     const = point(jr.HolzapfelGasserOgden(MU, 2.0, 0.8, [(0.0, 1.0, 0.0)], 50.0))
@@ -181,6 +192,43 @@ def test_parameters_by_name_and_checked():
         jr.with_barrier(jr.Fung(), nu=0.45)
 
 
+def test_ogden_is_exact_at_equal_stretches():
+    """Ogden's stretch powers go through no eigenvector derivative: stress and tangent are
+    finite at the undeformed state and at equi-biaxial stretch (repeated eigenvalues), the
+    tangent there matches finite differences of the stress, α = 2 is the neo-Hookean energy
+    (stress and tangent), the small-strain shear modulus is Σ μ_p α_p / 2, and the energy is
+    objective."""
+    ogden = point(jr.Ogden(OGDEN_MU, OGDEN_ALPHA, kappa=40.0))
+    two = point(jr.Ogden([MU], [2.0], nu=0.45))
+    neo = point(jr.NearlyIncompressibleNeoHookean(MU, nu=0.45))
+    stress, tangent = jax.jit(jax.grad(ogden)), jax.jit(jax.hessian(ogden))
+    stress2, tangent2 = jax.jit(jax.grad(two)), jax.jit(jax.hessian(two))
+    stress_nh, tangent_nh = jax.jit(jax.grad(neo)), jax.jit(jax.hessian(neo))
+    rng = np.random.default_rng(5)
+    for F in (jnp.eye(3), jnp.diag(jnp.array([1.2, 1.2, 0.7])), jnp.diag(jnp.array([0.8, 1.1, 1.1])),
+              jnp.eye(3) + 0.1 * jnp.asarray(rng.standard_normal((3, 3)))):
+        E = strain_of(F)
+        S, D = stress(E), tangent(E)
+        assert np.all(np.isfinite(np.asarray(S))) and np.all(np.isfinite(np.asarray(D)))
+        dE = jnp.asarray(sym(rng, 3))
+        h = 1e-6
+        fd = (stress(E + h * dE) - stress(E - h * dE)) / (2 * h)
+        assert np.abs(np.asarray(fd - jnp.einsum("ijkl,kl->ij", D, dE))).max() < 1e-7
+        assert np.abs(np.asarray(stress2(E) - stress_nh(E))).max() < 1e-13
+        assert np.abs(np.asarray(tangent2(E) - tangent_nh(E))).max() < 1e-12
+    # shear modulus: d²W/dγ² of simple shear at γ = 0 (J = 1: no volumetric part)
+    shear = jax.grad(jax.grad(lambda g: ogden(strain_of(jnp.eye(3).at[0, 1].set(g)))))(0.0)
+    assert float(shear) == pytest.approx(0.5 * np.dot(OGDEN_MU, OGDEN_ALPHA), rel=1e-12)
+    Q = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    Q = jnp.asarray(Q * np.sign(np.linalg.det(Q)))
+    F = jnp.eye(3) + 0.2 * jnp.asarray(rng.standard_normal((3, 3)))
+    assert float(ogden(strain_of(Q @ F))) == pytest.approx(float(ogden(strain_of(F))), rel=1e-12)
+    with pytest.raises(ValueError, match=r"Ogden: term 2 needs a nonzero alpha and mu \* alpha > 0"):
+        jr.Ogden([1.0, 1.0], [2.0, -1.0], 10.0)
+    with pytest.raises(ValueError, match="same length"):
+        jr.Ogden([1.0, 1.0], [2.0], 10.0)
+
+
 def test_affine_patch_with_scni_at_nu_049():
     """Through a Model: SCNI reproduces an affine deformation of a nearly incompressible
     (ν = 0.49) neo-Hookean square exactly, as for every other energy."""
@@ -194,3 +242,18 @@ def test_affine_patch_with_scni_at_nu_049():
     u = np.asarray(model.particle_displacements(sol))
     assert np.abs(u[inner] - body.X[inner] @ (F0 - np.eye(2)).T).max() < 1e-10
     assert np.abs(np.asarray(model.deformation_gradient(sol, body.X[inner])) - F0).max() < 1e-10
+
+
+def test_the_barrier_carries_the_compressed_square_past_the_fold():
+    """The 9x9 square (left edge held, right edge moved rigidly) in Fung with the barrier
+    (kappa = Fung's shear modulus 509) reaches 40% compression on a stable state, far from
+    collapse; the plain Fung square stops near 31% (tests/solvers/test_stability.py), the 33x33
+    one at 19.6% (experiments/compress_block.py, where the barrier reaches the full 20%)."""
+    body = jr.Body.grid((9, 9), 0.125)
+    sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "edge": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
+    model = jr.Model(body, jr.with_barrier(jr.Fung(alpha=1.0, beta=1.0), kappa=509.0), essential=sets)
+    sol = model.solve({"edge": jnp.array([-0.4, 0.0])}, steps=10, throw=False, stable_branch=True)
+    assert sol.outcome == jr.Status.CONVERGED and float(sol.t) == 1.0
+    prob = model.problem()
+    assert float(np.linalg.eigvalsh(np.asarray(jax.jit(prob.tangent)(sol.u, sol.g)))[0]) > 0
+    assert float(prob.energy(sol.u, sol.g)[1]) > 0.3               # smallest det F: no corner folds

@@ -250,6 +250,16 @@ def test_counts_are_bounded(argv, fragments, capsys):
     one_line_usage(capsys, argv, *fragments)
 
 
+@pytest.mark.parametrize("command, choices", [
+    ("compress", "'fung', 'fung-barrier', 'neo-hookean', 'neohookean'"),
+    ("needle", "'fung', 'fung-barrier', 'neo-hookean'"),
+    ("needle3d", "'neo-hookean', 'neohookean', 'fung', 'fung-barrier'"),
+])
+def test_an_unknown_material_lists_the_choices(command, choices, capsys):
+    one_line_usage(capsys, [command, "--material", "rubber"],
+                   f"argument --material: invalid choice: 'rubber' (choose from {choices})")
+
+
 def test_sizes_past_the_memory_are_refused_before_allocating(capsys):
     line = one_line_usage(capsys, ["track", "--n", "100000"], "argument --n: 100000 makes 10,000,000,000 particles",
                           "GiB available", "the largest --n that fits is about")

@@ -118,6 +118,27 @@ def test_cli_static(tmp_path):
     assert (tmp_path / "phantom_static_none.png").stat().st_size > 10_000
 
 
+def test_material_laws():
+    """--material: the thesis' Fung by default; nearly incompressible neo-Hookean (nu = 0.45)
+    with Fung's small-strain shear modulus 2 (0.5 alpha + 254 beta); Fung with the barrier
+    (kappa = that modulus); the inclusion scales every stiffness (the solves are those of
+    every material: test_needle3d solves the tissue default)."""
+    import jaxrkpm as jr
+    assert nd.Phantom().material().name == "Fung"
+    neo = nd.Phantom(material_law="neo-hookean", alpha=2.0, beta=0.5)
+    m = neo.material()
+    mu = 2 * (0.5 * 2.0 + 254.0 * 0.5)
+    assert m.name == "NearlyIncompressibleNeoHookean" and m.params["mu"] == pytest.approx(mu)
+    assert m.params["kappa"] == pytest.approx(jr.bulk_modulus(mu, 0.45))
+    barrier = nd.Phantom(material_law="fung-barrier").material("right")
+    assert barrier.name == "Fung+barrier"
+    inside = np.array([[0.65, 0.35]])                            # in the right inclusion
+    p = barrier.point_params(np.vstack([inside, [[0.1, 0.9]]]))
+    assert p["kappa"] == pytest.approx([50900.0, 509.0]) and p["alpha"] == pytest.approx([100.0, 1.0])
+    with pytest.raises(ValueError, match=r"unknown material_law 'rubber': choose one of \['fung', 'fung-barrier'"):
+        nd.Phantom(material_law="rubber")
+
+
 def test_bad_input(phantom):
     with pytest.raises(ValueError, match="immobile"):
         nd.Phantom(immobile="left")

@@ -21,6 +21,10 @@ from the last converged sub-step towards the step's target: it tells a Newton fa
 (stable states go on) from the end of the stable path (measured: the minimisation runs
 into det F = 0 at a paddle corner: the Fung energy stays bounded as det F -> 0, so a corner
 folds flat; no solver can pass it).
+``--material fung-barrier`` adds the volumetric barrier κ/2 (ln J)² (κ = Fung's small-strain
+shear modulus) to the same Fung energy: a corner can no longer fold flat, and the stable path
+goes on past the thesis' 43% (straight) and 59% (shear); ``neo-hookean`` is nearly
+incompressible neo-Hookean tissue (ν = 0.45) with Fung's shear modulus.
 ``--through`` instead follows the primary (possibly unstable) branch with the stability check
 off, as before the stable-branch solve, until the solve fails.
 """
@@ -48,9 +52,20 @@ FORCE_UNITS = "model units: force per unit thickness"
 MODES = {"straight": (-1.0, 0.0), "shear": (-1.0, -1.0)}
 
 
+# the small-strain shear modulus of the study's Fung material (alpha = beta = 1, Table 5.2):
+# mu = 2 (alpha C_1212 + beta A_1212)
+FUNG_SHEAR_MODULUS = 2.0 * (1.0 * 0.5 + 1.0 * 254.0)
+# Poisson's ratio of the tissue-like choices (soft tissue: 0.45-0.499)
+TISSUE_POISSON = 0.45
+
 MATERIALS = {
     # thesis eq 5.2 / Table 5.2 (the study's material)
     "fung": lambda: jr.Fung(alpha=1.0, beta=1.0),
+    # the same with the volumetric barrier kappa/2 (ln J)^2, kappa = the Fung shear modulus:
+    # a compressed point cannot fold flat (the Fung energy stays bounded as det F -> 0)
+    "fung-barrier": lambda: jr.with_barrier(jr.Fung(alpha=1.0, beta=1.0), kappa=FUNG_SHEAR_MODULUS),
+    # nearly incompressible neo-Hookean tissue, nu = 0.45, with the Fung shear modulus
+    "neo-hookean": lambda: jr.NearlyIncompressibleNeoHookean(FUNG_SHEAR_MODULUS, nu=TISSUE_POISSON),
     # control: a compressible neo-Hookean solid with Fung's small-strain shear and bulk
     # moduli order (mu = 2 A_1212, lam = 2 A_1122), which stays elliptic in compression
     "neohookean": lambda: jr.NeoHookean(lam=766.0, mu=508.0),
@@ -313,6 +328,11 @@ def figures(out: Path, summary, model, states, tag: str):
     fig, axes = plot.plt.subplots(nrow, ncol, figsize=(2.9 * ncol + 1.0, 3.3 * nrow), squeeze=False,
                                   layout="constrained")
     sc = None
+    # every panel the same limits, holding every shown state (past ~40% shear the body leaves
+    # the unit square's frame)
+    shown = np.vstack([X] + [X + states[c] for c in levels])
+    lo = np.minimum(shown.min(0), [-0.08, -0.25]) - 0.04
+    hi = np.maximum(shown.max(0), [1.08, 1.25]) + 0.04
     for ax, c in zip(axes.flat, levels):
         u = states[c]
         sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=18 if len(X) < 100 else 6)
@@ -321,8 +341,8 @@ def figures(out: Path, summary, model, states, tag: str):
                    facecolors="none", edgecolors="r", lw=1.2, label="paddle (moved)")
         ax.scatter(x[wall, 0], x[wall, 1], marker="|", s=60, c="b", lw=1.2, label="wall (immobile)")
         ax.set_title(f"{100 * c:.0f}% compression", fontsize=10)
-        ax.set_xlim(-0.08, 1.08)
-        ax.set_ylim(-0.25, 1.25)
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
         ax.tick_params(labelsize=7)
     for ax in axes[:, 1:].flat:      # axis labels on the outer panels only
         ax.set_ylabel("")

@@ -244,6 +244,10 @@ def track_parser():
     return p
 
 
+# the compression study's materials (jaxrkpm.thesis.studies.compress.MATERIALS)
+COMPRESS_MATERIALS = ("fung", "fung-barrier", "neo-hookean", "neohookean")
+
+
 def compress_parser():
     from jaxrkpm.thesis.data import PADDLE_HALF_WIDTH
     p = _parser("compress", "jaxrkpm.thesis.studies.compress", "results/compress/<mode>_<integration>_<n>[...]")
@@ -255,7 +259,11 @@ def compress_parser():
                    help="largest compression tried (fraction of the width)")
     p.add_argument("--step", type=number(float, 0, 0.5, low_open=True), default=0.01,
                    help=f"compression step (fraction of the width; at most {COMPRESSION_STEPS_MAX} steps to --max)")
-    p.add_argument("--material", choices=("fung", "neohookean"), default="fung")
+    p.add_argument("--material", choices=COMPRESS_MATERIALS, default="fung",
+                   help="fung: the thesis' Fung (eq 5.2, Table 5.2); fung-barrier: the same plus the volumetric "
+                        "barrier kappa/2 (ln J)^2, kappa = Fung's shear modulus 509 (compressed points cannot "
+                        "fold flat); neo-hookean: nearly incompressible neo-Hookean tissue, nu = 0.45, mu = 509; "
+                        "neohookean: the compressible control (lam = 766, mu = 508)")
     p.add_argument("--paddle-half-width", type=number(float, 0, 0.5, low_open=True), default=PADDLE_HALF_WIDTH,
                    help="paddle = right-edge particles with |y - 0.5| <= this (0.5: the whole edge, "
                         "a homogeneous compression without punch corners)")
@@ -276,6 +284,10 @@ def _needle_options(command: str, inclusions) -> argparse.ArgumentParser:
 def needle_parser():
     from jaxrkpm.thesis.data import INCLUSIONS, TABLE_6_2
     p = _needle_options("needle", INCLUSIONS)
+    p.add_argument("--material", choices=("fung", "fung-barrier", "neo-hookean"), default="fung",
+                   help="fung: the thesis' Fung (eq 6.1); fung-barrier: the same plus the volumetric barrier "
+                        "kappa/2 (ln J)^2, kappa = Fung's shear modulus; neo-hookean: nearly incompressible "
+                        "neo-Hookean tissue, nu = 0.45, with Fung's small-strain shear modulus")
     p.add_argument("--increments", type=number(int, 1, INCREMENTS_MAX), default=15,
                    help=f"insertion increments up to 15%%, 1..{INCREMENTS_MAX}")
     p.add_argument("--paddle", type=number(int, 1, len(TABLE_6_2)), default=None,
@@ -292,6 +304,12 @@ def needle_parser():
 def needle3d_parser():
     from jaxrkpm.thesis.data import INCLUSIONS_3D
     p = _needle_options("needle3d", INCLUSIONS_3D)
+    p.add_argument("--material", choices=("neo-hookean", "neohookean", "fung", "fung-barrier"),
+                   default="neo-hookean",
+                   help="neo-hookean (default): nearly incompressible neo-Hookean tissue, mu = 1, nu = 0.45; "
+                        "neohookean: compressible neo-Hookean, lam = 4, mu = 1 (nu = 0.4, the default before); "
+                        "fung: chapter 6's Fung with the 3D Table 5.2 pattern; fung-barrier: the same plus the "
+                        "volumetric barrier kappa/2 (ln J)^2")
     p.add_argument("--spacing", type=number(float, 0.05, 0.4), default=0.2,
                    help="mesh size of the phantom (0.3: 231 particles; 0.2: 390; 0.1: 1,332)")
     p.add_argument("--increments", type=number(int, 1, INCREMENTS_3D_MAX), default=4,

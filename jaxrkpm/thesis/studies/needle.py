@@ -121,7 +121,7 @@ def run_static(phantom, inclusion, increments, out: Path, n_devices=1):
     free = float(sw.no_paddle[-1])
     summary = {
         "mode": "static", "inclusion": inclusion, "increments": increments,
-        "insertion": phantom.insertion, "immobile": phantom.immobile, "support": phantom.support,
+        "insertion": phantom.insertion, "immobile": phantom.immobile, "support": phantom.support, "material": phantom.material_law,
         "no_paddle_deviation": free,
         "deviation": sw.final.tolist(),
         "best": sw.best,
@@ -207,7 +207,7 @@ def run_dynamic(phantom, inclusion, increments, out: Path, paddle=None, n_device
     dev = np.abs(run.deviation)
     summary = {
         "mode": "dynamic", "inclusion": inclusion, "increments": increments,
-        "insertion": phantom.insertion, "immobile": phantom.immobile, "support": phantom.support,
+        "insertion": phantom.insertion, "immobile": phantom.immobile, "support": phantom.support, "material": phantom.material_law,
         "controllability": ctrl.tolist(),
         "best": best, "paddle": chosen,
         "max_deviation": float(dev.max()) if len(dev) else None,
@@ -400,7 +400,7 @@ def main(argv=None):
         interface.needle_parser().error(too_many)
     results = interface.results("needle", a, a.out or f"results/needle/{a.mode}_{a.inclusion}")
     with results as out:
-        phantom = nd.Phantom()
+        phantom = nd.Phantom(material_law=a.material)
         if a.mode == "static":
             summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
         elif a.mode == "dynamic":

@@ -278,7 +278,7 @@ def main(argv=None):
     a = interface.parse("needle3d", argv)
     if too_many := interface.devices_error(a.devices):
         interface.needle3d_parser().error(too_many)
-    phantom = Phantom3D(spacing=a.spacing)
+    phantom = Phantom3D(spacing=a.spacing, material_law=a.material)
     patches = len(phantom.patch_coordinates)          # the angle grid: no mesh needed yet
     if a.paddle is not None and a.paddle > patches:   # refused before any folder is made
         interface.needle3d_parser().error(f"argument --paddle: must be an integer in [1, {patches}] "
