@@ -104,7 +104,7 @@ ENERGIES = {
     "yeoh": jr.Yeoh(0.5, 0.1, 0.02, nu=0.499),
     "veronda_westmann": jr.VerondaWestmann(0.8, 1.5, nu=0.499),
     "hgo": jr.HolzapfelGasserOgden(1.0, 2.0, 0.8, [(1.0, 0.5, 0.0)], nu=0.499),
-    "ogden": jr.Ogden([0.6, 0.1], [2.5, -1.5], nu=0.499),
+    "ogden": jr.Ogden([0.6, -0.1], [2.5, -1.5], nu=0.499),
     "lame": jr.NeoHookean(lame(1.0, 0.499), 1.0),
 }
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+import jaxrkpm as jr
 from jaxrkpm.thesis import needle as nd
 from jaxrkpm.thesis.phantom3d import Phantom3D
 from jaxrkpm.solvers.results import Status
