@@ -200,15 +200,19 @@ def dilatation_patches(body: Body, table: Table, integration: str = "gauss",
                        cell_size: float | None = None) -> np.ndarray:
     """The patch (Q,) of every integration point over which the anti-locking formulation
     averages the volume change (``jaxrkpm.mechanics.strain.mean_dilatation``): the background
-    cell of ``cell_size`` (default: the spacing) that holds the point, for Gauss points (also on
-    a mesh body) and for the cells and sub-cells of MSCNI. That is one volumetric constraint per
-    cell of about one particle, the count of the mean-dilatation element Q1/P0: a patch per mesh
-    cell would lock (a tetrahedral mesh has five or six cells a particle), patches of two
-    spacings are too soft, and folding MSCNI's sub-cells into their own particle's cell alone
-    leaves it stiffer (``experiments/cook_membrane.py``). SCNI keeps a patch per point: nodal
-    integration already has one volumetric constraint per particle, and fewer make it soft."""
+    cell of ``cell_size`` (default: the spacing) that holds the point, for Gauss points and for
+    the cells and sub-cells of MSCNI. That is one volumetric constraint per cell of about one
+    particle, the count of the mean-dilatation element Q1/P0: patches of two spacings are too
+    soft, and folding MSCNI's sub-cells into their own particle's cell alone leaves it stiffer
+    (``experiments/cook_membrane.py``). On a mesh body, whose small cells crowd unevenly into
+    background cells (a patch's cost grows with the square of its points), the patch is the
+    nearest particle instead: the same count, one constraint a particle. SCNI keeps a patch
+    per point: nodal integration already has one volumetric constraint per particle, and fewer
+    make it soft."""
     if integration == "scni":
         return np.arange(len(table.points))
+    if body.cells is not None:
+        return np.asarray(body.nearest(table.points), np.int64).reshape(-1)
     h = body.spacing if cell_size is None else float(cell_size)
     span = body.upper - body.lower
     n = np.maximum(1, np.ceil(span / h - 1e-9).astype(int))

@@ -136,7 +136,8 @@ class Model:
                 with a volumetric-deviatoric split, or Lame constants with lam >= 9 mu, Poisson's
                 ratio 0.45); True / False: on / off. On, every integration point's energy is
                 taken at F-bar, its volume change averaged over the points of a background
-                cell (Gauss and MSCNI; SCNI is left as it is), which removes
+                cell (Gauss and MSCNI; on a mesh body, the points nearest one particle; SCNI
+                is left as it is), which removes
                 volumetric locking as nu -> 1/2 (jaxrkpm.discretise.quadrature.dilatation_patches,
                 ``docs/guide/models.md``). Stresses at arbitrary points (``stress``) are the
                 point's own.
