@@ -15,7 +15,7 @@ def test_shape_servoing_on_loaded_mesh(tmp_path):
     """Algorithm 3 (``control.track``) on a body loaded from a mesh file: a skin patch driven,
     an interior control point following a short path, every waypoint reached."""
     from jaxrkpm.control.tracking import track
-    phantom = Phantom3D(spacing=SPACING)
+    phantom = Phantom3D(spacing=SPACING, material_law="neohookean")   # as test_needle3d.py's phantom
     path = tmp_path / "phantom.vtu"
     phantom.mesh().write(path)
     body = jr.Body.from_mesh(str(path))
