@@ -40,7 +40,7 @@ in lock step (vmap), timed warm up to 320 (``--warm-max``; above it the cold cal
 included, is the figure: ``batched_cold_per_configuration_s``), the loop at 20 only, one
 warm repeat, the phantom's integration table built once for all models (``--cache-tables``:
 ``Model`` rebuilds it per model, host time outside the timed calls that took minutes at
-4,100 models). A full preset run takes longer than one 10-minute device call (about 9.5 minutes of the H200 measured): run the largest count as a call of its own..
+4,100 models). A full preset run may outlast one device call: run the largest count as a call of its own.
 
 ``--devices N`` splits the configurations over N XLA host devices (one per core; shard_map,
 ``needle.insert(n_devices=N)``), the loop stays on one: say so when quoting it."""
