@@ -49,6 +49,17 @@ def split_groups(grp_of, counts, size):
     return grp_of.ravel(), counts
 
 
+def padded_groups(grp_of: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Points (Q,) by group id ``grp_of`` (``counts`` points a group) as groups (G, S) of point
+    indices, in point order within a group, padded with Q."""
+    Q = len(grp_of)
+    srt = np.argsort(grp_of, kind="stable")
+    groups = np.full((len(counts), counts.max()), Q, np.int64)
+    start = np.r_[0, np.cumsum(counts)[:-1]]
+    groups[grp_of[srt], np.arange(Q) - np.repeat(start, counts)] = srt
+    return groups
+
+
 def point_groups(idx: np.ndarray) -> np.ndarray:
     """The integration points (Q,) with identical neighbour lists (the Gauss points of one
     cell) as groups (G, S) of point indices, padded with Q: their tangent contributions are
@@ -63,12 +74,7 @@ def point_groups(idx: np.ndarray) -> np.ndarray:
         grp_of, counts = split_groups(grp_of, counts, int(np.median(counts)))
     if len(counts) * counts.max() > 1.25 * Q:
         return np.arange(Q)[:, None]
-    srt = np.argsort(grp_of, kind="stable")
-    groups = np.full((len(counts), counts.max()), Q, np.int64)
-    start = np.r_[0, np.cumsum(counts)[:-1]]
-    slot = np.arange(Q) - np.repeat(start, counts)
-    groups[grp_of[srt], slot] = srt
-    return groups
+    return padded_groups(grp_of, counts)
 
 
 def pair_pattern(lists, N: int):

@@ -11,6 +11,7 @@ from scipy.special import roots_jacobi
 from . import mesh
 from . import polygons
 from .body import Body
+from .pairs import padded_groups
 
 
 @dataclass(frozen=True)
@@ -247,8 +248,5 @@ def patched(table: Table, patch_of: np.ndarray) -> tuple[Table, np.ndarray]:
     np.add.at(psi, (rows, pos.ravel()), table.psi.ravel())
     np.add.at(dpsi, (rows, pos.ravel()), table.dpsi.reshape(Q * K, -1))
     idx = lists[patch_of].astype(table.idx.dtype)
-    order = np.argsort(patch_of, kind="stable")
-    pstart = np.r_[0, np.cumsum(counts_p := np.bincount(patch_of))[:-1]]
-    groups = np.full((len(counts_p), counts_p.max()), Q, np.int64)
-    groups[patch_of[order], np.arange(Q) - np.repeat(pstart, counts_p)] = order
-    return Table(table.points, table.weights, idx, psi, dpsi, table.normals), groups
+    return (Table(table.points, table.weights, idx, psi, dpsi, table.normals),
+            padded_groups(patch_of, np.bincount(patch_of)))
