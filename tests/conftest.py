@@ -48,6 +48,9 @@ def _xla_optimisation(request):
 def pytest_configure(config):
     config.addinivalue_line("markers", "xla_optimised: the module's programs run long: compile them with "
                                        "XLA's full optimisation (tests/conftest.py)")
+    config.addinivalue_line("markers", "slow(reason): a long study reproduction whose parts are tested faster "
+                                       "elsewhere; left out of the default run (pyproject.toml), run by "
+                                       "`pytest -m slow`; the reason says what it adds")
 
 
 @pytest.fixture(autouse=True)
@@ -100,5 +103,10 @@ SLOW_FIRST = (
 
 
 def pytest_collection_modifyitems(config, items):
+    unjustified = [item.nodeid for item in items
+                   if any(not m.kwargs.get("reason") for m in item.iter_markers("slow"))]
+    if unjustified:
+        raise pytest.UsageError(f"tests marked slow without a reason: {unjustified}; "
+                                "write pytest.mark.slow(reason='what it adds beyond the default run')")
     rank = {path: i for i, path in enumerate(SLOW_FIRST)}
     items.sort(key=lambda item: rank.get(item.nodeid.split("::")[0], len(rank)))   # stable

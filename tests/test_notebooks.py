@@ -32,7 +32,14 @@ def test_stored_without_outputs(path):
                 f"{path.name}: cell {cell.get('id')} has outputs; strip them before committing"
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+# the notebooks that replay a study (tracking, paddle sweeps, the rig, mesh objects) run in the slow
+# set: their computations are each tested in the default run (tests/control, tests/thesis, tests/discretise)
+STUDY_NOTEBOOKS = {"02_tracking", "03_paddle_sweeps", "05_rig_sim", "06_mesh_objects"}
+RUNS = [pytest.param(p, id=p.stem, marks=pytest.mark.slow(reason="replays a study notebook end to end"))
+        if p.stem in STUDY_NOTEBOOKS else pytest.param(p, id=p.stem) for p in NOTEBOOKS]
+
+
+@pytest.mark.parametrize("path", RUNS)
 def test_notebook_runs(path, monkeypatch):
     monkeypatch.setenv("MPLBACKEND", "Agg")
     monkeypatch.setenv("OPENBLAS_NUM_THREADS", "1")

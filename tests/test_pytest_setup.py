@@ -46,3 +46,11 @@ def test_the_slow_first_files_exist():
     from tests.conftest import SLOW_FIRST
     missing = [path for path in SLOW_FIRST if not (ROOT / path).is_file()]
     assert not missing, f"tests/conftest.py SLOW_FIRST names files that do not exist: {missing}"
+
+
+def test_the_default_run_leaves_out_the_slow_set():
+    """pyproject.toml's addopts deselect the tests marked slow; ``-m slow`` selects them."""
+    default, slow = pytest("-p", "no:xdist", "tests/solvers/test_solver.py"), \
+        pytest("-p", "no:xdist", "-m", "slow", "tests/solvers/test_solver.py")
+    assert "test_jit_and_eager_solves_agree" not in default.stdout and "deselected" in default.stdout
+    assert "test_jit_and_eager_solves_agree" in slow.stdout and "test_jit_and_eager_agree" not in slow.stdout

@@ -260,8 +260,8 @@ def test_3d_tangent_from_one_triangle_is_the_energy_hessian():
 
 
 def test_jit_and_eager_agree():
-    """The jitted residual, tangent and Newton solve agree with eager (un-jitted) execution
-    (a 3x3 block: eager execution dispatches every operation on its own)."""
+    """The jitted residual, tangent and (test_jit_and_eager_solves_agree) Newton solve agree with
+    eager (un-jitted) execution (a 3x3 block: eager execution dispatches every operation on its own)."""
     small = jr.Model(jr.Body.grid((3, 3), 0.5), MATERIALS["Fung"],
                      essential={"l": [0, 1, 2], "r": [6, 7, 8]})
     prob = small.problem()
@@ -275,6 +275,12 @@ def test_jit_and_eager_agree():
         K_eager = prob.tangent(u, g)
     assert np.abs(np.asarray(r_jit) - np.asarray(r_eager)).max() < 1e-12 * np.abs(np.asarray(r_eager)).max()
     assert np.abs(np.asarray(K_jit) - np.asarray(K_eager)).max() < 1e-12 * np.abs(np.asarray(K_eager)).max()
+
+
+@pytest.mark.slow(reason="the whole Newton solve executed eagerly, operation by operation")
+def test_jit_and_eager_solves_agree():
+    small = jr.Model(jr.Body.grid((3, 3), 0.5), MATERIALS["Fung"],
+                     essential={"l": [0, 1, 2], "r": [6, 7, 8]})
     s_jit = small.solve({"r": jnp.array([-0.1, 0.05])}, steps=1)
     with jax.disable_jit():
         s_eager = small.solve({"r": jnp.array([-0.1, 0.05])}, steps=1)

@@ -4,6 +4,7 @@ Apart from tests/thesis/test_needle3d.py because its programs compile rather tha
 keeps the suite's lighter XLA optimisation (tests/conftest.py), which costs it less CPU than the
 sweeps' module's full one."""
 import numpy as np
+import pytest
 
 import jaxrkpm as jr
 from jaxrkpm.thesis.phantom3d import Phantom3D
@@ -11,6 +12,8 @@ from jaxrkpm.thesis.phantom3d import Phantom3D
 SPACING = 0.3    # tests/thesis/test_needle3d.py's coarse phantom
 
 
+@pytest.mark.slow(reason="Algorithm 3 on a 3D mesh body loaded from a file: tracking is tested in the "
+                         "default run (tests/model/test_jacobian.py, tests/thesis/test_track.py)")
 def test_shape_servoing_on_loaded_mesh(tmp_path):
     """Algorithm 3 (``control.track``) on a body loaded from a mesh file: a skin patch driven,
     an interior control point following a short path, every waypoint reached."""

@@ -7,6 +7,10 @@ import pytest
 
 from jaxrkpm.thesis.studies import reproduce
 
+# the quick report runs every quick study in a fresh process; its rows and figures are in the slow
+# set (each study is tested on its own in the default run), its error handling is not
+REPORT = pytest.mark.slow(reason="`jaxrkpm reproduce --quick` end to end: every quick study and figure")
+
 
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
@@ -28,6 +32,7 @@ def cli_run(argv):
         return json.load(f)
 
 
+@REPORT
 def test_quick_report_rows_and_figures(quick):
     out, rep = quick
     ids = [r["id"] for r in rep["experiments"]]
@@ -42,6 +47,7 @@ def test_quick_report_rows_and_figures(quick):
     assert rep["quick"] is True and rep["total_wall_s"] > 0
 
 
+@REPORT
 def test_quick_numbers(quick):
     out, rep = quick
     rows = {r["id"]: r for r in rep["experiments"]}
@@ -70,6 +76,7 @@ def test_unknown_only_id_is_rejected(tmp_path):
         reproduce.main(["--only", "nope", "--out", str(tmp_path)])
 
 
+@REPORT
 def test_reuse_rebuilds_the_report_without_rerunning(quick):
     out, rep = quick
     again = reproduce.main(["--quick", "--reuse", "--out", str(out)])
