@@ -5,6 +5,8 @@ integration at several resolutions and Poisson's ratios, with the model's defaul
 
     python -m experiments.cook_membrane                 # every case (minutes), writes the JSON
     python -m experiments.cook_membrane --table         # the ratio tables from the JSON
+    python -m experiments.cook_membrane --cook-spacings --block-spacings 0.1666666666666667
+                                                        # one resolution, merged into the JSON
 
 The problems are ``tests/problems.py``'s ``cook_membrane`` and ``cantilever_block``; the
 references are ``experiments/cook_reference.json`` (made by ``experiments/cook_reference.py``).
@@ -82,7 +84,10 @@ def main(argv=None):
     a = p.parse_args(argv)
     if not a.table:
         rows = run("cook_2d", a.cook_spacings) + run("block_3d", a.block_spacings)
-        OUT.write_text(json.dumps({"date": time.strftime("%Y-%m-%d"), "rows": rows}, indent=1))
+        # the rows of the resolutions not run this time are kept
+        kept = [r for r in (json.loads(OUT.read_text())["rows"] if OUT.exists() else [])
+                if (r["problem"], r["particles"]) not in {(n["problem"], n["particles"]) for n in rows}]
+        OUT.write_text(json.dumps({"date": time.strftime("%Y-%m-%d"), "rows": kept + rows}, indent=1))
     print(table(json.loads(OUT.read_text())["rows"]))
 
 

@@ -271,6 +271,8 @@ def test_inverse_and_quasi_newton_solves(planar):
         np.array_equal(np.asarray(qn.update(st, jnp.asarray(s), jnp.asarray(-A @ s)).S), np.asarray(st.S))
 
 
+@pytest.mark.slow(reason="chord corrections over two large steps settling onto full Newton; kept "
+                         "factorisations are tested in the default run by the tracking and Jacobian tests below")
 def test_kept_factorisation_settles_to_full_newton(planar):
     """Control steps that keep the factorisation of an earlier state (quasi-Newton chord
     corrections, ControlledModel.of(reuse=...)) land on full Newton's equilibrium to the
