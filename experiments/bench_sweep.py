@@ -42,6 +42,15 @@ warm repeat, the phantom's integration table built once for all models (``--cach
 ``Model`` rebuilds it per model, host time outside the timed calls that took minutes at
 4,100 models). A full preset run may outlast one device call: run the largest count as a call of its own.
 
+``--profile`` (on in ``--gpu``): per count, the lock step's cost per iteration against its
+pieces, each timed over the whole batch in one vmapped call: the tangent's assembly, its
+factorisation (the dense solver's state minus the assembly), the triangular solves, one
+energy + gradient (a line-search trial), the force scale; ``lockstep_iterations`` is the sum
+over increments of the batch's largest Newton iteration count (what lock step pays),
+``member_iterations`` the mean over members (what each needed), and ``flops`` the dense
+arithmetic of one factorisation and one pair of triangular solves. The record is written after
+every count (``records.checkpoint``), so a run cut short keeps its finished rows.
+
 ``--devices N`` splits the configurations over N XLA host devices (one per core; shard_map,
 ``needle.insert(n_devices=N)``), the loop stays on one: say so when quoting it."""
 from __future__ import annotations
@@ -94,7 +103,7 @@ def cache_integration_tables() -> None:
 
 # the largest count: the first multiple of the 5 paddle positions at or above 4,096
 GPU_PRESET = {"counts": [20, 80, 320, 1280, 4100], "batching": "vmap", "loop_max": 20, "repeats": 1,
-              "warm_max": 320, "cache_tables": True}
+              "warm_max": 320, "cache_tables": True, "profile": True}
 
 
 def configurations(phantom: nd.Phantom, count: int) -> list[Model]:
@@ -187,6 +196,42 @@ def floor(model, phantom, depths, iterations: int, jacobians: int, factorisation
             "jacobians": int(jacobians), "floor_s": total}
 
 
+def per_batch(fn, *states, repeats=3):
+    """Seconds of ``fn`` over the whole batch of states (leading axes) in one jitted vmap
+    (median of ``repeats``): what one lock-step call of that piece costs."""
+    f = jax.jit(jax.vmap(fn))
+    jax.block_until_ready(f(*states))
+    return statistics.median(timed(lambda: jax.block_until_ready(f(*states)))[0] for _ in range(repeats))
+
+
+def lockstep_profile(model, count: int, iterations, seconds: float) -> dict:
+    """The lock step's iteration against its pieces at ``count`` members (module docstring):
+    ``iterations`` (count, increments) the insertion's Newton iterations, ``seconds`` its warm
+    (or cold) time."""
+    prob, linear = model.problem(), model.linear
+    rest = model.initial()
+    g = model.prescribed({"needle": [0.0, 0.0]})
+    us = jnp.asarray(1e-4 * np.random.default_rng(0).standard_normal((count,) + rest.u.shape))
+    state = jax.vmap(lambda u: linear.state_at(prob, u, g))(us)
+    rhs = jax.vmap(lambda u: prob.residual(u, g))(us)
+    assembly = per_batch(lambda u: prob.tangent(u, g), us)
+    piece = {"assembly_s": assembly,
+             "factorisation_s": max(per_batch(lambda u: linear.state_at(prob, u, g), us) - assembly, 0.0),
+             "triangular_solves_s": per_batch(linear.solve, state, rhs),
+             "energy_and_gradient_s": per_batch(lambda u: jax.value_and_grad(lambda v: prob.energy(v, g)[0])(u), us),
+             "force_scale_s": per_batch(lambda u: prob.force_scale(prob.energy_residual(u, g)[3]), us)}
+    its = np.asarray(iterations)
+    lockstep = int(its.max(axis=0).sum())
+    n = int(np.prod(rest.u.shape))
+    per_iteration = seconds / max(lockstep, 1)
+    return {"configurations": count, "unknowns": n, "pieces_s": piece,
+            "pieces_sum_s": sum(piece.values()),
+            "lockstep_iterations": lockstep, "member_iterations": float(its.sum(axis=1).mean()),
+            "seconds_per_lockstep_iteration": per_iteration,
+            "other_s": per_iteration - sum(piece.values()),
+            "flops": {"cholesky": n**3 / 3, "triangular_solves": 2 * n**2, "members": count}}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--counts", type=int, nargs="+", default=[1, 5, 20, 80])
@@ -203,6 +248,8 @@ def main(argv=None):
                     help="time warm repeats only up to this many configurations (above: the cold call only)")
     ap.add_argument("--cache-tables", action="store_true",
                     help="build the phantom's integration table once for all models (host time, not timed)")
+    ap.add_argument("--profile", action="store_true",
+                    help="per count, the lock step's iteration against its pieces (module docstring)")
     ap.add_argument("--gpu", action="store_true",
                     help="the GPU scaling table: " + ", ".join(f"--{k.replace('_', '-')} {v}" for k, v in GPU_PRESET.items()))
     records.add_arguments(ap)
@@ -241,8 +288,11 @@ def main(argv=None):
             row["status_agree"] = bool(np.all(st_b == st_l))
         row["batched_cold_per_configuration_s"] = cold_b / count
         if args.warm_max is not None and count > args.warm_max:
+            if args.profile:
+                row["lockstep"] = lockstep_profile(models[0], count, its_b, cold_b)
             rows.append(row)
             print(json.dumps(row), file=sys.stderr, flush=True)
+            records.checkpoint(run, {"rows": rows, "device": str(jax.devices()[0])})
             continue
         tb, tl = [], []
         for _ in range(args.repeats):
@@ -259,9 +309,12 @@ def main(argv=None):
             row["speedup_cold"] = cold_l / cold_b
             # the floor's states: a configuration whose every increment converged
             last_loop = (row, models[int(np.argmax(np.all(st_l == Status.CONVERGED, axis=1)))], solved)
+        if args.profile:
+            row["lockstep"] = lockstep_profile(models[0], count, its_b, statistics.median(tb))
         rows.append(row)
         # progress on stderr: stdout holds only the final JSON (one document to parse)
         print(json.dumps(row), file=sys.stderr, flush=True)
+        records.checkpoint(run, {"rows": rows, "device": str(jax.devices()[0])})
     base = rows[0]["batched_warm_per_configuration_s"]
     result = {"benchmark": f"needle sweep: batched ({args.batching} of scan, one jitted call) vs Python "
                            "loop of model.solve + model.jacobian per increment",

@@ -181,6 +181,14 @@ def finish(run: Run, figures: dict, ratios: dict | None = None, notes: str | Non
     return path
 
 
+def checkpoint(run: Run, figures: dict, ratios: dict | None = None) -> Path | None:
+    """Write the record as it stands (the figures so far, marked partial), keeping ``run`` open:
+    a bench whose run may be cut short (a device call's time limit) calls it after each row,
+    and ``finish`` later overwrites the same file with the whole record."""
+    import copy
+    return finish(copy.deepcopy(run), figures, ratios, notes="partial: the rows finished so far")
+
+
 def _flat(ratios: dict, prefix: str = "") -> dict:
     """Nested ratio dicts as one level: {"a": {"b": 2}} -> {"a: b": 2}."""
     out = {}
