@@ -207,7 +207,9 @@ def per_batch(fn, *states, repeats=3):
 def lockstep_profile(model, count: int, iterations, seconds: float) -> dict:
     """The lock step's iteration against its pieces at ``count`` members (module docstring):
     ``iterations`` (count, increments) the insertion's Newton iterations, ``seconds`` its warm
-    (or cold) time."""
+    time (above ``--warm-max`` its cold one, compile included: the row has no warm figure).
+    ``lockstep_iterations`` is a lower bound of what the nested loops run in lock step: a
+    member's step cuts restart its Newton loop while another's continues."""
     prob, linear = model.problem(), model.linear
     rest = model.initial()
     g = model.prescribed({"needle": [0.0, 0.0]})

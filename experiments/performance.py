@@ -135,6 +135,18 @@ def t_sweep(f):
         out.append(("The arithmetic floor of the same solves (seconds)", ["configurations", "floor", "loop",
                     "batched"], [[num(fl["configurations"]), num(fl["floor_s"]), num(fl["loop_warm_s"]),
                                   num(fl["batched_warm_s"])]]))
+    prof = [r for r in f.get("rows", []) if "lockstep" in r]
+    if prof:
+        piece = lambda ls, k: num(ls["pieces_s"][k] * 1e3)
+        out.append(("One lock-step iteration against its pieces, each over the whole batch (milliseconds)",
+                     ["configurations", "lock-step its", "member its", "per iteration", "assembly", "factorisation",
+                      "triangular solves", "energy + gradient", "force scale", "other"],
+                     [[num(r["configurations"]), num(ls["lockstep_iterations"]), num(ls["member_iterations"]),
+                       num(ls["seconds_per_lockstep_iteration"] * 1e3)
+                       + ("" if "batched_warm_median_s" in r else " (cold: compile included)"), piece(ls, "assembly_s"),
+                       piece(ls, "factorisation_s"), piece(ls, "triangular_solves_s"),
+                       piece(ls, "energy_and_gradient_s"), piece(ls, "force_scale_s"), num(ls["other_s"] * 1e3)]
+                      for r in prof for ls in [r["lockstep"]]]))
     return out
 
 
