@@ -10,6 +10,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ..iterate import when
 from .base import LinearSolver, Stability
 from .refinement import refine
 
@@ -265,9 +266,12 @@ class DenseSolver(LinearSolver):
                 x = jax.lax.dot_general(state.Linv, y, (((0,), (0,)), ((), ())))
                 return jnp.where(state.spd, x, y)
             return self._refined(lambda r: by_columns(apply, r, self.block), state.K, b).reshape(rhs.shape)
-        chol = lambda: self._refined(lambda r: triangular_pair(state.rows, state.Dinv, r), state.K, b)
-        lu = lambda: _lu_solve(state.K, b)
-        x = jax.lax.cond(state.spd, chol, lu)   # under vmap: both, then a select
+        x = self._refined(lambda r: triangular_pair(state.rows, state.Dinv, r), state.K, b)
+        # LU only where K_ff is not positive definite; ``when``, not a cond: under vmap a cond
+        # factorised every member's K by LU at every solve (a select of both sides), the
+        # dearest operation of a lock-step Newton iteration, where ``when`` runs it only while
+        # some member needs it (a member past a critical point)
+        x = when(~state.spd, lambda: _lu_solve(state.K, b), x)
         return x.reshape(rhs.shape)
 
     def _refined(self, apply, K, b):
