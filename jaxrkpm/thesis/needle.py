@@ -425,8 +425,8 @@ def _lock_step(step, start, prob, batched, G, dG, lim, lock_iterations):
 def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None = "paddle",
            n_devices: int | None = 1, max_iter: int = 25, steps: int = 1, direction=None,
            batching: str | None = None, like: Sequence[Model] = ()) -> Insertion:
-    """Insert the needle of every model through ``depths`` (n,) in one compiled, batched call
-    and record the displacement of ``point`` (d,) at every increment; with ``jacobian_set``,
+    """Insert the needle of every model through ``depths`` (n,) (or (B, n): each model's own)
+    in one compiled, batched call and record the displacement of ``point`` (d,) at every increment; with ``jacobian_set``,
     also the implicit Jacobian of the point w.r.t. a rigid translation of that set.
     ``direction`` (d,): the needle's unit direction (default: the last coordinate axis, +y
     in 2D as in Figure 6.1; pass ``phantom.needle_direction``).
@@ -444,8 +444,13 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
     if batching not in BATCHING:
         raise ValueError(f"unknown batching {batching!r}: choose one of {list(BATCHING)}")
     depths = np.asarray(depths, float)
-    if depths.ndim != 1 or len(depths) == 0 or not np.all(np.isfinite(depths)):
-        raise ValueError(f"depths must be a non-empty 1D array of finite needle depths, got {depths!r}")
+    if depths.ndim not in (1, 2) or depths.shape[-1] == 0 or not np.all(np.isfinite(depths)):
+        raise ValueError(f"depths must be a non-empty 1D array of finite needle depths (or one row per "
+                         f"model), got {depths!r}")
+    if depths.ndim == 2 and depths.shape[0] != len(models):
+        raise ValueError(f"depths has {depths.shape[0]} rows for {len(models)} models: give one row per "
+                         "model, or one 1D array for all")
+    depths = np.broadcast_to(depths, (len(models), depths.shape[-1]))
     ref = models[0]
     prob, batched = stack_models(models, like)
     # one member at a time ("map"): modified Newton's branch is a branch (as in an eager
@@ -456,9 +461,9 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
     if direction.shape != (d,) or not np.isclose(np.linalg.norm(direction), 1.0):
         raise ValueError(f"direction must be a unit vector of shape ({d},), got {np.asarray(direction).tolist()}")
     G, dG = [], []
-    for m in models:
+    for m, row in zip(models, depths):
         rows = [m.prescribed({"needle": np.zeros(d)})]
-        rows += [m.prescribed({"needle": float(t) * direction}) for t in depths]
+        rows += [m.prescribed({"needle": float(t) * direction}) for t in row]
         G.append(jnp.stack(rows))
         dG.append(m.directions(jacobian_set) if jacobian_set else jnp.zeros((1,) + rows[0].shape))
     sf = ref.shape_functions(np.atleast_2d(point), gradients=False)
