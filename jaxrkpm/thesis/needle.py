@@ -423,7 +423,7 @@ def _lock_step(step, start, prob, batched, G, dG, lim, lock_iterations):
 
 
 def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None = "paddle",
-           n_devices: int | None = 1, max_iter: int = 25, steps: int = 1, direction=None,
+           n_devices: int | None = None, max_iter: int = 25, steps: int = 1, direction=None,
            batching: str | None = None, like: Sequence[Model] = ()) -> Insertion:
     """Insert the needle of every model through ``depths`` (n,) (or (B, n): each model's own)
     in one compiled, batched call and record the displacement of ``point`` (d,) at every increment; with ``jacobian_set``,
@@ -433,7 +433,8 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
     ``batching``: "map" runs the configurations one after another on each device, "vmap"
     all at once in lock step; None (default): "map" on CPU, "vmap" elsewhere (GPU), as
     measured (see ``_insert_batch``);
-    ``n_devices``: shard them over that many devices. ``like``: models that set the padded
+    ``n_devices``: shard them over that many local devices (None: all of them, e.g. every
+    GPU of the machine; ``jaxrkpm.control.batching.run_batched``). ``like``: models that set the padded
     shapes and batched leaves with them (``stack_models``: one program for a sweep's chunks).
 
     Each model keeps its other sets fixed (zero). Failed solves do not raise: their status
@@ -534,7 +535,7 @@ class StaticSweep:
 
 
 def static_sweep(phantom: Phantom, inclusion: str = "none", increments: int = 15,
-                 paddles: Sequence[int] | None = None, n_devices: int | None = 1) -> StaticSweep:
+                 paddles: Sequence[int] | None = None, n_devices: int | None = None) -> StaticSweep:
     """Every paddle position x every increment in one batched call, plus the no-paddle run.
     ``phantom``: a :class:`Phantom` or any phantom with the same interface (``NeedleTrack``,
     ``model(inclusion, paddle)``, ``paddles``), e.g. the 3D :class:`jaxrkpm.thesis.phantom3d.Phantom3D`."""
