@@ -175,11 +175,11 @@ def _usable(L):
 def _single_else_double(K):
     L = jnp.linalg.cholesky(K.astype(jnp.float32))
     # single precision could not factorise it: let double decide (near a critical point)
-    return jax.lax.cond(_usable(L), lambda: L, lambda: jnp.linalg.cholesky(K).astype(jnp.float32))
+    return when(~_usable(L), lambda: jnp.linalg.cholesky(K).astype(jnp.float32), L)
 
 
-# per member under vmap on CPU, so the cond stays a branch there (a vmapped cond is a select:
-# every member would pay for the double factorisation too)
+# per member under vmap on CPU; elsewhere ``when`` runs the double factorisation only while
+# some member needs it (a vmapped cond is a select: every member would pay for it)
 _mixed_cholesky = one_at_a_time(_single_else_double)
 
 _lu_solve = one_at_a_time(lambda K, b: jax.scipy.linalg.lu_solve(jax.scipy.linalg.lu_factor(K), b))
@@ -238,8 +238,7 @@ class DenseSolver(LinearSolver):
             return DenseState(K.ravel(), spd, jnp.zeros((0,), L.dtype), rows, blocked_inverses(rows, self.block))
         eye = jnp.eye(K.shape[0], dtype=L.dtype)
         # not positive definite (past a critical point): K^-1 itself, by LU, in its place
-        Linv = jax.lax.cond(spd, lambda: _lower_solve(L, eye),
-                            lambda: _lu_solve(K, eye.astype(K.dtype)).astype(L.dtype))
+        Linv = when(~spd, lambda: _lu_solve(K, eye.astype(K.dtype)).astype(L.dtype), _lower_solve(L, eye))
         return DenseState(K.ravel(), spd, Linv.ravel(), (), jnp.zeros((0, 0, 0), L.dtype))
 
     def empty(self, problem, dtype) -> DenseState:
