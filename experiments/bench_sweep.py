@@ -54,6 +54,7 @@ bench before device time is spent on it.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import statistics
@@ -82,6 +83,7 @@ from jaxrkpm.control import batching  # noqa: E402
 from jaxrkpm.thesis import needle as nd  # noqa: E402
 from jaxrkpm.model.model import Model  # noqa: E402
 from jaxrkpm.solvers.implicit import response  # noqa: E402
+from jaxrkpm.solvers.linalg.dense import DenseSolver  # noqa: E402
 from jaxrkpm.solvers.results import Status  # noqa: E402
 
 
@@ -203,7 +205,9 @@ def lock_step_profile(models, its, st, repeats: int = 3) -> dict:
     each, as inside the lock step): assembly of K_ff (``tangent_blocks`` + ``dense_tangent``),
     its Cholesky factorisation (with the blocks the solves use), the triangular solves, one
     energy + residual + det F evaluation (a line-search trial), the force scale (the
-    convergence test); beside them the arithmetic of the dense pieces (n = free unknowns:
+    convergence test), and the factorisation and solves of ``DenseSolver(inverse=True)`` (L^-1
+    kept: solves are matrix products, which a device may run faster than triangular solves);
+    beside them the arithmetic of the dense pieces (n = free unknowns:
     Cholesky n^3 / 3 flops, LU 2 n^3 / 3, a pair of triangular solves 2 n^2, per member).
 
     ``its``, ``st`` (the insertion's iterations and statuses, (B, n)) give the lock-step iterations: per increment, the
@@ -236,6 +240,12 @@ def lock_step_profile(models, its, st, repeats: int = 3) -> dict:
         "force_scale_s": clock(vm(lambda p, u, g: p.force_scale(p.energy_residual(u, g)[3])), prob, u, g),
         "lu_s": clock(jax.jit(jax.vmap(lambda K: jax.scipy.linalg.lu_factor(K))), K),
     }
+    # the alternative a device may prefer: L^-1 kept, every solve two matrix products
+    if isinstance(linear, DenseSolver) and not linear.inverse:
+        inverse = dataclasses.replace(linear, inverse=True)
+        piece["factorisation_inverse_s"] = clock(jax.jit(jax.vmap(inverse.factorise)), K)
+        piece["triangular_solves_inverse_s"] = clock(jax.jit(jax.vmap(inverse.solve)),
+                                                     jax.jit(jax.vmap(inverse.factorise))(K), rhs)
     n = nf * d
     stay = np.cumprod((st == Status.CONVERGED) & (its <= nd.LOCK_ITERATIONS), axis=1).astype(bool)
     locked = int(np.sum(np.max(np.where(stay, its, np.minimum(its, nd.LOCK_ITERATIONS)), axis=0)))

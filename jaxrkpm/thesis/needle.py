@@ -410,8 +410,12 @@ def _lock_step(step, start, prob, batched, G, dG, lim, lock_iterations):
         idle = jax.tree.map(lambda x: jnp.zeros((width,) + x.shape[2:], x.dtype), out)
 
         def again(carry, i):
-            run = lambda: vstep(group, dG[sel], lim, carry, Gs[:, i + 1])
-            return jax.lax.cond(jnp.any(real & (k + i < n)), run, lambda: (carry, idle))
+            active = real & (k + i < n)
+            # the lanes with no increment left (or no member) idle at their state: a lane
+            # solving on would hold the group as a member does
+            g1 = jnp.where(active[:, None, None], Gs[:, i + 1], carry[1])
+            run = lambda: vstep(group, dG[sel], lim, carry, g1)
+            return jax.lax.cond(jnp.any(active), run, lambda: (carry, idle))
 
         _, res = jax.lax.scan(again, jax.tree.map(lambda x: x[sel], last), jnp.arange(n))
         rows = jnp.where(real, sel, B)[:, None]                 # out of range: dropped
