@@ -213,7 +213,8 @@ def lock_step_profile(models, its, st, repeats: int = 3) -> dict:
     ``its``, ``st`` (the insertion's iterations and statuses, (B, n)) give the lock-step iterations: per increment, the
     largest count among the members in lock step (capped by ``needle.LOCK_ITERATIONS``; a
     member that left counts 1), plus the stragglers' own lock step (the largest count among
-    them per increment, an estimate: they run in groups). ``other_s`` is the warm time the
+    them per increment, an estimate: they run in groups of a quarter of the batch, costed as
+    that fraction of a full-width iteration). ``other_s`` is the warm time the
     pieces do not account for (dispatch, loop control, selects, the Jacobians' extra solves)."""
     prob, batched = batching.stack_models(models)
     axes = batching.batch_axes(prob, batched)
@@ -255,12 +256,14 @@ def lock_step_profile(models, its, st, repeats: int = 3) -> dict:
         piece["energy_residual_s"] + piece["force_scale_s"]
     jacobian = piece["assembly_s"] + piece["factorisation_s"] + piece["triangular_solves_s"]
     increments = its.shape[1]
+    width = -(-B // 4)        # the stragglers' group (``needle._lock_step``): its pieces scaled by width
     return {"members": B, "unknowns": n, "pieces_s": piece,
             "flops_per_member": {"cholesky": n ** 3 / 3, "lu": 2 * n ** 3 / 3, "triangular_pair": 2 * n ** 2},
             "cholesky_gflops": B * n ** 3 / 3 / piece["factorisation_s"] / 1e9,
             "lock_step_iterations": locked, "straggler_iterations_estimate": stragglers,
             "members_that_left": int(np.sum(left.any(axis=1))),
-            "iteration_s": iteration, "modelled_s": (locked + stragglers) * iteration + increments * jacobian}
+            "straggler_width": width / B, "iteration_s": iteration,
+            "modelled_s": (locked + stragglers * width / B) * iteration + increments * jacobian}
 
 
 def progress(run, args, rows, row) -> None:

@@ -68,6 +68,14 @@ def test_unknown_batching(setup):
         nd.insert(models, depths, ph.target, batching="pmap")
 
 
+def test_bad_depths_and_sets_are_named(setup):
+    ph, models, depths = setup
+    with pytest.raises(ValueError, match="3 rows for 4 models"):
+        nd.insert(models, depths[:3], ph.target)
+    with pytest.raises(ValueError, match="no essential set 'paddle'"):
+        nd.insert([ph.model("none", None)], depths[0], ph.target)
+
+
 def test_shared_arrays_stay_unbatched(setup):
     """What every configuration shares (integration table, pair structure) is kept once and
     vmapped as an unbatched operand; what differs (essential partition, material) is stacked."""
