@@ -430,16 +430,18 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
            n_devices: int | None = None, max_iter: int = 25, steps: int = 1, direction=None,
            batching: str | None = None, like: Sequence[Model] = ()) -> Insertion:
     """Insert the needle of every model through ``depths`` (n,) (or (B, n): each model's own)
-    in one compiled, batched call and record the displacement of ``point`` (d,) at every increment; with ``jacobian_set``,
-    also the implicit Jacobian of the point w.r.t. a rigid translation of that set.
+    in one compiled, batched call and record the displacement of ``point`` (d,) at every
+    increment; with ``jacobian_set``, also the implicit Jacobian of the point w.r.t. a rigid
+    translation of that set.
     ``direction`` (d,): the needle's unit direction (default: the last coordinate axis, +y
     in 2D as in Figure 6.1; pass ``phantom.needle_direction``).
     ``batching``: "map" runs the configurations one after another on each device, "vmap"
     all at once in lock step; None (default): "map" on CPU, "vmap" elsewhere (GPU), as
     measured (see ``_insert_batch``);
     ``n_devices``: shard them over that many local devices (None: all of them, e.g. every
-    GPU of the machine; ``jaxrkpm.control.batching.run_batched``). ``like``: models that set the padded
-    shapes and batched leaves with them (``stack_models``: one program for a sweep's chunks).
+    GPU of the machine; ``jaxrkpm.control.batching.run_batched``). ``like``: models that set
+    the padded shapes and batched leaves with them (``stack_models``: one program for a
+    sweep's chunks).
 
     Each model keeps its other sets fixed (zero). Failed solves do not raise: their status
     is recorded and the next increment starts from the last converged state."""
