@@ -40,22 +40,21 @@ in lock step (vmap), timed warm up to 320 (``--warm-max``; above it the cold cal
 included, is the figure: ``batched_cold_per_configuration_s``), the loop at 20 only, one
 warm repeat, the phantom's integration table built once for all models (``--cache-tables``:
 ``Model`` rebuilds it per model, host time outside the timed calls that took minutes at
-4,100 models). A full preset run may outlast one device call: run the largest count as a call of its own.
-
-``--profile`` (on in ``--gpu``): per count, the lock step's cost per iteration against its
-pieces, each timed over the whole batch in one vmapped call: the tangent's assembly, its
-factorisation (the dense solver's state minus the assembly), the triangular solves, one
-energy + gradient (a line-search trial), the force scale; ``lockstep_iterations`` is the sum
-over increments of the batch's largest Newton iteration count (what lock step pays),
-``member_iterations`` the mean over members (what each needed), and ``flops`` the dense
-arithmetic of one factorisation and one pair of triangular solves. The record is written after
-every count (``records.checkpoint``), so a run cut short keeps its finished rows.
+4,100 models), and at every count the profile of a lock-step iteration (``--profile``,
+``lock_step_profile``: assembly, factorisation, triangular solves, a line-search trial, the
+convergence test, each a jitted vmap over the batch, beside their arithmetic). The presets
+set defaults: options given on the command line win (``--gpu --counts 4100``: the largest
+count as a call of its own). The record is written after every count (``"partial": true``
+until the run ends), so a run stopped by a time limit keeps the counts it finished.
+``--gpu --quick``: the same path at toy sizes on this machine (a smoke record), to check the
+bench before device time is spent on it.
 
 ``--devices N`` splits the configurations over N XLA host devices (one per core; shard_map,
 ``needle.insert(n_devices=N)``), the loop stays on one: say so when quoting it."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import statistics
@@ -84,6 +83,7 @@ from jaxrkpm.control import batching  # noqa: E402
 from jaxrkpm.thesis import needle as nd  # noqa: E402
 from jaxrkpm.model.model import Model  # noqa: E402
 from jaxrkpm.solvers.implicit import response  # noqa: E402
+from jaxrkpm.solvers.linalg.dense import DenseSolver  # noqa: E402
 from jaxrkpm.solvers.results import Status  # noqa: E402
 
 
@@ -104,6 +104,9 @@ def cache_integration_tables() -> None:
 # the largest count: the first multiple of the 5 paddle positions at or above 4,096
 GPU_PRESET = {"counts": [20, 80, 320, 1280, 4100], "batching": "vmap", "loop_max": 20, "repeats": 1,
               "warm_max": 320, "cache_tables": True, "profile": True}
+# --quick: the same path at toy sizes, a check on a CPU that the bench runs before device time
+# is spent on it (figures meaningless: a smoke record)
+QUICK = {"counts": [5], "increments": 3, "loop_max": 0, "repeats": 1, "warm_max": 5, "smoke": True}
 
 
 def configurations(phantom: nd.Phantom, count: int) -> list[Model]:
@@ -196,42 +199,78 @@ def floor(model, phantom, depths, iterations: int, jacobians: int, factorisation
             "jacobians": int(jacobians), "floor_s": total}
 
 
-def per_batch(fn, *states, repeats=3):
-    """Seconds of ``fn`` over the whole batch of states (leading axes) in one jitted vmap
-    (median of ``repeats``): what one lock-step call of that piece costs."""
-    f = jax.jit(jax.vmap(fn))
-    jax.block_until_ready(f(*states))
-    return statistics.median(timed(lambda: jax.block_until_ready(f(*states)))[0] for _ in range(repeats))
+def lock_step_profile(models, its, st, repeats: int = 3) -> dict:
+    """Where a lock-step ("vmap") iteration of ``models`` spends its time: each piece of a
+    Newton iteration timed as its own jitted vmap over all the members (one batched kernel
+    each, as inside the lock step): assembly of K_ff (``tangent_blocks`` + ``dense_tangent``),
+    its Cholesky factorisation (with the blocks the solves use), the triangular solves, one
+    energy + residual + det F evaluation (a line-search trial), the force scale (the
+    convergence test), and the factorisation and solves of ``DenseSolver(inverse=True)`` (L^-1
+    kept: solves are matrix products, which a device may run faster than triangular solves);
+    beside them the arithmetic of the dense pieces (n = free unknowns:
+    Cholesky n^3 / 3 flops, LU 2 n^3 / 3, a pair of triangular solves 2 n^2, per member).
+
+    ``its``, ``st`` (the insertion's iterations and statuses, (B, n)) give the lock-step iterations: per increment, the
+    largest count among the members in lock step (capped by ``needle.LOCK_ITERATIONS``; a
+    member that left counts 1), plus the stragglers' own lock step (the largest count among
+    them per increment, an estimate: they run in groups of a quarter of the batch, costed as
+    that fraction of a full-width iteration). ``other_s`` is the warm time the
+    pieces do not account for (dispatch, loop control, selects, the Jacobians' extra solves)."""
+    prob, batched = batching.stack_models(models)
+    axes = batching.batch_axes(prob, batched)
+    linear = models[0].solver(reuse=0.0).linear
+    B, nf, d = len(models), prob.n_free, prob.dim
+    g = jnp.stack([m.prescribed({"needle": np.zeros(d)}) for m in models])
+    u = jnp.zeros((B, nf, d))
+
+    def vm(f):
+        return jax.jit(jax.vmap(f, in_axes=(axes, 0, 0)))
+
+    def clock(f, *xs):
+        jax.block_until_ready(f(*xs))
+        return statistics.median(timed(lambda: jax.block_until_ready(f(*xs)))[0] for _ in range(repeats))
+
+    K = vm(lambda p, u, g: p.dense_tangent(p.tangent_blocks(u, g)))(prob, u, g)
+    state = jax.jit(jax.vmap(linear.factorise))(K)
+    rhs = vm(lambda p, u, g: p.residual(u, g))(prob, u, g) + 1.0
+    piece = {
+        "assembly_s": clock(vm(lambda p, u, g: p.dense_tangent(p.tangent_blocks(u, g))), prob, u, g),
+        "factorisation_s": clock(jax.jit(jax.vmap(linear.factorise)), K),
+        "triangular_solves_s": clock(jax.jit(jax.vmap(linear.solve)), state, rhs),
+        "energy_residual_s": clock(vm(lambda p, u, g: p.energy_residual(u, g)), prob, u, g),
+        "force_scale_s": clock(vm(lambda p, u, g: p.force_scale(p.energy_residual(u, g)[3])), prob, u, g),
+        "lu_s": clock(jax.jit(jax.vmap(lambda K: jax.scipy.linalg.lu_factor(K))), K),
+    }
+    # the alternative a device may prefer: L^-1 kept, every solve two matrix products
+    if isinstance(linear, DenseSolver) and not linear.inverse:
+        inverse = dataclasses.replace(linear, inverse=True)
+        piece["factorisation_inverse_s"] = clock(jax.jit(jax.vmap(inverse.factorise)), K)
+        piece["triangular_solves_inverse_s"] = clock(jax.jit(jax.vmap(inverse.solve)),
+                                                     jax.jit(jax.vmap(inverse.factorise))(K), rhs)
+    n = nf * d
+    stay = np.cumprod((st == Status.CONVERGED) & (its <= nd.LOCK_ITERATIONS), axis=1).astype(bool)
+    locked = int(np.sum(np.max(np.where(stay, its, np.minimum(its, nd.LOCK_ITERATIONS)), axis=0)))
+    left = ~stay
+    stragglers = int(np.sum(np.max(np.where(left, its, 0), axis=0))) if left.any() else 0
+    iteration = piece["assembly_s"] + piece["factorisation_s"] + piece["triangular_solves_s"] + \
+        piece["energy_residual_s"] + piece["force_scale_s"]
+    jacobian = piece["assembly_s"] + piece["factorisation_s"] + piece["triangular_solves_s"]
+    increments = its.shape[1]
+    width = -(-B // 4)        # the stragglers' group (``needle._lock_step``): its pieces scaled by width
+    return {"members": B, "unknowns": n, "pieces_s": piece,
+            "flops_per_member": {"cholesky": n ** 3 / 3, "lu": 2 * n ** 3 / 3, "triangular_pair": 2 * n ** 2},
+            "cholesky_gflops": B * n ** 3 / 3 / piece["factorisation_s"] / 1e9,
+            "lock_step_iterations": locked, "straggler_iterations_estimate": stragglers,
+            "members_that_left": int(np.sum(left.any(axis=1))),
+            "straggler_width": width / B, "iteration_s": iteration,
+            "modelled_s": (locked + stragglers * width / B) * iteration + increments * jacobian}
 
 
-def lockstep_profile(model, count: int, iterations, seconds: float) -> dict:
-    """The lock step's iteration against its pieces at ``count`` members (module docstring):
-    ``iterations`` (count, increments) the insertion's Newton iterations, ``seconds`` its warm
-    time (above ``--warm-max`` its cold one, compile included: the row has no warm figure).
-    ``lockstep_iterations`` is a lower bound of what the nested loops run in lock step: a
-    member's step cuts restart its Newton loop while another's continues."""
-    prob, linear = model.problem(), model.linear
-    rest = model.initial()
-    g = model.prescribed({"needle": [0.0, 0.0]})
-    us = jnp.asarray(1e-4 * np.random.default_rng(0).standard_normal((count,) + rest.u.shape))
-    state = jax.vmap(lambda u: linear.state_at(prob, u, g))(us)
-    rhs = jax.vmap(lambda u: prob.residual(u, g))(us)
-    assembly = per_batch(lambda u: prob.tangent(u, g), us)
-    piece = {"assembly_s": assembly,
-             "factorisation_s": max(per_batch(lambda u: linear.state_at(prob, u, g), us) - assembly, 0.0),
-             "triangular_solves_s": per_batch(linear.solve, state, rhs),
-             "energy_and_gradient_s": per_batch(lambda u: jax.value_and_grad(lambda v: prob.energy(v, g)[0])(u), us),
-             "force_scale_s": per_batch(lambda u: prob.force_scale(prob.energy_residual(u, g)[3]), us)}
-    its = np.asarray(iterations)
-    lockstep = int(its.max(axis=0).sum())
-    n = int(np.prod(rest.u.shape))
-    per_iteration = seconds / max(lockstep, 1)
-    return {"configurations": count, "unknowns": n, "pieces_s": piece,
-            "pieces_sum_s": sum(piece.values()),
-            "lockstep_iterations": lockstep, "member_iterations": float(its.sum(axis=1).mean()),
-            "seconds_per_lockstep_iteration": per_iteration,
-            "other_s": per_iteration - sum(piece.values()),
-            "flops": {"cholesky": n**3 / 3, "triangular_solves": 2 * n**2, "members": count}}
+def progress(run, args, rows, row) -> None:
+    """A finished count: on stderr (stdout holds only the final JSON, one document to parse)
+    and into the record so far (a run stopped by a time limit keeps its finished counts)."""
+    print(json.dumps(row), file=sys.stderr, flush=True)
+    records.finish(run, {"batching": args.batching, "device": str(jax.devices()[0]), "rows": rows}, partial=True)
 
 
 def main(argv=None):
@@ -250,15 +289,21 @@ def main(argv=None):
                     help="time warm repeats only up to this many configurations (above: the cold call only)")
     ap.add_argument("--cache-tables", action="store_true",
                     help="build the phantom's integration table once for all models (host time, not timed)")
-    ap.add_argument("--profile", action="store_true",
-                    help="per count, the lock step's iteration against its pieces (module docstring)")
     ap.add_argument("--gpu", action="store_true",
                     help="the GPU scaling table: " + ", ".join(f"--{k.replace('_', '-')} {v}" for k, v in GPU_PRESET.items()))
+    ap.add_argument("--quick", action="store_true",
+                    help="toy sizes (with --gpu: its path on this machine): " + ", ".join(
+                        f"--{k.replace('_', '-')} {v}" for k, v in QUICK.items()))
+    ap.add_argument("--profile", action="store_true",
+                    help="time the pieces of a lock-step iteration at every count (lock_step_profile)")
     records.add_arguments(ap)
+    given = sys.argv[1:] if argv is None else list(argv)
+    # the presets set defaults: an option given on the command line (--counts 4100) wins
+    if "--gpu" in given:
+        ap.set_defaults(**GPU_PRESET)
+    if "--quick" in given:
+        ap.set_defaults(**QUICK)
     args = ap.parse_args(argv)
-    if args.gpu:
-        for k, v in GPU_PRESET.items():
-            setattr(args, k, v)
     if args.cache_tables:
         cache_integration_tables()
     args.batching = args.batching or batching.default_batching()
@@ -273,14 +318,14 @@ def main(argv=None):
     depths = phantom.depths(args.increments)
     rows, last_loop = [], None
     for count in args.counts:
-        models = configurations(phantom, count)
+        models_s, models = timed(configurations, phantom, count)     # host time, not in the figures
         sweep = (models, depths, phantom.target, args.batching, args.devices)
         reuse = models[0].newton_reuse if args.batching == "map" else 0.0   # what insert solves with
         cold_b, (dev_b, st_b, its_b) = timed(batched, *sweep)
         row = {"configurations": count, "increments": args.increments,
                "solves": count * args.increments,
                "converged_fraction": float(np.mean(st_b == Status.CONVERGED)),
-               "newton_iterations": int(its_b.sum()), "batched_cold_s": cold_b}
+               "newton_iterations": int(its_b.sum()), "batched_cold_s": cold_b, "models_build_s": models_s}
         do_loop = count <= args.loop_max
         if do_loop:
             cold_l, (dev_l, st_l) = timed(loop, models, depths, phantom.target, reuse)
@@ -289,12 +334,11 @@ def main(argv=None):
             row["max_abs_difference"] = float(np.max(np.abs(dev_b - dev_l)))
             row["status_agree"] = bool(np.all(st_b == st_l))
         row["batched_cold_per_configuration_s"] = cold_b / count
+        if args.profile and args.batching == "vmap":
+            row["lock_step_profile"] = lock_step_profile(models, its_b, st_b, repeats=max(args.repeats, 1))
         if args.warm_max is not None and count > args.warm_max:
-            if args.profile:
-                row["lockstep"] = lockstep_profile(models[0], count, its_b, cold_b)
             rows.append(row)
-            print(json.dumps(row), file=sys.stderr, flush=True)
-            records.checkpoint(run, {"rows": rows, "device": str(jax.devices()[0])})
+            progress(run, args, rows, row)
             continue
         tb, tl = [], []
         for _ in range(args.repeats):
@@ -311,13 +355,13 @@ def main(argv=None):
             row["speedup_cold"] = cold_l / cold_b
             # the floor's states: a configuration whose every increment converged
             last_loop = (row, models[int(np.argmax(np.all(st_l == Status.CONVERGED, axis=1)))], solved)
-        if args.profile:
-            row["lockstep"] = lockstep_profile(models[0], count, its_b, statistics.median(tb))
+        if "lock_step_profile" in row:
+            prof = row["lock_step_profile"]
+            prof["other_s"] = row["batched_warm_median_s"] - prof["modelled_s"]
         rows.append(row)
-        # progress on stderr: stdout holds only the final JSON (one document to parse)
-        print(json.dumps(row), file=sys.stderr, flush=True)
-        records.checkpoint(run, {"rows": rows, "device": str(jax.devices()[0])})
-    base = rows[0]["batched_warm_per_configuration_s"]
+        progress(run, args, rows, row)
+    warm = [r for r in rows if "batched_warm_per_configuration_s" in r]
+    base = warm[0]["batched_warm_per_configuration_s"] if warm else None
     result = {"benchmark": f"needle sweep: batched ({args.batching} of scan, one jitted call) vs Python "
                            "loop of model.solve + model.jacobian per increment",
               "batching": args.batching, "devices": args.devices,

@@ -147,6 +147,20 @@ def t_sweep(f):
                        piece(ls, "factorisation_s"), piece(ls, "triangular_solves_s"),
                        piece(ls, "energy_and_gradient_s"), piece(ls, "force_scale_s"), num(ls["other_s"] * 1e3)]
                       for r in prof for ls in [r["lockstep"]]]))
+    prof = [r for r in f.get("rows", []) if "lock_step_profile" in r]
+    if prof:
+        ms = lambda v: num(v * 1e3) if isinstance(v, (int, float)) else "–"
+        keys = ["assembly_s", "factorisation_s", "triangular_solves_s", "energy_residual_s", "force_scale_s"]
+        out.append(("The lock step against its pieces, each over the whole batch (pieces: milliseconds a call; "
+                    "whole run: seconds)",
+                    ["configurations", "lock-step its", "stragglers' its (estimate)", "members that left",
+                     "assembly", "factorisation", "triangular solves", "energy + residual", "force scale",
+                     "modelled", "warm", "other"],
+                    [[num(r["configurations"]), num(ls["lock_step_iterations"]),
+                      num(ls["straggler_iterations_estimate"]), num(ls["members_that_left"]),
+                      *(ms(ls["pieces_s"].get(k)) for k in keys), num(ls["modelled_s"]),
+                      num(r.get("batched_warm_median_s", "–")), num(ls.get("other_s", "–"))]
+                     for r in prof for ls in [r["lock_step_profile"]]]))
     return out
 
 

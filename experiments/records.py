@@ -159,9 +159,14 @@ def start(bench: str, args: argparse.Namespace | None = None, variant: str = "")
     return run
 
 
-def finish(run: Run, figures: dict, ratios: dict | None = None, notes: str | None = None) -> Path | None:
+def finish(run: Run, figures: dict, ratios: dict | None = None, notes: str | None = None,
+           partial: bool = False) -> Path | None:
     """Complete the record with the machine, the load average now, the figures and the
-    same-run ratios, and write it; returns its path (None with ``--no-record``)."""
+    same-run ratios, and write it; returns its path (None with ``--no-record``).
+    ``partial``: write the figures so far (marked ``"partial": true``) and leave the run
+    open, to the same path, so that a run stopped by a time limit keeps what it finished."""
+    if partial:
+        run = Run(run, load_average=dict(run["load_average"]), partial=True)
     run["load_average"]["after"] = list(os.getloadavg())
     run["wall_s"] = time.perf_counter() - run.pop("_t0")
     write = run.pop("_record")
@@ -177,16 +182,9 @@ def finish(run: Run, figures: dict, ratios: dict | None = None, notes: str | Non
     sha = (run["commit"]["sha"] or "nogit")[:8]
     path = folder / f"{run['date'].replace(':', '').replace('-', '')}-{sha}.json"
     path.write_text(json.dumps(run, indent=1, default=_plain) + "\n")
-    print(f"record: {path.relative_to(ROOT)}", file=sys.stderr)
+    if not partial:
+        print(f"record: {path.relative_to(ROOT)}", file=sys.stderr)
     return path
-
-
-def checkpoint(run: Run, figures: dict, ratios: dict | None = None) -> Path | None:
-    """Write the record as it stands (the figures so far, marked partial), keeping ``run`` open:
-    a bench whose run may be cut short (a device call's time limit) calls it after each row,
-    and ``finish`` later overwrites the same file with the whole record."""
-    import copy
-    return finish(copy.deepcopy(run), figures, ratios, notes="partial: the rows finished so far")
 
 
 def _flat(ratios: dict, prefix: str = "") -> dict:

@@ -44,17 +44,23 @@ def stack_models(models: Sequence[Model], like: Sequence[Model] = ()) -> tuple[P
             raise ValueError("batched models must share one material law and linear solver")
 
     def same(xs):
+        # the one object every model shares (the integration table) needs no comparison
+        if all(x is xs[0] for x in xs[1:]):
+            return True
         a = np.asarray(xs[0])
-        return all(np.shape(x) == a.shape and np.array_equal(np.asarray(x), a) for x in xs[1:])
+        return all(x is xs[0] or (np.shape(x) == a.shape and np.array_equal(np.asarray(x), a)) for x in xs[1:])
 
     B = len(models)
 
     def stack(xs):
         if not np.ndim(xs[0]):
             return jnp.stack(xs[:B])
-        shape = np.max([np.shape(x) for x in xs], axis=0)
-        return jnp.asarray(np.stack([np.pad(np.asarray(x), [(0, s - n) for s, n in zip(shape, np.shape(x))])
-                                     for x in xs[:B]]))
+        shape = tuple(np.max([np.shape(x) for x in xs], axis=0))
+        out = np.zeros((B,) + shape, np.result_type(*[np.asarray(x).dtype for x in xs[:B]]))
+        for i, x in enumerate(xs[:B]):          # zero-padded where ragged
+            x = np.asarray(x)
+            out[(i,) + tuple(slice(0, n) for n in x.shape)] = x
+        return jnp.asarray(out)
 
     flat = [jax.tree.flatten(m.problem()) for m in list(models) + like]
     treedef = flat[0][1]
@@ -90,16 +96,21 @@ def map_batch(fn, tree, batched: tuple, *xs):
 
 
 def _device_mesh(n_devices: int | None):
-    devices = jax.devices()[:n_devices] if n_devices else jax.devices()
-    return Mesh(np.array(devices), ("batch",))
+    devices = jax.local_devices()
+    if n_devices is not None and not (isinstance(n_devices, int) and 1 <= n_devices <= len(devices)):
+        raise ValueError(f"n_devices must be None (every local device) or 1..{len(devices)} (the local "
+                         f"devices JAX sees), got {n_devices!r}")
+    return Mesh(np.array(devices[:n_devices]), ("batch",))
 
 
-def run_batched(fn, batched_args, n_devices: int | None = 1, axes=0):
+def run_batched(fn, batched_args, n_devices: int | None = None, axes=0):
     """fn maps arguments with a leading batch axis to outputs with one. ``axes``: a pytree
     prefix of ``batched_args`` (as vmap's ``in_axes``: 0 batched, None shared by every
-    member). With several devices the batch is padded to a multiple of their number
-    (repeating the last member), each device runs its shard independently (shard_map: no
-    cross-device step) and the shared arguments are replicated."""
+    member). ``n_devices``: None (default) every local device of this process (a 1-D mesh
+    over ``jax.local_devices()``), else the first that many. With several devices the batch
+    is padded to a multiple of their number (repeating the last member), each device runs
+    its shard independently (shard_map: no cross-device step) and the shared arguments are
+    replicated."""
     mesh = _device_mesh(n_devices)
     n_dev = mesh.devices.size
     if n_dev == 1:

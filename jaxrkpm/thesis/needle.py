@@ -306,8 +306,14 @@ class Insertion(NamedTuple):
     jacobian: jax.Array
 
 
-@partial(jax.jit, static_argnames=("driver", "batched", "with_jacobian", "batching"))
-def _insert_batch(driver: LoadPath, prob: Problem, G, dG, lim, idx, psi, *, batched, with_jacobian, batching):
+# a lock-step member that needs more Newton iterations than this in an increment leaves the
+# lock step (``_lock_step``): converging increments take a handful
+LOCK_ITERATIONS = 8
+
+
+@partial(jax.jit, static_argnames=("driver", "batched", "with_jacobian", "batching", "lock_iterations"))
+def _insert_batch(driver: LoadPath, prob: Problem, G, dG, lim, idx, psi, *, batched, with_jacobian, batching,
+                  lock_iterations=LOCK_ITERATIONS):
     """prob: the batched problems (``batched``: which leaves carry the batch axis, see
     ``stack_models``), solved by ``driver``; G (B, n+1, Nb, d) prescribed values per increment
     (G[:, 0] the start); dG (B, m, Nb, d) the paddle directions for the Jacobian; idx, psi
@@ -315,59 +321,127 @@ def _insert_batch(driver: LoadPath, prob: Problem, G, dG, lim, idx, psi, *, batc
 
     ``batching``: "map" runs the configurations one after another (``lax.map``); "vmap"
     advances all of them through each increment at once, their Newton while-loops in lock
-    step (each increment costs the slowest member's iterations, step cuts and line-search
-    trials; a ``lax.cond`` runs both branches). Which wins depends on the device
-    (``experiments/bench_sweep.py``):
+    step (``_lock_step``: a member that needs more than ``lock_iterations`` iterations or a
+    step cut leaves the lock step and is solved again afterwards, so that no member holds the
+    batch). Which wins depends on the device (``experiments/bench_sweep.py``):
 
     - CPU: "map". XLA:CPU runs the batched forms of the assembly's contractions and scatters
-      slower per member than the unbatched ones, and lock step costs the slowest member (an
-      increment with a failing member takes many times the iterations of the others). "map"
-      solves with modified Newton (``Model.newton_reuse``), as the eager loop does by default,
-      and carries each increment's Jacobian factorisation into the next increment's predictor
-      (the eager loop makes that matrix twice).
+      slower per member than the unbatched ones. "map" solves with modified Newton
+      (``Model.newton_reuse``), as the eager loop does by default, and carries each
+      increment's Jacobian factorisation into the next increment's predictor (the eager loop
+      makes that matrix twice).
     - GPU: "vmap" (one batched kernel per operation, native batched factorisations; see
       ``jaxrkpm.solvers.linalg.dense.one_at_a_time``, which also keeps vmapped solves from
       deadlocking XLA:CPU)."""
 
-    def one(prob, G, dG):
-        def step(carry, g1):
-            u, g0, state = carry
-            # ``state``: the Jacobian's factorisation at the equilibrium this increment starts
-            # from, the predictor's matrix too (the eager loop, model.solve then
-            # model.jacobian, makes it twice: same matrix, same results)
-            sol = solve_path_diff(driver, prob, lim, u, g0, g1, jnp.float64(1.0), jnp.float64(1.0), state)
-            tu = prob.point_values(idx, psi, sol.u, sol.g)[0]
-            if with_jacobian:
-                state = driver.linear.state_at(prob, sol.u, sol.g, sol.load)
-                du = response(prob, driver.linear, sol.u, sol.g, sol.load, dG, state)
-                J = point_jacobian(prob, idx, psi, sol.u, sol.g, du, dG)[0]             # (d, m)
-            else:
-                J = jnp.zeros((tu.shape[0], dG.shape[0]))
-            return (sol.u, sol.g, state), (tu, sol.status, sol.iterations, J)
+    def step(prob, dG, lim, carry, g1):
+        u, g0, state = carry
+        # ``state``: the Jacobian's factorisation at the equilibrium this increment starts
+        # from, the predictor's matrix too (the eager loop, model.solve then
+        # model.jacobian, makes it twice: same matrix, same results)
+        sol = solve_path_diff(driver, prob, lim, u, g0, g1, jnp.float64(1.0), jnp.float64(1.0), state)
+        tu = prob.point_values(idx, psi, sol.u, sol.g)[0]
+        if with_jacobian:
+            state = driver.linear.state_at(prob, sol.u, sol.g, sol.load)
+            du = response(prob, driver.linear, sol.u, sol.g, sol.load, dG, state)
+            J = point_jacobian(prob, idx, psi, sol.u, sol.g, du, dG)[0]             # (d, m)
+        else:
+            J = jnp.zeros((tu.shape[0], dG.shape[0]))
+        return (sol.u, sol.g, state), Insertion(tu, sol.status, sol.iterations, J)
 
+    def start(prob, G):
         u0 = jnp.zeros((prob.n_free, G.shape[-1]))
-        start = (u0, G[0], driver.linear.empty(prob, u0.dtype))
-        _, out = jax.lax.scan(step, start, G[1:])
-        return out
+        return (u0, G[0], driver.linear.empty(prob, u0.dtype))
 
     if batching == "vmap":
-        return Insertion(*jax.vmap(one, in_axes=(batch_axes(prob, batched), 0, 0))(prob, G, dG))
+        return _lock_step(step, start, prob, batched, G, dG, lim, lock_iterations)
+
+    def one(prob, G, dG):
+        return jax.lax.scan(partial(step, prob, dG, lim), start(prob, G), G[1:])[1]
     return Insertion(*map_batch(one, prob, batched, G, dG))
 
 
+def _lock_step(step, start, prob, batched, G, dG, lim, lock_iterations):
+    """Every member through every increment in lock step (vmap), with the results of solving
+    each member alone.
+
+    Under vmap a while loop runs until its slowest member is done (the members already done
+    are frozen by a select, computed and discarded), so one member in trouble would hold the
+    whole batch: a failing increment's step cuts spent tens of times the iterations of a
+    converging one. So the lock step solves each increment with at most ``lock_iterations``
+    Newton iterations and no step cut: a member whose increment does not converge so leaves
+    (it idles through the remaining increments: zero increments, converged at once) and
+    keeps its last converged state. Then the members that left are solved again from that
+    state with the full limits, in groups of a quarter of the batch (a group's lock step
+    holds only the stragglers; an increment no member of the group still needs is skipped).
+    Converging increments within the cap follow the same iterates either way (the cap and
+    the step cuts act only on a failing attempt), so every member's results, statuses and
+    iteration counts are those of its unbatched solve."""
+    B, n = G.shape[0], G.shape[1] - 1
+    axes = batch_axes(prob, batched)
+    vstep = jax.vmap(step, in_axes=(axes, 0, None, 0, 0))
+    lock = Limits(lim.steps, jnp.minimum(lim.max_iter, lock_iterations), jnp.zeros_like(lim.max_cuts))
+
+    def locked(c, g1):
+        carry, stay = c
+        g0 = carry[1]
+        g1 = jnp.where(stay[:, None, None], g1, g0)           # a member that left idles
+        new, out = vstep(prob, dG, lock, carry, g1)
+        ok = stay & (out.status == Status.CONVERGED)
+        keep = lambda a, b: jnp.where(ok.reshape((-1,) + (1,) * (a.ndim - 1)), a, b)
+        return (jax.tree.map(keep, new, carry), ok), out
+
+    carry0 = jax.vmap(start, in_axes=(axes, 0))(prob, G)
+    last, out = jax.lax.scan(locked, (carry0, jnp.ones(B, bool)), jnp.swapaxes(G[:, 1:], 0, 1))
+    last = last[0]                                             # each member's last converged state
+    out = Insertion(*(jnp.swapaxes(x, 0, 1) for x in out))     # (B, n, ...)
+    done = jnp.sum(jnp.cumprod(out.status == Status.CONVERGED, axis=1), axis=1)   # increments before leaving
+
+    width = max(1, -(-B // 4))
+    leaves, treedef = jax.tree.flatten(prob)
+
+    def stragglers(c):
+        out, pending = c
+        sel = jnp.nonzero(pending, size=width, fill_value=0)[0]
+        real = jnp.arange(width) < jnp.sum(pending)
+        k = done[sel]
+        group = treedef.unflatten([x[sel] if b else x for x, b in zip(leaves, batched)])
+        Gs = G[sel[:, None], jnp.minimum(k[:, None] + jnp.arange(n + 1), n)]   # from where each left
+        idle = jax.tree.map(lambda x: jnp.zeros((width,) + x.shape[2:], x.dtype), out)
+
+        def again(carry, i):
+            active = real & (k + i < n)
+            # the lanes with no increment left (or no member) idle at their state: a lane
+            # solving on would hold the group as a member does
+            g1 = jnp.where(active[:, None, None], Gs[:, i + 1], carry[1])
+            run = lambda: vstep(group, dG[sel], lim, carry, g1)
+            return jax.lax.cond(jnp.any(active), run, lambda: (carry, idle))
+
+        _, res = jax.lax.scan(again, jax.tree.map(lambda x: x[sel], last), jnp.arange(n))
+        rows = jnp.where(real, sel, B)[:, None]                 # out of range: dropped
+        cols = jnp.minimum(k[:, None] + jnp.arange(n), n)
+        out = jax.tree.map(lambda o, r: o.at[rows, cols].set(jnp.swapaxes(r, 0, 1), mode="drop"), out, res)
+        return out, pending.at[rows[:, 0]].set(False, mode="drop")
+
+    return jax.lax.while_loop(lambda c: jnp.any(c[1]), stragglers, (out, done < n))[0]
+
+
 def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None = "paddle",
-           n_devices: int | None = 1, max_iter: int = 25, steps: int = 1, direction=None,
+           n_devices: int | None = None, max_iter: int = 25, steps: int = 1, direction=None,
            batching: str | None = None, like: Sequence[Model] = ()) -> Insertion:
-    """Insert the needle of every model through ``depths`` (n,) in one compiled, batched call
-    and record the displacement of ``point`` (d,) at every increment; with ``jacobian_set``,
-    also the implicit Jacobian of the point w.r.t. a rigid translation of that set.
+    """Insert the needle of every model through ``depths`` (n,) (or (B, n): each model's own)
+    in one compiled, batched call and record the displacement of ``point`` (d,) at every
+    increment; with ``jacobian_set``, also the implicit Jacobian of the point w.r.t. a rigid
+    translation of that set.
     ``direction`` (d,): the needle's unit direction (default: the last coordinate axis, +y
     in 2D as in Figure 6.1; pass ``phantom.needle_direction``).
     ``batching``: "map" runs the configurations one after another on each device, "vmap"
     all at once in lock step; None (default): "map" on CPU, "vmap" elsewhere (GPU), as
     measured (see ``_insert_batch``);
-    ``n_devices``: shard them over that many devices. ``like``: models that set the padded
-    shapes and batched leaves with them (``stack_models``: one program for a sweep's chunks).
+    ``n_devices``: shard them over that many local devices (None: all of them, e.g. every
+    GPU of the machine; ``jaxrkpm.control.batching.run_batched``). ``like``: models that set
+    the padded shapes and batched leaves with them (``stack_models``: one program for a
+    sweep's chunks).
 
     Each model keeps its other sets fixed (zero). Failed solves do not raise: their status
     is recorded and the next increment starts from the last converged state."""
@@ -377,8 +451,13 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
     if batching not in BATCHING:
         raise ValueError(f"unknown batching {batching!r}: choose one of {list(BATCHING)}")
     depths = np.asarray(depths, float)
-    if depths.ndim != 1 or len(depths) == 0 or not np.all(np.isfinite(depths)):
-        raise ValueError(f"depths must be a non-empty 1D array of finite needle depths, got {depths!r}")
+    if depths.ndim not in (1, 2) or depths.shape[-1] == 0 or not np.all(np.isfinite(depths)):
+        raise ValueError(f"depths must be a non-empty 1D array of finite needle depths (or one row per "
+                         f"model), got {depths!r}")
+    if depths.ndim == 2 and depths.shape[0] != len(models):
+        raise ValueError(f"depths has {depths.shape[0]} rows for {len(models)} models: give one row per "
+                         "model, or one 1D array for all")
+    depths = np.broadcast_to(depths, (len(models), depths.shape[-1]))
     ref = models[0]
     prob, batched = stack_models(models, like)
     # one member at a time ("map"): modified Newton's branch is a branch (as in an eager
@@ -388,18 +467,24 @@ def insert(models: Sequence[Model], depths, point, *, jacobian_set: str | None =
     direction = np.eye(d)[-1] if direction is None else np.asarray(direction, float)
     if direction.shape != (d,) or not np.isclose(np.linalg.norm(direction), 1.0):
         raise ValueError(f"direction must be a unit vector of shape ({d},), got {np.asarray(direction).tolist()}")
-    G, dG = [], []
-    for m in models:
-        rows = [m.prescribed({"needle": np.zeros(d)})]
-        rows += [m.prescribed({"needle": float(t) * direction}) for t in depths]
-        G.append(jnp.stack(rows))
-        dG.append(m.directions(jacobian_set) if jacobian_set else jnp.zeros((1,) + rows[0].shape))
+    # host arrays, built at once: per model and increment ``Model.prescribed`` (device
+    # arrays, a dispatch each) took longer than the batched solve itself at thousands of models
+    G = np.zeros((len(models), depths.shape[1] + 1, len(ref.sets.bnd), d))
+    dG = np.zeros((len(models), d if jacobian_set else 1) + G.shape[2:])
+    for b, m in enumerate(models):
+        for name in ("needle",) + ((jacobian_set,) if jacobian_set else ()):
+            if name not in m.sets.slices:
+                raise ValueError(f"model {b} has no essential set {name!r} (its sets: {list(m.sets.names)})")
+        G[b, 1:, m.sets.slices["needle"]] = depths[b][:, None, None] * direction      # the rigid needle
+        if jacobian_set:
+            for a in range(d):
+                dG[b, a, m.sets.slices[jacobian_set], a] = 1.0                       # Model.directions
     sf = ref.shape_functions(np.atleast_2d(point), gradients=False)
     fn = partial(_insert_batch, driver, batched=batched, with_jacobian=jacobian_set is not None, batching=batching)
     lim = Limits.of(steps, max_iter)
     idx, psi = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
     return run_batched(lambda pr, g, dg: fn(pr, g, dg, lim, idx, psi),
-                       (prob, jnp.stack(G), jnp.stack(dG)), n_devices, (batch_axes(prob, batched), 0, 0))
+                       (prob, jnp.asarray(G), jnp.asarray(dG)), n_devices, (batch_axes(prob, batched), 0, 0))
 
 
 def controllability(J, lateral=((1.0, 0.0),)) -> np.ndarray:
@@ -462,7 +547,7 @@ class StaticSweep:
 
 
 def static_sweep(phantom: Phantom, inclusion: str = "none", increments: int = 15,
-                 paddles: Sequence[int] | None = None, n_devices: int | None = 1) -> StaticSweep:
+                 paddles: Sequence[int] | None = None, n_devices: int | None = None) -> StaticSweep:
     """Every paddle position x every increment in one batched call, plus the no-paddle run.
     ``phantom``: a :class:`Phantom` or any phantom with the same interface (``NeedleTrack``,
     ``model(inclusion, paddle)``, ``paddles``), e.g. the 3D :class:`jaxrkpm.thesis.phantom3d.Phantom3D`."""

@@ -45,7 +45,7 @@ class NeedleSweep:
     requires = {"paddle": "int", "inclusion": "str", "stiffness_ratio": "float"}
 
     def __init__(self, increments: int = 15, *, jacobian: bool = True, keep_jacobians: bool = False,
-                 batch: int | None = None, batching: str | None = None, n_devices: int | None = 1,
+                 batch: int | None = None, batching: str | None = None, n_devices: int | None = None,
                  chunk_size: int | None = None, **phantom):
         unknown = set(phantom) - set(PHANTOM_OPTIONS)
         if unknown:

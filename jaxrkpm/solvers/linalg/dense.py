@@ -10,6 +10,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ..iterate import when
 from .base import LinearSolver, Stability
 from .refinement import refine
 
@@ -174,11 +175,11 @@ def _usable(L):
 def _single_else_double(K):
     L = jnp.linalg.cholesky(K.astype(jnp.float32))
     # single precision could not factorise it: let double decide (near a critical point)
-    return jax.lax.cond(_usable(L), lambda: L, lambda: jnp.linalg.cholesky(K).astype(jnp.float32))
+    return when(~_usable(L), lambda: jnp.linalg.cholesky(K).astype(jnp.float32), L)
 
 
-# per member under vmap on CPU, so the cond stays a branch there (a vmapped cond is a select:
-# every member would pay for the double factorisation too)
+# per member under vmap on CPU; elsewhere ``when`` runs the double factorisation only while
+# some member needs it (a vmapped cond is a select: every member would pay for it)
 _mixed_cholesky = one_at_a_time(_single_else_double)
 
 _lu_solve = one_at_a_time(lambda K, b: jax.scipy.linalg.lu_solve(jax.scipy.linalg.lu_factor(K), b))
@@ -237,8 +238,7 @@ class DenseSolver(LinearSolver):
             return DenseState(K.ravel(), spd, jnp.zeros((0,), L.dtype), rows, blocked_inverses(rows, self.block))
         eye = jnp.eye(K.shape[0], dtype=L.dtype)
         # not positive definite (past a critical point): K^-1 itself, by LU, in its place
-        Linv = jax.lax.cond(spd, lambda: _lower_solve(L, eye),
-                            lambda: _lu_solve(K, eye.astype(K.dtype)).astype(L.dtype))
+        Linv = when(~spd, lambda: _lu_solve(K, eye.astype(K.dtype)).astype(L.dtype), _lower_solve(L, eye))
         return DenseState(K.ravel(), spd, Linv.ravel(), (), jnp.zeros((0, 0, 0), L.dtype))
 
     def empty(self, problem, dtype) -> DenseState:
@@ -265,9 +265,12 @@ class DenseSolver(LinearSolver):
                 x = jax.lax.dot_general(state.Linv, y, (((0,), (0,)), ((), ())))
                 return jnp.where(state.spd, x, y)
             return self._refined(lambda r: by_columns(apply, r, self.block), state.K, b).reshape(rhs.shape)
-        chol = lambda: self._refined(lambda r: triangular_pair(state.rows, state.Dinv, r), state.K, b)
-        lu = lambda: _lu_solve(state.K, b)
-        x = jax.lax.cond(state.spd, chol, lu)   # under vmap: both, then a select
+        x = self._refined(lambda r: triangular_pair(state.rows, state.Dinv, r), state.K, b)
+        # LU only where K_ff is not positive definite; ``when``, not a cond: under vmap a cond
+        # factorised every member's K by LU at every solve (a select of both sides), the
+        # dearest operation of a lock-step Newton iteration, where ``when`` runs it only while
+        # some member needs it (a member past a critical point)
+        x = when(~state.spd, lambda: _lu_solve(state.K, b), x)
         return x.reshape(rhs.shape)
 
     def _refined(self, apply, K, b):

@@ -110,7 +110,7 @@ def phantom_limits(phantom, *states):
     return extent(phantom.vertices, *[m.body.X + np.asarray(m.particle_displacements(s)) for m, s in states])
 
 
-def run_static(phantom, inclusion, increments, out: Path, n_devices=1):
+def run_static(phantom, inclusion, increments, out: Path, n_devices=None):
     stages = interface.progress(total=2, desc=f"needle static {inclusion}", unit="stage")
     stages.set_postfix_str("sweep (one compiled call)")
     t0 = time.perf_counter()
@@ -190,7 +190,7 @@ def static_figures(phantom, sw, summary, out: Path):
     plot.plt.close(fig)
 
 
-def run_dynamic(phantom, inclusion, increments, out: Path, paddle=None, n_devices=1):
+def run_dynamic(phantom, inclusion, increments, out: Path, paddle=None, n_devices=None):
     stages = interface.progress(total=3, desc=f"needle dynamic {inclusion}", unit="stage")
     stages.set_postfix_str("sweep and controllability")
     t0 = time.perf_counter()
@@ -275,7 +275,7 @@ def dynamic_figures(phantom, sw, run, summary, out: Path):
         plot.plt.close(fig)
 
 
-def run_optimize(phantom, inclusion, increments, out: Path, n_devices=1, start=None, iterations=30):
+def run_optimize(phantom, inclusion, increments, out: Path, n_devices=None, start=None, iterations=30):
     """The paddle position as a continuous variable q along the Table 6.2 chain (a stiff
     spring paddle), optimised with Adam through the differentiable solve, against the best
     discrete (essential) paddle of the static sweep; plus a scan of q for the figure."""

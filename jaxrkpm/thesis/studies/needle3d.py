@@ -98,7 +98,7 @@ def write_vtu(out: Path, name: str, model, sol) -> str:
     return output.write_solution(out / f"{name}.vtu", model, sol).name
 
 
-def run_static(phantom, inclusion, increments, out: Path, n_devices=1):
+def run_static(phantom, inclusion, increments, out: Path, n_devices=None):
     t0 = time.perf_counter()
     sw = nd.static_sweep(phantom, inclusion, increments, n_devices=n_devices)
     return static_report(phantom, sw, out, wall=time.perf_counter() - t0)
@@ -162,7 +162,7 @@ def static_report(phantom, sw, out: Path, wall=None):
     return summary
 
 
-def run_dynamic(phantom, inclusion, increments, out: Path, paddle=None, tol=1e-5, n_devices=1):
+def run_dynamic(phantom, inclusion, increments, out: Path, paddle=None, tol=1e-5, n_devices=None):
     t0 = time.perf_counter()
     sw = nd.static_sweep(phantom, inclusion, increments, n_devices=n_devices)
     ctrl = sw.controllability[:, 0]
@@ -206,7 +206,7 @@ def run_dynamic(phantom, inclusion, increments, out: Path, paddle=None, tol=1e-5
     return summary
 
 
-def run_optimize(phantom, inclusion, increments, out: Path, iterations=12, stiffness=1e6, n_devices=1):
+def run_optimize(phantom, inclusion, increments, out: Path, iterations=12, stiffness=1e6, n_devices=None):
     """The best discrete patch's contact points as a spring paddle (``with_footprint``),
     slid over the skin by Adam from that patch's centre: its first iterate is the held
     patch again (to the penalty error), so the optimum compares with it like for like."""
