@@ -213,7 +213,7 @@ def lock_step_profile(models, its, st, repeats: int = 3) -> dict:
     ``its``, ``st`` (the insertion's iterations and statuses, (B, n)) give the lock-step iterations: per increment, the
     largest count among the members in lock step (capped by ``needle.LOCK_ITERATIONS``; a
     member that left counts 1), plus the stragglers' own lock step (the largest count among
-    them per increment, an estimate: they run in groups of a quarter of the batch, costed as
+    them per increment, an estimate: they run in groups of ``needle.straggler_width`` members, costed as
     that fraction of a full-width iteration). ``other_s`` is the warm time the
     pieces do not account for (dispatch, loop control, selects, the Jacobians' extra solves)."""
     prob, batched = batching.stack_models(models)
@@ -230,12 +230,13 @@ def lock_step_profile(models, its, st, repeats: int = 3) -> dict:
         jax.block_until_ready(f(*xs))
         return statistics.median(timed(lambda: jax.block_until_ready(f(*xs)))[0] for _ in range(repeats))
 
-    K = vm(lambda p, u, g: p.dense_tangent(p.tangent_blocks(u, g)))(prob, u, g)
-    state = jax.jit(jax.vmap(linear.factorise))(K)
+    assemble, factorise = vm(lambda p, u, g: p.dense_tangent(p.tangent_blocks(u, g))), jax.jit(jax.vmap(linear.factorise))
+    K = assemble(prob, u, g)
+    state = factorise(K)
     rhs = vm(lambda p, u, g: p.residual(u, g))(prob, u, g) + 1.0
     piece = {
-        "assembly_s": clock(vm(lambda p, u, g: p.dense_tangent(p.tangent_blocks(u, g))), prob, u, g),
-        "factorisation_s": clock(jax.jit(jax.vmap(linear.factorise)), K),
+        "assembly_s": clock(assemble, prob, u, g),
+        "factorisation_s": clock(factorise, K),
         "triangular_solves_s": clock(jax.jit(jax.vmap(linear.solve)), state, rhs),
         "energy_residual_s": clock(vm(lambda p, u, g: p.energy_residual(u, g)), prob, u, g),
         "force_scale_s": clock(vm(lambda p, u, g: p.force_scale(p.energy_residual(u, g)[3])), prob, u, g),
@@ -256,7 +257,7 @@ def lock_step_profile(models, its, st, repeats: int = 3) -> dict:
         piece["energy_residual_s"] + piece["force_scale_s"]
     jacobian = piece["assembly_s"] + piece["factorisation_s"] + piece["triangular_solves_s"]
     increments = its.shape[1]
-    width = -(-B // 4)        # the stragglers' group (``needle._lock_step``): its pieces scaled by width
+    width = nd.straggler_width(B)     # the stragglers' group: its pieces scaled by its width
     return {"members": B, "unknowns": n, "pieces_s": piece,
             "flops_per_member": {"cholesky": n ** 3 / 3, "lu": 2 * n ** 3 / 3, "triangular_pair": 2 * n ** 2},
             "cholesky_gflops": B * n ** 3 / 3 / piece["factorisation_s"] / 1e9,

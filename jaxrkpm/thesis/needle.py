@@ -309,6 +309,8 @@ class Insertion(NamedTuple):
 # a lock-step member that needs more Newton iterations than this in an increment leaves the
 # lock step (``_lock_step``): converging increments take a handful
 LOCK_ITERATIONS = 8
+# the members that left are solved again in groups of this fraction of the batch (``_lock_step``)
+STRAGGLER_GROUPS = 4
 
 
 @partial(jax.jit, static_argnames=("driver", "batched", "with_jacobian", "batching", "lock_iterations"))
@@ -361,6 +363,11 @@ def _insert_batch(driver: LoadPath, prob: Problem, G, dG, lim, idx, psi, *, batc
     return Insertion(*map_batch(one, prob, batched, G, dG))
 
 
+def straggler_width(members: int) -> int:
+    """How many of ``members`` one group of ``_lock_step``'s stragglers holds."""
+    return max(1, -(-members // STRAGGLER_GROUPS))
+
+
 def _lock_step(step, start, prob, batched, G, dG, lim, lock_iterations):
     """Every member through every increment in lock step (vmap), with the results of solving
     each member alone.
@@ -372,7 +379,7 @@ def _lock_step(step, start, prob, batched, G, dG, lim, lock_iterations):
     Newton iterations and no step cut: a member whose increment does not converge so leaves
     (it idles through the remaining increments: zero increments, converged at once) and
     keeps its last converged state. Then the members that left are solved again from that
-    state with the full limits, in groups of a quarter of the batch (a group's lock step
+    state with the full limits, in groups of ``straggler_width`` members (a group's lock step
     holds only the stragglers; an increment no member of the group still needs is skipped).
     Converging increments within the cap follow the same iterates either way (the cap and
     the step cuts act only on a failing attempt), so every member's results, statuses and
@@ -397,7 +404,7 @@ def _lock_step(step, start, prob, batched, G, dG, lim, lock_iterations):
     out = Insertion(*(jnp.swapaxes(x, 0, 1) for x in out))     # (B, n, ...)
     done = jnp.sum(jnp.cumprod(out.status == Status.CONVERGED, axis=1), axis=1)   # increments before leaving
 
-    width = max(1, -(-B // 4))
+    width = straggler_width(B)
     leaves, treedef = jax.tree.flatten(prob)
 
     def stragglers(c):
