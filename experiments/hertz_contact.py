@@ -13,7 +13,7 @@ uses every point, where the last point in contact or the first out of it alone w
 only to within a point spacing. Recorded too: the largest point pressure and the half-width
 from the pressure's second moment (for Hertz's profile int p x^2 / int p = a^2 / 4).
 
-    python experiments/hertz_contact.py [--spacing 0.02] [--depths 0.008 0.016] [--quick] [--out F]
+    python experiments/hertz_contact.py [--spacing 0.02] [--depths 0.008 0.016] [--integration gauss] [--quick] [--out F]
 """
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ def fit_hertz(x, p, w, guess):
 
 
 def run(spacing=0.02, width=1.0, depth=1.0, radius=1.0, young=1.0, nu=0.3, depths=(0.008, 0.016), gap=None,
-        steps=4):
+        steps=4, integration="gauss"):
     gap = 0.02 * spacing if gap is None else gap
     nx, ny = int(round(width / spacing)) + 1, int(round(depth / spacing)) + 1
     body = jr.Body.grid((nx, ny), spacing, origin=(0.0, -depth))
@@ -55,7 +55,7 @@ def run(spacing=0.02, width=1.0, depth=1.0, radius=1.0, young=1.0, nu=0.3, depth
     wall = jr.Contact(jr.HalfSpace((1.0, 0.0)), position=(-gap, 0.0), gap=gap, pressure=p0, name="wall",
                       where=lambda X: X[:, 0] < tol)
     t0 = time.perf_counter()
-    model = jr.Model(body, jr.SaintVenantKirchhoff(lam, mu),
+    model = jr.Model(body, jr.SaintVenantKirchhoff(lam, mu), integration=integration,
                      essential={"bottom": body.select(lambda X: X[:, 1] < -depth + tol)}, terms=[disc, wall])
     build = time.perf_counter() - t0
     estar = young / (1 - nu ** 2)
@@ -85,7 +85,7 @@ def run(spacing=0.02, width=1.0, depth=1.0, radius=1.0, young=1.0, nu=0.3, depth
                     "status": str(sol.message), "x": x[np.argsort(x)][:24].tolist(),
                     "pressure": p[np.argsort(x)][:24].tolist()})
         print(json.dumps(out[-1]))
-    return {"spacing": spacing, "width": width, "depth": depth, "radius": radius, "young": young, "nu": nu,
+    return {"spacing": spacing, "integration": integration, "width": width, "depth": depth, "radius": radius, "young": young, "nu": nu,
             "gap": gap, "particles": body.n, "build_s": build, "loads": out}
 
 
@@ -93,10 +93,11 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--spacing", type=float, default=0.02)
     ap.add_argument("--depths", type=float, nargs="+", default=[0.008, 0.016])
+    ap.add_argument("--integration", default="gauss", help="gauss | scni | mscni")
     ap.add_argument("--quick", action="store_true", help="a tiny coarse run (checks that it runs)")
     ap.add_argument("--out", default=None, help="write the JSON record here")
     a = ap.parse_args()
-    rec = run(spacing=0.1, width=0.5, depth=0.5, depths=(0.01,)) if a.quick else run(a.spacing, depths=a.depths)
+    rec = run(spacing=0.1, width=0.5, depth=0.5, depths=(0.01,)) if a.quick else run(a.spacing, depths=a.depths, integration=a.integration)
     rec["note"] = "timings beside other processes are not figures: retake on a quiet machine"
     if a.out:
         with open(a.out, "w") as f:

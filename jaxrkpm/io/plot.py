@@ -116,25 +116,6 @@ def contact_pressures(ax, model, sol, params=None, *, cmap="magma", vmax=None):
     return sc
 
 
-def contact_png(path, model, sol, params=None, *, title=None, pressure_unit=None) -> str:
-    """PNG of a solved 2D model with rigid tools: the deformed particles
-    (:func:`deformed_particles`), the tools and their contact pressures (:func:`contact_pressures`),
-    with a pressure colour bar labelled in ``pressure_unit`` (default: the units of the
-    material constants). Returns the path."""
-    if model.dim != 2:
-        raise ValueError(f"contact_png draws 2D models, this model is {model.dim}D: "
-                         "use deformed_body_png and contact_pressures(ax, ...) on its axes")
-    fig, ax = plt.subplots(figsize=(6.4, 5.2))
-    deformed_particles(ax, model.body.X, model.particle_displacements(sol), size=14)
-    sc = contact_pressures(ax, model, sol, params)
-    if sc is not None:
-        fig.colorbar(sc, ax=ax, shrink=0.8, label=f"contact pressure ({pressure_unit or 'units of the material constants'})")
-    if title:
-        ax.set_title(title, fontsize=10)
-    save(fig, path)
-    return str(path)
-
-
 def tidy_3d_axes(ax, units: str = UNITS, ticks: int = 4):
     """Readable mplot3d axes: at most ``ticks`` ticks per axis (the default crowds a short
     axis until its labels collide), small tick labels, and the axis labels with units set

@@ -109,8 +109,12 @@ def test_contact_in_the_vtu_and_the_figure(pressed_block, tmp_path):
     assert np.allclose(f["contact_top_resultant"][:2], np.asarray(res.force)) and f["contact_top_active"][0] == len(res.gap)
     assert f["contact_top_min_gap"][0] == pytest.approx(float(res.min_gap))
     assert abs(f["contact_top_tangential"]).max() < 1e-10 * abs(f["contact_top_normal"]).max()
-    png = plot.contact_png(tmp_path / "pressed.png", model, sol, params, title="pressed block")
-    assert (tmp_path / "pressed.png").stat().st_size > 10_000 and png.endswith(".png")
+    fig, ax = plot.plt.subplots()
+    plot.deformed_particles(ax, model.body.X, model.particle_displacements(sol))
+    sc = jr.contact_pressures(ax, model, sol, params)
+    assert sc.get_offsets().shape == (len(res.gap), 2) and np.allclose(sc.get_array(), np.asarray(res.pressure))
+    plot.save(fig, tmp_path / "pressed.png")
+    assert (tmp_path / "pressed.png").stat().st_size > 10_000
 
 
 # -------------------------------------------------------------------- derivatives
