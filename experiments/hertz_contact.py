@@ -44,7 +44,9 @@ def fit_hertz(x, p, w, guess):
 def run(spacing=0.02, width=1.0, depth=1.0, radius=1.0, young=1.0, nu=0.3, depths=(0.008, 0.016), gap=None,
         steps=4, integration="gauss"):
     gap = 0.02 * spacing if gap is None else gap
-    nx, ny = int(round(width / spacing)) + 1, int(round(depth / spacing)) + 1
+    nx, ny = round(width / spacing) + 1, round(depth / spacing) + 1
+    if max(abs((nx - 1) * spacing - width), abs((ny - 1) * spacing - depth)) > 1e-9 * spacing:
+        raise ValueError(f"spacing {spacing} must divide the width {width} and the depth {depth}")
     body = jr.Body.grid((nx, ny), spacing, origin=(0.0, -depth))
     mu = young / (2 * (1 + nu))
     lam = young * nu / ((1 + nu) * (1 - 2 * nu))
@@ -93,11 +95,14 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--spacing", type=float, default=0.02)
     ap.add_argument("--depths", type=float, nargs="+", default=[0.008, 0.016])
+    ap.add_argument("--radius", type=float, default=1.0, help="the cylinder's radius")
+    ap.add_argument("--gap", type=float, default=None, help="the barrier's range (default: 0.02 x spacing)")
     ap.add_argument("--integration", default="gauss", help="gauss | scni | mscni")
     ap.add_argument("--quick", action="store_true", help="a tiny coarse run (checks that it runs)")
     ap.add_argument("--out", default=None, help="write the JSON record here")
     a = ap.parse_args()
-    rec = run(spacing=0.1, width=0.5, depth=0.5, depths=(0.01,)) if a.quick else run(a.spacing, depths=a.depths, integration=a.integration)
+    rec = run(spacing=0.1, width=0.5, depth=0.5, depths=(0.01,)) if a.quick else run(a.spacing, radius=a.radius, depths=a.depths, gap=a.gap,
+                                                                              integration=a.integration)
     rec["note"] = "timings beside other processes are not figures: retake on a quiet machine"
     if a.out:
         with open(a.out, "w") as f:

@@ -157,7 +157,10 @@ def paddle_2d():
     model = jr.Model(body, MAT, essential={"bottom": body.select(lambda X: X[:, 1] < -0.5 + 1e-9)},
                      terms=[paddle])
     start = model.params["paddle"]
-    params = {"paddle": {"position": start["position"] + jnp.array([0.0, -0.06]), "rotation": jnp.asarray(0.12)}}
+    # every friction parameter given (frictionless: mu = 0), so that the frictional solves
+    # and their Jacobians below reuse these compiled programs
+    params = {"paddle": {**start, "position": start["position"] + jnp.array([0.0, -0.06]),
+                         "rotation": jnp.asarray(0.12)}}
     return model, model.solve(params=params, steps=4, rtol=1e-12), params
 
 
@@ -180,12 +183,14 @@ def test_pose_jacobian_2d_frictional(paddle_2d):
     res = jr.contact_forces(model, fr, "paddle", p)
     # the lag's anchors are the state itself: no slip, no friction until the tool moves
     assert np.abs(np.asarray(res.tangential)).max() < 1e-8 * np.abs(np.asarray(res.normal)).max()
-    J, fd = _fd_vs_implicit(model, fr, p, "paddle", ("position",), np.array([[0.1, 0.5], [0.0, 0.0]]), 1e-5)
+    J, fd = _fd_vs_implicit(model, fr, p, "paddle", ("position", "rotation"), np.array([[0.1, 0.5], [0.0, 0.0]]),
+                            1e-5)
     err = np.abs(J - fd).max() / np.abs(J).max()
     print(f"2D pose Jacobian, mu = 0.3 (lagged): rel. difference to central FD {err:.2e}")
     assert err < 1e-6
     # friction stiffens the tangential response to the paddle's sideways motion
-    J0, _ = _fd_vs_implicit(model, sol, params, "paddle", ("position",), np.array([[0.1, 0.5]]), 1e-5, fd=False)
+    J0, _ = _fd_vs_implicit(model, sol, params, "paddle", ("position", "rotation"),
+                            np.array([[0.1, 0.5], [0.0, 0.0]]), 1e-5, fd=False)
     assert abs(J[0, 0]) > abs(J0[0, 0])
 
 
@@ -237,10 +242,12 @@ CORNER = np.array([[1.0, 1.0]])
 @pytest.mark.parametrize("lam", [0.0, 1.0])
 def test_friction_against_a_glued_plate(clamped_block, lam):
     body, contact, glued = clamped_block
-    pose = {"position": jnp.array([0.0, 1.0 + GAP - D])}
+    anchors = contact.params["plate"]["anchor"]          # the start of the step: no slip yet
+    # frictionless: mu = 0 (every friction parameter given: one compiled solve for all)
+    pose = {"position": jnp.array([0.0, 1.0 + GAP - D]), "mu": jnp.asarray(0.0),
+            "pressure": jnp.zeros(len(anchors)), "anchor": anchors}
     free = contact.solve(params={"plate": pose, "lam": lam}, steps=4, max_iter=60)
     res = jr.contact_forces(contact, free, "plate", {"plate": pose})
-    anchors = contact.params["plate"]["anchor"]          # the start of the step: no slip yet
     sol, pressure = free, res.pressure
     for _ in range(2):                                   # the lagged normal pressure, iterated
         p = {"plate": {**pose, "mu": jnp.asarray(0.3), "pressure": pressure, "anchor": anchors}, "lam": lam}
