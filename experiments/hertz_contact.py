@@ -13,7 +13,14 @@ uses every point, where the last point in contact or the first out of it alone w
 only to within a point spacing. Recorded too: the largest point pressure and the half-width
 from the pressure's second moment (for Hertz's profile int p x^2 / int p = a^2 / 4).
 
-    python experiments/hertz_contact.py [--spacing 0.02] [--depths 0.008 0.016] [--integration gauss] [--quick] [--out F]
+Why a cylinder four times the block's depth: Hertz's solution is of small strains (of the order
+of a / R) on a half-space, so the radius is large against the half-width, which stays several
+spacings wide and a tenth of the block; and the barrier's range is kept small against the
+cylinder's rise a^2 / 2R over the contact, as the barrier's standoff varies by a fraction of
+its range with the pressure.
+
+    python experiments/hertz_contact.py [--spacing 0.02] [--radius 4] [--depths 0.002 0.0038]
+        [--gap G] [--integration gauss] [--quick] [--out F]
 """
 from __future__ import annotations
 
@@ -41,9 +48,9 @@ def fit_hertz(x, p, w, guess):
     return float(a), float(best(a)[0])
 
 
-def run(spacing=0.02, width=1.0, depth=1.0, radius=1.0, young=1.0, nu=0.3, depths=(0.008, 0.016), gap=None,
+def run(spacing=0.02, width=1.0, depth=1.0, radius=4.0, young=1.0, nu=0.3, depths=(0.002, 0.0038), gap=None,
         steps=4, integration="gauss"):
-    gap = 0.02 * spacing if gap is None else gap
+    gap = 0.005 * spacing if gap is None else gap
     nx, ny = round(width / spacing) + 1, round(depth / spacing) + 1
     if max(abs((nx - 1) * spacing - width), abs((ny - 1) * spacing - depth)) > 1e-9 * spacing:
         raise ValueError(f"spacing {spacing} must divide the width {width} and the depth {depth}")
@@ -94,15 +101,17 @@ def run(spacing=0.02, width=1.0, depth=1.0, radius=1.0, young=1.0, nu=0.3, depth
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--spacing", type=float, default=0.02)
-    ap.add_argument("--depths", type=float, nargs="+", default=[0.008, 0.016])
-    ap.add_argument("--radius", type=float, default=1.0, help="the cylinder's radius")
-    ap.add_argument("--gap", type=float, default=None, help="the barrier's range (default: 0.02 x spacing)")
+    ap.add_argument("--depths", type=float, nargs="+", default=[0.002, 0.0038])
+    ap.add_argument("--radius", type=float, default=4.0, help="the cylinder's radius")
+    ap.add_argument("--gap", type=float, default=None, help="the barrier's range (default: 0.005 x spacing)")
     ap.add_argument("--integration", default="gauss", help="gauss | scni | mscni")
     ap.add_argument("--quick", action="store_true", help="a tiny coarse run (checks that it runs)")
     ap.add_argument("--out", default=None, help="write the JSON record here")
     a = ap.parse_args()
-    rec = run(spacing=0.1, width=0.5, depth=0.5, depths=(0.01,)) if a.quick else run(a.spacing, radius=a.radius, depths=a.depths, gap=a.gap,
-                                                                              integration=a.integration)
+    if a.quick:
+        rec = run(spacing=0.1, width=0.5, depth=0.5, radius=1.0, depths=(0.01,))
+    else:
+        rec = run(a.spacing, radius=a.radius, depths=a.depths, gap=a.gap, integration=a.integration)
     rec["note"] = "timings beside other processes are not figures: retake on a quiet machine"
     if a.out:
         with open(a.out, "w") as f:
