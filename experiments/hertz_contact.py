@@ -109,7 +109,7 @@ def main():
     ap.add_argument("--out", default=None, help="write the JSON record here")
     a = ap.parse_args()
     if a.quick:
-        rec = run(spacing=0.1, width=0.5, depth=0.5, radius=1.0, depths=(0.01,))
+        rec = run(spacing=0.1, width=0.5, depth=0.5, radius=1.0, depths=(0.01,), gap=2e-3)
     else:
         rec = run(a.spacing, radius=a.radius, depths=a.depths, gap=a.gap, integration=a.integration)
     rec["note"] = "timings beside other processes are not figures: retake on a quiet machine"
