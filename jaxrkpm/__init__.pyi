@@ -30,7 +30,11 @@ from .discretise.surface import (
     mirrored as mirrored,
     tetrahedralise as tetrahedralise,
 )
-from .io.plot import deformed_particles as deformed_particles, deformed_surface as deformed_surface
+from .io.plot import (
+    contact_pressures as contact_pressures,
+    deformed_particles as deformed_particles,
+    deformed_surface as deformed_surface,
+)
 from .io.output import (
     read_series as read_series,
     write_series as write_series,

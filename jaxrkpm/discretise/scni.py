@@ -470,6 +470,10 @@ class Smoothing:
     level      (R,) 0 for particle cells, 1 for sub-cells; owner (R,) the particle of each row
     boundary_integral (N, d) oint_Gamma Psi_I n dGamma with the same boundary rule: the
                right-hand side of the integration constraint
+    boundary   that boundary rule as a Table: its points, weights, outward normals and the
+               shape-function rows it integrates (the interpolated Psi of the 'nodal' rule),
+               so that a boundary load summed over it is exactly what the cells' stresses
+               balance (sum_q w_q psi_q n_q = boundary_integral); dpsi is not set (zeros)
     """
 
     table: Table
@@ -478,6 +482,7 @@ class Smoothing:
     owner: np.ndarray
     beta: float
     boundary_integral: np.ndarray
+    boundary: Table
 
 
 def build(body: Body, a: float, stab: float = DEFAULT_STAB, boundary: str = "nodal",
@@ -557,6 +562,7 @@ def build(body: Body, a: float, stab: float = DEFAULT_STAB, boundary: str = "nod
 
     # boundary integral oint_Gamma Psi_I n (the constraint's right-hand side)
     bint = np.stack([Psi.T @ np.where(isb, wts * nrm[:, k], 0.0) for k in range(d)], 1)
+    bnd = _padded_rows(Psi[isb], pts[isb], wts[isb], nrm[isb])
 
     # shape values at the row points; the table's pattern is the union of both
     s_row = sf(row_pts)
@@ -585,12 +591,29 @@ def build(body: Body, a: float, stab: float = DEFAULT_STAB, boundary: str = "nod
     weights = np.where(level == 0, (1.0 - stab) * areas, stab * areas)
     keep = weights > 0            # beta = 1: the cell rows carry no weight
     tab = Table(row_pts[keep], weights[keep], idx[keep], psi[keep], dpsi[keep])
-    return Smoothing(tab, areas, level, owner, float(stab), bint)
+    return Smoothing(tab, areas, level, owner, float(stab), bint, bnd)
 
 
-def table(body: Body, a: float, scheme: str = "scni", order: int = 2, support_factor=None) -> Table:
-    """The integration Table for ``Model(integration=scheme)``."""
+def _padded_rows(Psi, points, weights, normals) -> Table:
+    """The boundary Table of sparse shape-function rows Psi (B, N) at ``points``: each row's
+    nonzeros padded to the longest (index 0, psi 0)."""
+    Psi = sp.csr_matrix(Psi)
+    Psi.sum_duplicates()
+    counts = np.diff(Psi.indptr)
+    K = max(1, int(counts.max(initial=0)))
+    rows = np.repeat(np.arange(Psi.shape[0]), counts)
+    slot = np.arange(Psi.nnz) - np.repeat(Psi.indptr[:-1], counts)
+    idx = np.zeros((Psi.shape[0], K), np.int32)
+    psi = np.zeros((Psi.shape[0], K))
+    idx[rows, slot] = Psi.indices
+    psi[rows, slot] = Psi.data
+    return Table(points, weights, idx, psi, np.zeros((*idx.shape, points.shape[1])), normals)
+
+
+def smoothing(body: Body, a: float, scheme: str = "scni", order: int = 2, support_factor=None) -> Smoothing:
+    """The Smoothing of ``Model(integration=scheme)`` (its ``table`` is the volume rule)."""
     if scheme not in SCHEMES:
         raise ValueError(f"unknown SCNI scheme {scheme!r}: choose one of {list(SCHEMES)}")
     stab, bnd = SCHEMES[scheme]
-    return build(body, a, stab, bnd, order, support_factor).table
+    return build(body, a, stab, bnd, order, support_factor)
+

@@ -7,7 +7,8 @@ hexahedra for a grid body, else a Delaunay triangulation of the particles keepin
 simplices whose centroid lies in the body (polygon bodies). The points are the particles'
 reference positions (or the deformed ones, ``deformed=True``); the point data are the RK
 fields evaluated at the particles (:func:`point_fields`): displacement, Cauchy stress, its
-von Mises value, det F, the particle volumes and one 0/1 mask per essential set. Vectors and
+von Mises value, det F, the particle volumes, one 0/1 mask per essential set and, per rigid
+tool (``jaxrkpm.Contact``), its contact state (:func:`contact_fields`). Vectors and
 tensors of 2D bodies are padded with zeros to 3 components / 3x3 (VTK's vectors are 3D, so
 ParaView's *Warp By Vector* works on ``displacement``).
 
@@ -35,6 +36,7 @@ import numpy as np
 from scipy.spatial import Delaunay
 
 from ..discretise.mesh import simplex_volumes
+from ..mechanics.contact import ContactTerm
 from ..solvers.results import Status
 
 # meshio cell type of the viewing cells, by (dimension, vertices per cell)
@@ -148,6 +150,48 @@ def point_fields(model, sol) -> dict:
     return fields
 
 
+def contact_fields(model, sol, params=None) -> tuple[dict, dict]:
+    """(point data, field data) of every rigid tool of the model (``jaxrkpm.Contact`` terms)
+    at the solution ``sol`` solved with ``params`` (the tools' poses). Each contact point
+    (a boundary quadrature point) is given to its nearest particle, so that a particle shows
+    the contact on its share of the boundary: ``contact_<tool>_force`` (N, 3) the sum of its
+    points' forces (their sum over the particles is the tool's force on the body),
+    ``contact_<tool>_pressure`` (N,) their weighted mean pressure, ``contact_<tool>_active``
+    (N,) 0/1 any of them within the barrier's range, and ``contact_<tool>_gap`` (N,) the
+    particle's own deformed position's signed distance from the tool. Field data per tool:
+    ``contact_<tool>_resultant``, ``_normal``, ``_tangential`` (3,) its force on the body and
+    that split, ``_active`` (the count of active contact points) and ``_min_gap`` (the
+    smallest contact point gap: negative would be penetration)."""
+    problem = model.problem(params)
+    tools = [t for t in problem.terms if isinstance(t, ContactTerm)]
+    point, field = {}, {}
+    if not tools:
+        return point, field
+    X = np.asarray(model.body.X, float)
+    n = len(X)
+    d = model.coefficients(sol)
+    load = np.asarray(sol.load, float)
+    x = X + np.asarray(model.particle_displacements(sol))
+    for t in tools:
+        res = t.results(d, load)
+        owner = np.asarray(model.body.nearest(np.asarray(t.X)), np.int64).reshape(-1)
+        w = np.asarray(t.w)
+        force = np.zeros((n, X.shape[1]))
+        np.add.at(force, owner, np.asarray(res.point_force))
+        wsum = np.bincount(owner, w, n)
+        pw = np.bincount(owner, w * np.asarray(res.pressure), n)
+        key = f"contact_{t.name}"
+        point[f"{key}_force"] = _pad(force, (3,))
+        point[f"{key}_pressure"] = np.divide(pw, wsum, out=np.zeros(n), where=wsum > 0)
+        point[f"{key}_active"] = (np.bincount(owner, np.asarray(res.active, float), n) > 0).astype(np.uint8)
+        point[f"{key}_gap"] = np.asarray(t.gaps(x, load))
+        for part, value in (("resultant", res.force), ("normal", res.normal), ("tangential", res.tangential)):
+            field[f"{key}_{part}"] = _pad(np.asarray(value, float)[None], (3,))[0]
+        field[f"{key}_active"] = np.array([int(np.sum(res.active))], np.int32)
+        field[f"{key}_min_gap"] = np.array([float(res.min_gap)])
+    return point, field
+
+
 def solve_record(sol) -> dict:
     """The field data of a solution's file: ``solve_status`` (the ``jaxrkpm.Status`` code),
     ``converged`` (1: an equilibrium was reached, 0: the solve failed and this is its last
@@ -158,14 +202,17 @@ def solve_record(sol) -> dict:
             "t": np.array([float(np.asarray(sol.t))]), "load": np.array([float(np.asarray(sol.load))])}
 
 
-def _checked(model, sol, what: str = "solution"):
-    """(point fields, field data) of one solve of ``model``; a ValueError for a Solution of
-    another model or a batch, or for fields that are not finite (named, with a particle)."""
+def _checked(model, sol, what: str = "solution", params=None):
+    """(point fields, field data) of one solve of ``model`` (with ``params``: the rigid tools'
+    poses); a ValueError for a Solution of another model or a batch, or for fields that are
+    not finite (named, with a particle)."""
     if np.ndim(getattr(sol, "status", None)) != 0:
         raise ValueError(f"{what} is a batch of {np.size(sol.status)} solves (status shape "
                          f"{np.shape(sol.status)}): write one at a time (index the batch)")
     model.check_solution(sol, what)
     fields = point_fields(model, sol)
+    touch, record = contact_fields(model, sol, params)
+    fields.update(touch)
     bad = {k: np.flatnonzero(~np.all(np.isfinite(np.asarray(v, float).reshape(len(v), -1)), axis=1))
            for k, v in fields.items()}
     bad = {k: v for k, v in bad.items() if len(v)}
@@ -175,7 +222,7 @@ def _checked(model, sol, what: str = "solution"):
                          f"e.g. {k} at particle {int(idx[0])}): nothing written (status "
                          f"{int(np.asarray(sol.status))}; a failed solve keeps its last converged state, "
                          "which is finite: this state was not made by a solve of this model)")
-    return fields, solve_record(sol)
+    return fields, {**solve_record(sol), **record}
 
 
 # --------------------------------------------------------------------------- writers
@@ -234,15 +281,16 @@ def _add_field_data(path: Path, field_data: dict):
     tree.write(path, xml_declaration=True, encoding="utf-8")
 
 
-def write_solution(path, model, sol, *, deformed: bool = False) -> Path:
+def write_solution(path, model, sol, *, deformed: bool = False, params=None) -> Path:
     """Write a solution to the ``.vtu`` ``path``: the viewing cells of the model's body
     (:func:`body_cells`), its particles at their reference positions (``deformed=True``: at
-    X + u), :func:`point_fields`, and the solve's outcome as field data
+    X + u), :func:`point_fields`, the rigid tools' contact (:func:`contact_fields`, at the
+    poses in ``params``, the solve's), and the solve's outcome as field data
     (:func:`solve_record`: a failed solve's last converged state is marked ``converged`` 0).
     A Solution of another model, a batch, or fields that are not finite raise a ValueError
     and write nothing. Returns the path."""
     path = _check_suffix(path, ".vtu", "a VTK XML unstructured grid")
-    fields, record = _checked(model, sol)
+    fields, record = _checked(model, sol, params=params)
     return _write_checked(path, model, fields, record, deformed)
 
 
@@ -252,11 +300,13 @@ def _write_checked(path, model, fields, record, deformed):
     return write_vtu(path, points, body_cells(model.body), fields, record)
 
 
-def write_series(path, model, solutions, times, *, deformed: bool = False) -> Path:
+def write_series(path, model, solutions, times, *, deformed: bool = False, params=None) -> Path:
     """Write solutions as a ParaView time series: ``path`` (``.pvd``, the index) and one
     ``.vtu`` per frame in the folder next to it named after it (``run.pvd`` ->
     ``run/frame_0000.vtu``, ...; the index refers to them by relative paths). ``times``
     (strictly increasing, one per solution) are the frames' time values, e.g. control steps.
+    ``params``: the solves' parameters (the rigid tools' poses), one dict for all frames or a
+    list of one per solution.
 
     Every solution is checked (of this model, finite fields) before anything is written, and
     the series is written into a temporary folder beside ``path`` that then replaces the old
@@ -271,7 +321,13 @@ def write_series(path, model, solutions, times, *, deformed: bool = False) -> Pa
         raise ValueError("solutions is empty: a series needs at least one frame")
     if not (np.all(np.isfinite(t)) and np.all(np.diff(t) > 0)):
         raise ValueError(f"times must be finite and strictly increasing, got {t.tolist()}")
-    frames = [_checked(model, sol, f"solutions[{k}]") for k, sol in enumerate(solutions)]
+    if isinstance(params, (list, tuple)):
+        if len(params) != len(solutions):
+            raise ValueError(f"params must be one dict or a list of one per solution ({len(solutions)}), "
+                             f"got a list of {len(params)}")
+    else:
+        params = [params] * len(solutions)
+    frames = [_checked(model, sol, f"solutions[{k}]", p) for k, (sol, p) in enumerate(zip(solutions, params))]
     folder = path.with_suffix("")
     if path.is_dir() or (folder.exists() and not folder.is_dir()):
         raise ValueError(f"cannot write the series {str(path)!r}: {str(path if path.is_dir() else folder)!r} "

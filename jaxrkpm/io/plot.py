@@ -1,5 +1,6 @@
 """Figures in the manner of the thesis: deformed particles coloured by displacement magnitude
-(2D, or a projection of 3D), and a 3D body's deformed surface coloured by von Mises stress."""
+(2D, or a projection of 3D), a 3D body's deformed surface coloured by von Mises stress, and
+the rigid tools with their contact pressures."""
 from __future__ import annotations
 
 import matplotlib
@@ -10,6 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection  # noqa: E402
 
+from ..mechanics.contact import ContactTerm  # noqa: E402
 from . import output  # noqa: E402
 
 # the thesis' objects are dimensionless: lengths in units of the square's side (the cube's
@@ -71,6 +73,47 @@ def deformed_surface(ax, model, sol, *, norm=None, cmap="viridis", show_referenc
     ax.set_box_aspect(hi - lo + 2 * pad)
     tidy_3d_axes(ax)
     return polys
+
+
+def contact_pressures(ax, model, sol, params=None, *, cmap="magma", vmax=None):
+    """Draw the rigid tools (``jaxrkpm.Contact``) of a solved model at the poses in ``params``
+    (the solve's) and their contact: in 2D each tool's outline, filled grey where it is solid,
+    and the active contact points at their deformed positions coloured by the contact
+    pressure, with arrows of the tool's force on each point; in 3D (mplot3d axes) the active
+    points coloured by pressure (the tools' surfaces are not drawn). Returns the scatter of
+    the last tool with active points (a colour bar mappable), or None."""
+    problem = model.problem(params)
+    tools = [t for t in problem.terms if isinstance(t, ContactTerm)]
+    if not tools:
+        raise ValueError("this model has no rigid tool: add jaxrkpm.Contact(...) to its terms")
+    d, load = model.coefficients(sol), np.asarray(sol.load, float)
+    X = np.asarray(model.body.X, float)
+    x = X + np.asarray(model.particle_displacements(sol))
+    lo, hi = np.minimum(X.min(0), x.min(0)), np.maximum(X.max(0), x.max(0))
+    span = float((hi - lo).max())
+    res = [(t, t.results(d, load)) for t in tools]
+    vmax = vmax or max(float(np.max(np.asarray(r.pressure))) for _, r in res) or 1.0
+    sc = None
+    for t, r in res:
+        on = np.asarray(r.active)
+        pts, p = np.asarray(r.points)[on], np.asarray(r.pressure)[on]
+        if model.dim == 2:
+            g = np.linspace(lo - 0.25 * span, hi + 0.25 * span, 160)
+            G = np.stack(np.meshgrid(g[:, 0], g[:, 1], indexing="ij"), -1)
+            sdf = np.asarray(t.gaps(G.reshape(-1, 2), load)).reshape(G.shape[:2])
+            ax.contourf(G[..., 0], G[..., 1], sdf, levels=[sdf.min() - 1.0, 0.0], colors=["0.8"], zorder=0)
+            ax.contour(G[..., 0], G[..., 1], sdf, levels=[0.0], colors="0.3", linewidths=1.0, zorder=1)
+            if len(pts):
+                f = np.asarray(r.point_force)[on]
+                ax.quiver(pts[:, 0], pts[:, 1], f[:, 0], f[:, 1], color="0.2", width=0.003, zorder=3)
+                sc = ax.scatter(pts[:, 0], pts[:, 1], c=p, s=12, cmap=cmap, vmin=0, vmax=vmax, zorder=4)
+        elif len(pts):
+            sc = ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c=p, s=10, cmap=cmap, vmin=0, vmax=vmax)
+    if model.dim == 2:
+        ax.set_xlim(lo[0] - 0.25 * span, hi[0] + 0.25 * span)
+        ax.set_ylim(lo[1] - 0.25 * span, hi[1] + 0.25 * span)
+        ax.set_aspect("equal")
+    return sc
 
 
 def tidy_3d_axes(ax, units: str = UNITS, ticks: int = 4):

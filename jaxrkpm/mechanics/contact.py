@@ -16,19 +16,17 @@ parameters are its pose at load scale 1, and in between the pose is interpolated
 A solve warm-started at load 1 (``initial=sol``) with a new pose moves the tool there in one
 step: keep such moves small (a control step, a finite difference), or solve from load 0.
 
-**Contact points: the boundary particles' positions** (the distinct corners of the body's
-boundary facets: its surface particles on a grid, box or mesh body), each displaced by the RK
-field there, u = sum_K psi_K(X_b) d_K (RK is not interpolating: the particle's own coefficient
-is not its displacement), and weighted by its lumped share of the boundary (half of each
-adjacent segment, a quarter of each quad, a third of each triangle). Why not boundary Gauss
-points: a barrier on points that are not on a tool's reach costs as much as one that is, and
-the nodal points are the fewest that see every particle's boundary share (one per surface
-particle); they are the vertices of IPC's barrier; and their lumped (trapezoidal) rule is
-the boundary rule of SCNI's nodal boundary in spirit, so that a uniform pressure nearly
-balances a uniform stress (the contact patch test of ``tests/mechanics/test_contact.py``:
-stress uniform to a few 1e-4 on a 5 x 5 SCNI block, not to round-off: the lumped weights are
-not SCNI's boundary integral exactly, see ``scni.Smoothing.boundary_integral``). The price:
-the surface between two points may dip into a tool by O(h^2 / radius of the tool).
+**Contact points: the boundary quadrature points of the model's own boundary rule**
+(``Context.balanced``), each displaced by that rule's shape-function row and weighted by its
+weight. Under SCNI these are the Gauss points on the smoothing cells' boundary facets with
+the 'nodal' rule's interpolated shape functions, the very rule of SCNI's boundary integral
+(``scni.Smoothing.boundary``), so that a uniform pressure gives exactly the nodal forces
+that a uniform stress balances (the contact patch test passes to round-off); under Gauss
+integration they are the boundary Gauss points of the tractions. Why quadrature points and
+not the boundary particles: the particles' lumped (trapezoidal) weights differ from SCNI's
+rule wherever a cell's boundary facet straddles its particle, and that difference alone
+breaks the patch test. The price: the surface between two points may dip into a tool by
+O(h^2 / radius of the tool).
 
 **Normal contact** (Li et al. 2020, IPC): the energy sum_b w_b b(g_b) with the barrier
 
@@ -77,8 +75,8 @@ from typing import Callable, Mapping, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import cKDTree
 
+from ..discretise.quadrature import Table
 from .term import Context, Pairs, Term, TermSpec, static, term
 
 LN2_HALF = float(np.log(2.0) + 0.5)   # p(ghat / 2) = kappa ghat (ln 2 + 1/2)
@@ -202,7 +200,7 @@ class ContactTerm(Term):
 
     idx, psi (S, K)      the contact points' neighbours and shape functions
     X (S, d)             the contact points (reference)
-    w (S,)               their lumped boundary measures
+    w (S,)               their boundary quadrature weights
     kappa, ghat          the barrier's stiffness and range
     position0, rotation0 the tool's pose at load scale 0
     position, rotation   its pose at load scale 1: parameters
@@ -391,15 +389,16 @@ class Contact(TermSpec):
     pressure     p0: the barrier's pressure at half the gap (about the expected pressure)
     mu           friction coefficient (with the lagged ``pressure`` / ``anchor`` params)
     slip         the friction's slip tolerance eps (a length)
-    where        X (M, d) -> (M,) bool on the boundary facet centres: the part that may touch
-                 (default: the whole boundary)
+    where        X (M, d) -> (M,) bool on the contact points (the boundary quadrature
+                 points): the part that may touch (default: the whole boundary)
     floor        g_min / ghat: below g_min the barrier is continued quadratically
     name         keys its parameters in ``Model.solve(params={name: {...}})``
 
     Accuracy: a touching point stands off the tool by less than ``gap`` (about gap/2 at
     p = p0); no point enters the tool while its pressure stays below about 20 p0 (above
     g_min = floor x gap below about 10 p0, at the default floor); ``contact_forces(...).min_gap``
-    reports it. The contact points are the boundary particles (lumped boundary weights); the
+    reports it. The contact points are the boundary quadrature points of the model's
+    boundary rule (under SCNI: its boundary integral's, so that the patch test is exact); the
     tool's pose moves linearly with the load scale from the given pose (load 0) to the pose
     in ``params`` (load 1)."""
 
@@ -442,11 +441,11 @@ class Contact(TermSpec):
         if r0.shape != rshape:
             raise ValueError(f"contact {self.name!r}: rotation must be " + (
                 "an angle (a number)" if dim == 2 else "a rotation vector (3 numbers)") + f", got {self.rotation!r}")
-        X, w = _boundary_nodes(body, self.where, self.name)
-        sf = body.shape_functions(X, ctx.a, gradients=False, support_factor=ctx.support)
+        rule = _contact_points(ctx, self.where, self.name)
+        X, w = rule.points, rule.weights
         kappa = self.pressure / (self.gap * LN2_HALF)
         S = len(X)
-        t = ContactTerm(idx=jnp.asarray(sf.idx, jnp.int32), psi=jnp.asarray(sf.psi), X=jnp.asarray(X),
+        t = ContactTerm(idx=jnp.asarray(rule.idx, jnp.int32), psi=jnp.asarray(rule.psi), X=jnp.asarray(X),
                         w=jnp.asarray(w), kappa=jnp.asarray(kappa), ghat=jnp.asarray(float(self.gap)),
                         position0=jnp.asarray(c0), rotation0=jnp.asarray(r0), position=jnp.asarray(c0),
                         rotation=jnp.asarray(r0), mu=jnp.asarray(float(self.mu)), pressure=jnp.zeros(S),
@@ -456,37 +455,25 @@ class Contact(TermSpec):
         if np.any(g <= 0):
             i = int(np.argmin(g))
             raise ValueError(f"contact {self.name!r}: the tool overlaps the undeformed body at its load-0 pose "
-                             f"(boundary point {X[i].tolist()} at gap {g[i]:.3g}); place it clear of the body "
+                             f"(contact point {X[i].tolist()} at gap {g[i]:.3g}); place it clear of the body "
                              "(position=..., rotation=...) and move it in with params={name: {'position': ...}}")
         # the anchors start at the points themselves (in the tool's frame): no slip yet
         return replace(t, anchor=t.local(t.X, 0.0))
 
 
-def _boundary_nodes(body, where, name):
-    """The distinct corners (S, d) of the body's boundary facets (whose centres satisfy
-    ``where``) and their lumped measures (S,): each facet's measure shared equally by its
-    corners (a quad's four, a triangle's three, a segment's two)."""
-    facets = body.boundary_facets()[0]
+def _contact_points(ctx: Context, where, name) -> Table:
+    """The rows of the model's boundary rule (``ctx.balanced``, else its surface table) at
+    which ``where`` holds; their shape functions are trimmed to the widest kept row."""
+    rule = ctx.surface if ctx.balanced is None else ctx.balanced
     if where is not None:
-        mask = np.asarray(where(facets.mean(1)), bool)
-        if mask.shape != (len(facets),):
-            raise ValueError(f"contact {name!r}: where must return ({len(facets)},) booleans "
-                             f"(one per boundary facet centre), got shape {mask.shape}")
+        mask = np.asarray(where(rule.points), bool)
+        if mask.shape != (len(rule.points),):
+            raise ValueError(f"contact {name!r}: where must return ({len(rule.points)},) booleans "
+                             f"(one per boundary quadrature point), got shape {mask.shape}")
         if not mask.any():
-            raise ValueError(f"contact {name!r}: where selects no boundary facet")
-        facets = facets[mask]
-    nv, dim = facets.shape[1:]
-    if dim == 2:
-        measure = np.linalg.norm(facets[:, 1] - facets[:, 0], axis=1)
-    elif nv == 3:
-        measure = 0.5 * np.linalg.norm(np.cross(facets[:, 1] - facets[:, 0], facets[:, 2] - facets[:, 0]), axis=1)
-    else:
-        measure = np.linalg.norm(np.cross(facets[:, 1] - facets[:, 0], facets[:, 3] - facets[:, 0]), axis=1)
-    flat = facets.reshape(-1, dim)
-    tol = 1e-9 * body.spacing
-    near = cKDTree(flat).query_ball_point(flat, tol)
-    rep = np.array([min(n) for n in near])
-    first, inverse = np.unique(rep, return_inverse=True)
-    w = np.zeros(len(first))
-    np.add.at(w, inverse, np.repeat(measure / nv, nv))
-    return flat[first], w
+            raise ValueError(f"contact {name!r}: where selects no boundary point")
+        rule = rule.subset(mask)
+    keep = np.flatnonzero(np.any(rule.psi != 0, 0))
+    width = int(keep.max()) + 1 if len(keep) else 1
+    return Table(rule.points, rule.weights, rule.idx[:, :width], rule.psi[:, :width],
+                 rule.dpsi[:, :width], rule.normals)

@@ -121,8 +121,10 @@ class Pairs(NamedTuple):
 @dataclass(frozen=True)
 class Context:
     """What a term's builder may use (host side, NumPy): the body, its kernel dilation ``a``
-    (= ``support`` x spacing), the volume and boundary integration tables and the essential
-    sets."""
+    (= ``support`` x spacing), the volume and boundary integration tables, the essential
+    sets, and ``balanced``: the boundary rule that the volume rule's stresses balance exactly
+    (SCNI's boundary integral, with its interpolated shape functions; for Gauss integration
+    the surface table itself), for terms that must pass the patch test with a boundary load."""
 
     body: Body
     a: float
@@ -130,6 +132,7 @@ class Context:
     volume: Table
     surface: Table
     sets: EssentialSets
+    balanced: Table | None = None
 
 
 class Term:

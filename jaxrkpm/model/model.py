@@ -203,16 +203,18 @@ class Model:
         self.a = self.support * body.spacing
         d = body.dim
 
-        if integration == "gauss":
-            self.volume = integ.gauss_table(body, self.a, order, cell_size, support_factor=self.support)
-        else:
-            self.volume = scni.table(body, self.a, integration, order, support_factor=self.support)
         bp, bw, bn = integ.boundary_points(body, order)
         self.surface = integ.table(body, bp, bw, self.a, normals=bn, support_factor=self.support)
+        if integration == "gauss":
+            self.volume = integ.gauss_table(body, self.a, order, cell_size, support_factor=self.support)
+            balanced = self.surface
+        else:
+            smooth = scni.smoothing(body, self.a, integration, order, support_factor=self.support)
+            self.volume, balanced = smooth.table, smooth.boundary
 
         self.sets = EssentialSets.build(body, dict(essential or {}))
         trans = Transformation.build(body, self.sets, self.a, self.support) if len(self.sets.bnd) else None
-        ctx = Context(body, self.a, self.support, self.volume, self.surface, self.sets)
+        ctx = Context(body, self.a, self.support, self.volume, self.surface, self.sets, balanced)
         if anti_locking not in (None, True, False):
             raise ValueError(f"anti_locking must be None (where the material needs it), True or False, "
                              f"got {anti_locking!r}")

@@ -155,6 +155,10 @@ def test_scni_integration_constraint_on_meshes(which, breast):
         assert np.abs(s.areas[:body.n] - body.volumes).max() < 1e-13
         assert abs(T.weights.sum() - body.measure) < 1e-12
         assert np.abs(np.einsum("rkj,rki->rij", T.dpsi, body.X[T.idx]) - np.eye(body.dim)).max() < 1e-11
+        B = s.boundary          # the contact points' rule: the same boundary side, exactly
+        rhs = np.zeros((body.n, body.dim))
+        np.add.at(rhs, B.idx, (B.weights[:, None] * B.psi)[..., None] * B.normals[:, None, :])
+        assert np.abs(rhs - s.boundary_integral).max() < 1e-12
         if beta:
             assert len(T.weights) == body.n + body.cells.size      # a piece per particle and cell
 

@@ -9,6 +9,7 @@ import jaxrkpm as jr
 from jaxrkpm.thesis.studies import compress
 from jaxrkpm.discretise import polygons
 from jaxrkpm.discretise import scni
+from jaxrkpm.discretise.quadrature import boundary_points
 from tests.problems import FUNG, phantom_body, unit_grid
 
 F0_2D = np.array([[1.1, 0.2], [-0.1, 0.95]])           # general, non-symmetric
@@ -67,6 +68,12 @@ def test_integration_constraint(smoothing):
         assert np.abs(lin).max() < 1e-11
         # padding: index 0 with psi = dpsi = 0, and psi is a partition of unity at the rows
         assert np.abs(T.psi.sum(1) - 1).max() < 1e-12
+        # the boundary rule (contact points) integrates to the constraint's boundary side
+        B = s.boundary
+        rhs = np.zeros((body.n, body.dim))
+        np.add.at(rhs, B.idx, (B.weights[:, None] * B.psi)[..., None] * B.normals[:, None, :])
+        assert np.abs(rhs - s.boundary_integral).max() < 1e-12
+        assert np.abs(B.psi.sum(1) - 1).max() < 1e-12 and abs(B.weights.sum() - boundary_points(body)[1].sum()) < 1e-12
 
 
 def test_boundary_rule_approximates_true_integral(smoothing):

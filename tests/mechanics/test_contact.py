@@ -45,8 +45,10 @@ def test_rotation_is_smooth_at_the_identity():
 # ---------------------------------------------------------------------- patch test
 @pytest.fixture(scope="module")
 def pressed_block():
-    """A 1 x 1 block (SCNI) squeezed between two rigid frictionless plates moving in by
-    ``d`` each (its centre particle held: by symmetry it carries no load)."""
+    """A 1 x 1 block (SCNI) pressed over its whole top by a rigid frictionless plate, its
+    bottom on rollers (a second frictionless plate: it lets the bottom slide freely); both
+    plates move in by ``d`` so that the centre particle, held against rigid motion, carries no
+    load by symmetry."""
     n = 5
     body = jr.Body.grid((n, n), 1.0 / (n - 1), origin=(-0.5, -0.5))
     centre = body.select(lambda X: np.hypot(*X.T) < 1e-9)
@@ -80,11 +82,39 @@ def test_contact_patch(pressed_block):
     assert abs(float(res.tangential[0])) < 1e-10 * abs(float(res.force[1]))
     assert np.allclose(np.asarray(model.reaction(sol, "c")), 0.0, atol=1e-9 * abs(float(res.force[1])))
     # the resultant is the stress times the face (deformed width x sigma_yy, 2D)
-    width = float(np.ptp(np.asarray(res.points)[:, 0]))   # the deformed top face
-    assert float(res.force[1]) == pytest.approx(syy.mean() * width, rel=2e-3)
-    # uniform: the lumped nodal rule is not SCNI's nodal boundary rule exactly (see the report)
-    assert spread < 2e-3
-    assert np.ptp(p) / p.mean() < 0.1
+    width = 1.0 + float(np.ptp(np.asarray(model.displacement(sol, np.array([[-0.5, 0.5], [0.5, 0.5]]))[:, 0])))
+    assert float(res.force[1]) == pytest.approx(syy.mean() * width, rel=1e-6)
+    # uniform: the contact points are SCNI's boundary quadrature points, so that the uniform
+    # pressure balances a uniform stress exactly (lumped nodal weights do not)
+    assert spread < 1e-6 and np.abs(S[:, 0, :]).max() < 1e-6 * abs(syy.mean())
+    assert np.ptp(p) / p.mean() < 1e-6
+
+
+def test_contact_in_the_vtu_and_the_figure(pressed_block, tmp_path):
+    import meshio
+
+    from jaxrkpm.io import output, plot
+    model, sol, params = pressed_block
+    res = jr.contact_forces(model, sol, "top", params)
+    back = meshio.read(output.write_solution(tmp_path / "pressed.vtu", model, sol, params=params))
+    top = model.body.X[:, 1] > 0.5 - 1e-9
+    force = back.point_data["contact_top_force"]
+    # the particles' shares add up to the tool's force; the top row carries it all, uniformly
+    assert np.allclose(force.sum(0)[:2], np.asarray(res.force), rtol=1e-12)
+    assert np.all(force[~top] == 0) and np.all(back.point_data["contact_top_active"][top] == 1)
+    assert np.allclose(back.point_data["contact_top_pressure"][top], np.asarray(res.pressure)[0], rtol=1e-9)
+    gap = back.point_data["contact_top_gap"]
+    assert np.all(gap[top] > 0) and np.all(gap[top] < GAP) and np.all(gap[~top] > 0.2)
+    f = back.field_data
+    assert np.allclose(f["contact_top_resultant"][:2], np.asarray(res.force)) and f["contact_top_active"][0] == len(res.gap)
+    assert f["contact_top_min_gap"][0] == pytest.approx(float(res.min_gap))
+    assert abs(f["contact_top_tangential"]).max() < 1e-10 * abs(f["contact_top_normal"]).max()
+    fig, ax = plot.plt.subplots()
+    plot.deformed_particles(ax, model.body.X, model.particle_displacements(sol))
+    sc = jr.contact_pressures(ax, model, sol, params)
+    assert sc.get_offsets().shape == (len(res.gap), 2) and np.allclose(sc.get_array(), np.asarray(res.pressure))
+    plot.save(fig, tmp_path / "pressed.png")
+    assert (tmp_path / "pressed.png").stat().st_size > 10_000
 
 
 # -------------------------------------------------------------------- derivatives
@@ -122,12 +152,15 @@ def _fd_vs_implicit(model, sol, params, name, keys, points, eps, fd=True):
 def paddle_2d():
     """A 1 x 1 block held at its bottom, pressed by a tilted box paddle with rounded edges."""
     body = jr.Body.grid((5, 5), 0.25, origin=(-0.5, -0.5))
-    paddle = jr.Contact(jr.Box((0.2, 0.05), 0.05), position=(0.1, 0.65), rotation=0.1,
+    paddle = jr.Contact(jr.Box((0.2, 0.05), 0.15), position=(0.1, 0.75), rotation=0.1,
                         gap=GAP, pressure=0.1, name="paddle", where=lambda X: X[:, 1] > 0.5 - 1e-9)
     model = jr.Model(body, MAT, essential={"bottom": body.select(lambda X: X[:, 1] < -0.5 + 1e-9)},
                      terms=[paddle])
     start = model.params["paddle"]
-    params = {"paddle": {"position": start["position"] + jnp.array([0.0, -0.06]), "rotation": jnp.asarray(0.12)}}
+    # every friction parameter given (frictionless: mu = 0), so that the frictional solves
+    # and their Jacobians below reuse these compiled programs
+    params = {"paddle": {**start, "position": start["position"] + jnp.array([0.0, -0.06]),
+                         "rotation": jnp.asarray(0.12)}}
     return model, model.solve(params=params, steps=4, rtol=1e-12), params
 
 
@@ -150,12 +183,14 @@ def test_pose_jacobian_2d_frictional(paddle_2d):
     res = jr.contact_forces(model, fr, "paddle", p)
     # the lag's anchors are the state itself: no slip, no friction until the tool moves
     assert np.abs(np.asarray(res.tangential)).max() < 1e-8 * np.abs(np.asarray(res.normal)).max()
-    J, fd = _fd_vs_implicit(model, fr, p, "paddle", ("position",), np.array([[0.1, 0.5], [0.0, 0.0]]), 1e-5)
+    J, fd = _fd_vs_implicit(model, fr, p, "paddle", ("position", "rotation"), np.array([[0.1, 0.5], [0.0, 0.0]]),
+                            1e-5)
     err = np.abs(J - fd).max() / np.abs(J).max()
     print(f"2D pose Jacobian, mu = 0.3 (lagged): rel. difference to central FD {err:.2e}")
     assert err < 1e-6
     # friction stiffens the tangential response to the paddle's sideways motion
-    J0, _ = _fd_vs_implicit(model, sol, params, "paddle", ("position",), np.array([[0.1, 0.5]]), 1e-5, fd=False)
+    J0, _ = _fd_vs_implicit(model, sol, params, "paddle", ("position", "rotation"),
+                            np.array([[0.1, 0.5], [0.0, 0.0]]), 1e-5, fd=False)
     assert abs(J[0, 0]) > abs(J0[0, 0])
 
 
@@ -207,10 +242,12 @@ CORNER = np.array([[1.0, 1.0]])
 @pytest.mark.parametrize("lam", [0.0, 1.0])
 def test_friction_against_a_glued_plate(clamped_block, lam):
     body, contact, glued = clamped_block
-    pose = {"position": jnp.array([0.0, 1.0 + GAP - D])}
+    anchors = contact.params["plate"]["anchor"]          # the start of the step: no slip yet
+    # frictionless: mu = 0 (every friction parameter given: one compiled solve for all)
+    pose = {"position": jnp.array([0.0, 1.0 + GAP - D]), "mu": jnp.asarray(0.0),
+            "pressure": jnp.zeros(len(anchors)), "anchor": anchors}
     free = contact.solve(params={"plate": pose, "lam": lam}, steps=4, max_iter=60)
     res = jr.contact_forces(contact, free, "plate", {"plate": pose})
-    anchors = contact.params["plate"]["anchor"]          # the start of the step: no slip yet
     sol, pressure = free, res.pressure
     for _ in range(2):                                   # the lagged normal pressure, iterated
         p = {"plate": {**pose, "mu": jnp.asarray(0.3), "pressure": pressure, "anchor": anchors}, "lam": lam}
