@@ -39,9 +39,14 @@ def optimum_row(o):
             "in_contact_at_end": o.run.in_contact}
 
 
+def dump(out, path):
+    with open(path, "w") as f:
+        json.dump(out, f, indent=1)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--increments", type=int, default=5)
+    ap.add_argument("--increments", type=int, default=15)
     ap.add_argument("--paddle", type=int, default=3, help="paddle position of the dynamic and optimised runs")
     ap.add_argument("--iterations", type=int, default=6, help="Adam iterations of the optimised pose")
     ap.add_argument("--quick", action="store_true", help="one case, paddles 3 and 5, two increments")
@@ -65,18 +70,19 @@ def main(argv=None):
         case = {"inclusion": inclusion, "mu": mu, "static": sw.rows(), "glued_only": sw.glued_only(),
                 "static_contact_ok": sw.contact_ok}
         print(inclusion, mu, "static", [(r["paddle"], r["glued"], r["contact"]) for r in case["static"]], flush=True)
+        out["cases"].append(case)
+        dump(out, a.out)
         dyn = cp.dynamic_contact_paddle(ph, a.paddle, inclusion, inc_n, spec, start=[0.5 * ph.spacing, 0.0],
-                                        max_corrections=2 if a.quick else 6)
+                                        max_corrections=2 if a.quick else 4)
         case["dynamic"] = dynamic_row(dyn)
+        dump(out, a.out)
         print(inclusion, mu, "dynamic", dyn.status.name, dyn.deviation, flush=True)
         if not a.quick:
             opt = cp.optimize_contact_paddle(ph, a.paddle, inclusion, inc_n, spec, iterations=a.iterations)
             case["optimum"] = optimum_row(opt)
             print(inclusion, mu, "optimum", opt.control, opt.deviation, flush=True)
         case["seconds"] = time.perf_counter() - t0
-        out["cases"].append(case)
-        with open(a.out, "w") as f:
-            json.dump(out, f, indent=1)
+        dump(out, a.out)
     print("wrote", a.out)
     return out
 

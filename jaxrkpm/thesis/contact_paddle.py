@@ -4,7 +4,7 @@ phantom instead of a set of particles glued to the tool.
 The glued paddle of chapter 6 (an essential set, or stiff springs) holds its particles at
 prescribed positions, so it pulls as readily as it pushes. A contact paddle is a rigid box
 with rounded edges (``jaxrkpm.Contact(Box)``) placed against the phantom's boundary where the
-glued paddle holds it (``phantom.paddle_frame(p)``: the face centre, the outward normal, the
+glued paddle holds it (``phantom.contact_face(p)``: the face centre, the outward normal, the
 tangents and the face's half extents), pressed in along the inward normal by an
 ``indentation`` and shifted along the boundary by a tangential ``shift``: its pose
 (indentation, shift) is a solve parameter, so the paddle can only push (the barrier) and
@@ -22,7 +22,7 @@ friction cone |f_t| <= mu f_n (``ContactCheck``).
 
 The studies (``contact_sweep``, ``dynamic_contact_paddle``, ``optimize_contact_paddle``) take
 any phantom with the ``NeedleTrack`` interface, ``sets(None)``, ``material(inclusion)`` and
-``paddle_frame`` (the 2D ``Phantom`` and the 3D ``Phantom3D``); the glued studies of
+``contact_face`` (the 2D ``Phantom`` and the 3D ``Phantom3D``); the glued studies of
 ``jaxrkpm.thesis.needle`` are unchanged.
 """
 from __future__ import annotations
@@ -122,7 +122,7 @@ def contact_model(phantom, inclusion: str = "none", paddle: int = 1, spec: Conta
     c = spec.resolved(phantom)
     key = ("contact_model", inclusion, paddle, spec)
     if key not in phantom._cache:
-        centre, normal, tangents, half = phantom.paddle_frame(paddle)
+        centre, normal, tangents, half = phantom.contact_face(paddle)
         box = Box((*half, c["half_thickness"]), c["radius"])
         rest = centre + normal * (c["half_thickness"] + c["radius"] + 2 * c["gap"])
         tool = Contact(box, position=tuple(rest), rotation=tool_rotation(normal, tangents), gap=c["gap"],
@@ -139,7 +139,7 @@ def pose(phantom, paddle: int, spec: ContactPaddle, control) -> dict:
     its face pressed ``indentation`` in along the inward normal from the rest boundary, its
     centre moved by ``shift`` (d - 1 tangential components) along the boundary."""
     c = spec.resolved(phantom)
-    centre, normal, tangents, _ = phantom.paddle_frame(paddle)
+    centre, normal, tangents, _ = phantom.contact_face(paddle)
     control = jnp.asarray(control, jnp.float64)
     position = (jnp.asarray(centre) + jnp.asarray(normal) * (c["half_thickness"] + c["radius"] - control[0])
                 + control[1:] @ jnp.asarray(tangents))
@@ -266,7 +266,7 @@ def contact_insertion(phantom, paddle: int, control, inclusion: str = "none", in
     if control.shape != (d,) or not np.all(np.isfinite(control)):
         raise ValueError(f"control must be {d} finite numbers (indentation, then {d - 1} tangential "
                          f"shift(s)), got {control.tolist()}")
-    inward = -phantom.paddle_frame(paddle)[1]
+    inward = -phantom.contact_face(paddle)[1]
     target = np.atleast_2d(phantom.target)
     sol, lag, res = st.step({"needle": np.zeros(d)}, control, None, None, steps=spec.press_steps)
     depths, dev, checks = [], [], []
@@ -391,7 +391,7 @@ class DynamicContactRun:
 def control_bounds(phantom, paddle: int):
     """(lower, upper) (d,) of the pose: indentation 0..2 spacings, each shift within the
     face's half extent (the face stays over the glued paddle's boundary piece)."""
-    half = np.asarray(phantom.paddle_frame(paddle)[3], float)
+    half = np.asarray(phantom.contact_face(paddle)[3], float)
     return np.r_[0.0, -half], np.r_[2.0 * phantom.spacing, half]
 
 
@@ -428,7 +428,7 @@ def dynamic_contact_paddle(phantom, paddle: int, inclusion: str = "none", increm
     d = model.dim
     B = np.asarray(phantom.lateral, float)
     target = np.atleast_2d(phantom.target)
-    inward = -phantom.paddle_frame(paddle)[1]
+    inward = -phantom.contact_face(paddle)[1]
     c = np.zeros(d) if start is None else np.clip(np.asarray(start, float), lo, hi)
     sol, lag, res = st.step({"needle": np.zeros(d)}, c, None, None, steps=spec.press_steps)
     out = {"dev": [], "pre": [], "ctl": [], "its": [], "chk": []}
@@ -450,6 +450,7 @@ def dynamic_contact_paddle(phantom, paddle: int, inclusion: str = "none", increm
         e = lateral_error(sol)
         out["pre"].append(float(np.linalg.norm(e) if e.size > 1 else e[0]))
         k = 0
+        best = (np.linalg.norm(e), c, sol, lag, res, e)
         while np.linalg.norm(e) >= tol and k < max_corrections:
             k += 1
             J = lateral_jacobian(st, g, c, sol, lag)
@@ -460,6 +461,8 @@ def dynamic_contact_paddle(phantom, paddle: int, inclusion: str = "none", increm
                     break
                 c, sol, lag, res = c_new, new, new_lag, r
                 e = lateral_error(sol)
+                if np.linalg.norm(e) < best[0]:
+                    best = (np.linalg.norm(e), c, sol, lag, res, e)
                 continue
             dc = -J.T @ np.linalg.solve(J @ J.T, e)
             dc *= min(1.0, max_move * phantom.spacing / max(np.max(np.abs(dc)), 1e-300))
@@ -476,6 +479,10 @@ def dynamic_contact_paddle(phantom, paddle: int, inclusion: str = "none", increm
                 dc = 0.5 * dc
             if not better:
                 break                 # no pose within the bounds does better: push-only limit
+            if np.linalg.norm(e) < best[0]:
+                best = (np.linalg.norm(e), c, sol, lag, res, e)
+        if np.linalg.norm(e) > best[0]:   # a move in to regain contact that did not pay: back to the best pose
+            _, c, sol, lag, res, e = best
         out["dev"].append(float(np.linalg.norm(e) if e.size > 1 else e[0]))
         out["ctl"].append(c.copy())
         out["its"].append(k)

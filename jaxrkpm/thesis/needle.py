@@ -236,7 +236,7 @@ class Phantom(NeedleTrack):
                                      essential=self.sets(paddle), support=self.support)
         return self._cache[key]
 
-    def paddle_frame(self, paddle: int):
+    def contact_face(self, paddle: int):
         """(centre (2,), outward unit normal (2,), tangent (1, 2), face half length (1,)) of
         glued paddle position ``paddle``: the segment between its two particles, where a
         contact paddle's face is placed (``jaxrkpm.thesis.contact_paddle``)."""

@@ -28,15 +28,15 @@ def runs(phantom):
     return run, glued
 
 
-def test_paddle_frame(phantom):
+def test_contact_face(phantom):
     """The contact paddle's face lies on the glued paddle's boundary piece, its normal outward."""
-    c, n, t, half = phantom.paddle_frame(3)
+    c, n, t, half = phantom.contact_face(3)
     np.testing.assert_allclose(c, [0.15, 0.35])
     np.testing.assert_allclose(n, -np.ones(2) / np.sqrt(2))
     assert abs(t[0] @ n) < 1e-12 and np.isclose(half[0], 0.5 * np.sqrt(2) * 0.1)
-    np.testing.assert_allclose(phantom.paddle_frame(5)[1], [-1.0, 0.0])
+    np.testing.assert_allclose(phantom.contact_face(5)[1], [-1.0, 0.0])
     with pytest.raises(ValueError, match="out of range"):
-        phantom.paddle_frame(6)
+        phantom.contact_face(6)
 
 
 def test_static_contact_paddle_pushes_only(runs):
@@ -56,10 +56,25 @@ def test_static_contact_paddle_pushes_only(runs):
 
 
 def test_frictionless_has_no_tangential_force(phantom):
-    """mu = 0: the paddle's force on every point is along the tool's normal."""
-    r = cp.contact_insertion(phantom, 3, [1.5 * phantom.spacing, 0.0], "none", 1, cp.ContactPaddle(mu=0.0))
-    assert r.converged and r.checks[0].active > 0
-    assert r.checks[0].cone < 1e-9 and r.checks[0].push > 0
+    """mu = 0: pressed in, the paddle's force on every point is along the tool's normal and
+    pushes the body in."""
+    spec = cp.ContactPaddle(mu=0.0)
+    st = cp.Stepper(phantom, cp.contact_model(phantom, "none", 3, spec), 3, spec)
+    sol, lag, res = st.step({"needle": np.zeros(2)}, [phantom.spacing, 0.0], None, None, steps=spec.press_steps)
+    chk = cp.check_contact(res, -phantom.contact_face(3)[1], 0.0)
+    assert chk.active > 0 and chk.cone < 1e-9 and chk.push > 0 and chk.ok()
+
+
+def test_contact_face_3d():
+    """The 3D contact paddle's face: on the skin at the patch centre, its normal outward."""
+    from jaxrkpm.thesis.phantom3d import Phantom3D
+    ph = Phantom3D(spacing=0.3, material_law="neohookean")
+    c, n, t, half = ph.contact_face(8)
+    semi = np.asarray(ph.semi_axes)
+    assert np.isclose(np.sum((c / semi) ** 2), 1.0) and n @ (c / semi ** 2) > 0
+    np.testing.assert_allclose(t @ t.T, np.eye(2), atol=1e-12)
+    np.testing.assert_allclose(t @ n, 0.0, atol=1e-12)
+    assert half.shape == (2,)
 
 
 def test_dynamic_contact_paddle(phantom):
