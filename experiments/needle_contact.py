@@ -77,8 +77,9 @@ def main(argv=None):
         case["dynamic"] = dynamic_row(dyn)
         dump(out, a.out)
         print(inclusion, mu, "dynamic", dyn.status.name, dyn.deviation, flush=True)
-        if not a.quick:
-            opt = cp.optimize_contact_paddle(ph, a.paddle, inclusion, inc_n, spec, iterations=a.iterations)
+        if not a.quick:   # from the pose the closed loop ended at (a static pose from the start: another path)
+            opt = cp.optimize_contact_paddle(ph, a.paddle, inclusion, inc_n, spec, iterations=a.iterations,
+                                             start=dyn.control[-1] if len(dyn.control) else None)
             case["optimum"] = optimum_row(opt)
             print(inclusion, mu, "optimum", opt.control, opt.deviation, flush=True)
         case["seconds"] = time.perf_counter() - t0

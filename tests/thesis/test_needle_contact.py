@@ -45,14 +45,14 @@ def test_static_contact_paddle_pushes_only(runs):
     and holds it less well than the glued paddle, which pulls."""
     run, glued = runs
     assert run.converged and len(run.deviation) == INCREMENTS and run.contact_ok
-    assert all(c.active > 0 and c.min_normal > 0 and c.cone <= 1.0 + 1e-3 for c in run.checks)
+    assert all(c.active > 0 and c.min_normal > 0 and c.cone <= 1.01 for c in run.checks)
     assert run.checks[0].push > 0
     assert abs(run.final) < abs(glued[None])
     assert abs(glued[3]) < abs(run.final)
     sw = cp.ContactSweep("none", 0.8, run.control, [run], np.array([glued[3]]), glued[None])
     assert sw.glued_only() == [1] and sw.contact_ok      # (1-based among the paddles swept)
     row = sw.rows()[0]
-    assert row["contact_ok"] and row["in_contact_at_end"] and row["max_cone_ratio"] <= 1.0 + 1e-3
+    assert row["contact_ok"] and row["in_contact_at_end"] and row["max_cone_ratio"] <= 1.01
 
 
 def test_frictionless_has_no_tangential_force(phantom):
