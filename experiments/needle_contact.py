@@ -49,6 +49,8 @@ def main(argv=None):
     ap.add_argument("--increments", type=int, default=15)
     ap.add_argument("--paddle", type=int, default=3, help="paddle position of the dynamic and optimised runs")
     ap.add_argument("--iterations", type=int, default=6, help="Adam iterations of the optimised pose")
+    ap.add_argument("--optimum-only", type=float, default=None, metavar="INDENTATION",
+                    help="only the optimised pose, from this indentation (no shift)")
     ap.add_argument("--quick", action="store_true", help="one case, paddles 3 and 5, two increments")
     ap.add_argument("--inclusion", choices=("none", "right"), default=None, help="one inclusion (default both)")
     ap.add_argument("--mu", type=float, default=None, help="one friction coefficient (default 0.3 and 0.8)")
@@ -59,6 +61,7 @@ def main(argv=None):
                                              for mu in ([a.mu] if a.mu is not None else (0.3, 0.8))]
     if a.out is None:
         tag = "".join(f"_{v}" for v in (a.inclusion, a.mu) if v is not None)
+        tag += "_optimum" if a.optimum_only is not None else ""
         a.out = os.path.join(os.path.dirname(os.path.abspath(__file__)), f"needle_contact{tag}.json")
     inc_n = 2 if a.quick else a.increments
     out = {"phantom": "2D Figure 6.1 phantom (needle.Phantom defaults)", "increments": inc_n,
@@ -66,6 +69,13 @@ def main(argv=None):
     for inclusion, mu in cases:
         spec = cp.ContactPaddle(mu=mu)
         t0 = time.perf_counter()
+        if a.optimum_only is not None:
+            opt = cp.optimize_contact_paddle(ph, a.paddle, inclusion, inc_n, spec, iterations=a.iterations,
+                                             start=[a.optimum_only, 0.0])
+            out["cases"].append({"inclusion": inclusion, "mu": mu, "optimum": optimum_row(opt)})
+            print(inclusion, mu, "optimum", opt.control, opt.deviation, opt.status.name, flush=True)
+            dump(out, a.out)
+            continue
         sw = cp.contact_sweep(ph, inclusion, inc_n, spec=spec, paddles=[3, 5] if a.quick else None)
         case = {"inclusion": inclusion, "mu": mu, "static": sw.rows(), "glued_only": sw.glued_only(),
                 "static_contact_ok": sw.contact_ok}

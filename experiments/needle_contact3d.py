@@ -2,7 +2,8 @@
 (issue 36 item 4, 3D part): the glued sweep over every patch (batched), then the contact
 paddle (a flat rounded box tangent to the skin at the patch centre, pressed in along the
 normal) at the glued sweep's best patches, friction mu 0.3 and 0.8. Writes
-needle_contact3d.json beside this script, or --out.
+needle_contact3d.json beside this script, or --out (the runs of record:
+needle_contact3d_indent0.15.json, needle_contact3d_indent0.02.json).
 
     python experiments/needle_contact3d.py [--spacing 0.3] [--increments 4] [--patches 3]
 """
