@@ -326,6 +326,7 @@ class ContactSweep:
                         "no_paddle": self.no_paddle, "glued": float(g),
                         "contact": r.final if r.converged else np.nan,
                         "depth_reached": float(r.depths[-1]) if len(r.depths) else 0.0,
+                        "contact_per_increment": r.deviation.tolist(),
                         "contact_status": r.status.name,
                         "increments_converged": len(r.deviation),
                         "in_contact_at_end": r.in_contact,
