@@ -99,7 +99,7 @@ class ContactPaddle:
 def tissue_shear_modulus(phantom) -> float:
     """The phantom tissue's small-strain shear modulus (outside inclusions)."""
     law = phantom.material_law
-    if law in ("neo-hookean", "neohookean") and hasattr(phantom, "mu") and not hasattr(phantom, "paddle_chain"):
+    if law in ("neo-hookean", "neohookean") and hasattr(phantom, "mu"):   # the 3D phantom's own constant
         return float(phantom.mu)
     return fung_shear_modulus(phantom.alpha, phantom.beta)
 

@@ -6,7 +6,6 @@ import pytest
 
 from jaxrkpm.thesis import contact_paddle as cp
 from jaxrkpm.thesis import needle as nd
-from jaxrkpm.solvers.results import Status
 
 INCREMENTS = 2
 
