@@ -531,13 +531,14 @@ def optimize_contact_paddle(phantom, paddle: int, inclusion: str = "none", incre
                             learning_rate: float = 0.02, decay: float = 0.9, tol: float = 1e-6,
                             step_tol: float = 1e-4) -> ContactOptimum:
     """Adam on the pose (indentation, shift) within ``control_bounds`` for min deviation^2 at
-    full insertion, from ``start`` (default: one spacing in, no shift). A pose whose insertion
-    fails is undone and the steps halved. Where the paddle has left the body at full
-    insertion the gradient is zero: the optimum is then the start (reported as such)."""
+    full insertion, from ``start`` (default: 1.5 spacings in, no shift: deep enough that the
+    paddle still touches at full insertion, where a shallower one lets go and the gradient is
+    zero). A pose whose insertion fails is undone and the steps halved; a step that lets go of
+    the tissue is kept in the history but not chosen (its deviation is the no-paddle one)."""
     import optax
     lo, hi = control_bounds(phantom, paddle)
     d = len(lo)
-    c = np.clip(np.r_[phantom.spacing, np.zeros(d - 1)] if start is None else np.asarray(start, float), lo, hi)
+    c = np.clip(np.r_[1.5 * phantom.spacing, np.zeros(d - 1)] if start is None else np.asarray(start, float), lo, hi)
     opt = optax.adam(optax.exponential_decay(learning_rate, transition_steps=1, decay_rate=decay))
     state = opt.init(jnp.asarray(c))
     dev, grad, run = final_deviation_and_gradient(phantom, paddle, c, inclusion, increments, spec)
