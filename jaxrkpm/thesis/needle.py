@@ -236,6 +236,20 @@ class Phantom(NeedleTrack):
                                      essential=self.sets(paddle), support=self.support)
         return self._cache[key]
 
+    def contact_face(self, paddle: int):
+        """(centre (2,), outward unit normal (2,), tangent (1, 2), face half length (1,)) of
+        glued paddle position ``paddle``: the segment between its two particles, where a
+        contact paddle's face is placed (``jaxrkpm.thesis.contact_paddle``)."""
+        self.sets(paddle)             # a clear error for a bad index
+        a, b = (np.asarray(p, float) for p in self.paddles[paddle - 1])
+        t = (b - a) / np.linalg.norm(b - a)
+        n = np.array([t[1], -t[0]])
+        centre = 0.5 * (a + b)
+        from ..discretise import polygons
+        if polygons.contains(np.asarray(self.vertices, float), (centre + 1e-3 * self.spacing * n)[None])[0]:
+            n = -n
+        return centre, n, t[None], np.array([0.5 * np.linalg.norm(b - a)])
+
     # ------------------------------------------------ continuous paddle (beyond the thesis)
     @property
     def paddle_chain(self) -> np.ndarray:

@@ -395,6 +395,14 @@ class Phantom3D(NeedleTrack):
         t2 = jnp.cross(n, t1)
         return c, jnp.stack([t1, t2 / jnp.linalg.norm(t2), n])
 
+    def contact_face(self, paddle: int):
+        """(centre (3,), outward unit normal (3,), tangents (2, 3), face half extents (2,)) of
+        a contact paddle at patch ``paddle`` (``jaxrkpm.thesis.contact_paddle``): a flat square
+        face tangent to the skin at the patch centre, inscribed in the patch's circle."""
+        self.patch(paddle)            # a clear error for a bad index
+        c, frame = (np.asarray(v) for v in self.paddle_frame(self.patch_coordinates[paddle - 1]))
+        return c, frame[2], frame[:2], np.full(2, self.patch_radius / np.sqrt(2.0))
+
     @property
     def footprint(self) -> np.ndarray:
         """(k, 3) the continuous paddle's contact points in its own frame (``paddle_frame``):

@@ -298,6 +298,15 @@ def needle_parser():
                    help=f"optimize mode: Adam iterations, 1..{ADAM_MAX}")
     p.add_argument("--devices", type=number(int, 1, DEVICES_MAX), default=None,
                    help="shard the sweep over this many devices (default: all visible)")
+    p.add_argument("--paddle-model", choices=("glued", "contact"), default="glued",
+                   help="glued: the paddle holds its particles (pulls and pushes; the thesis' results); "
+                        "contact: a rigid box pressed against the boundary that only pushes, and drags by "
+                        "friction (static: pressed --indentation in; dynamic and optimize: its pose is the "
+                        "control; --paddle picks the position, default 3)")
+    p.add_argument("--friction", type=number(float, 0), default=0.3,
+                   help="contact paddle: Coulomb friction coefficient mu (>= 0)")
+    p.add_argument("--indentation", type=number(float, 0, 0.5), default=None,
+                   help="contact paddle, static mode: how far it is pressed in (default: one particle spacing)")
     return p
 
 

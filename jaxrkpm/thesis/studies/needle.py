@@ -356,11 +356,58 @@ def optimize_figures(phantom, model, sw, summary, out: Path):
     plot.plt.close(fig)
 
 
+def run_contact(phantom, a) -> dict:
+    """The study of ``a.mode`` with a contact (push-only) paddle: its results beside the glued
+    paddle's and the no-paddle run (``jaxrkpm.thesis.contact_paddle``)."""
+    from jaxrkpm.thesis import contact_paddle as cp
+    spec = cp.ContactPaddle(mu=a.friction)
+    paddle = a.paddle or 3
+    t0 = time.perf_counter()
+    s = {"mode": a.mode, "paddle_model": "contact", "friction": a.friction, "inclusion": a.inclusion,
+         "increments": a.increments, "material": phantom.material_law}
+    glued, free = cp.glued_finals(phantom, a.inclusion, a.increments, list(range(1, len(phantom.paddles) + 1)))
+    s.update(no_paddle_deviation=free, glued_deviation=glued.tolist())
+    if a.mode == "static":
+        control = None if a.indentation is None else [a.indentation, 0.0]
+        sw = cp.contact_sweep(phantom, a.inclusion, a.increments, control, spec)
+        s.update(table=sw.rows(), glued_only=sw.glued_only(), contact_ok=sw.contact_ok,
+                 deviation=sw.final.tolist())
+    elif a.mode == "dynamic":
+        r = cp.dynamic_contact_paddle(phantom, paddle, a.inclusion, a.increments, spec,
+                                      start=[0.5 * phantom.spacing, 0.0])
+        s.update(paddle=paddle, status=r.status.name.lower(), message=r.message, deviation=r.deviation.tolist(),
+                 control=r.control.tolist(), contact_ok=r.contact_ok, final=r.final)
+    else:
+        o = cp.optimize_contact_paddle(phantom, paddle, a.inclusion, a.increments, spec, iterations=a.iterations)
+        s.update(paddle=paddle, status=o.status.name.lower(), message=o.message, control=np.asarray(o.control).tolist(),
+                 final=o.deviation, contact_ok=o.run.contact_ok, history=o.history.tolist())
+    s["wall_s"] = time.perf_counter() - t0
+    return s
+
+
+def contact_result(s: dict) -> tuple[bool, str]:
+    """(goal reached, words) of a contact-paddle summary: every contact force compressive and
+    in the friction cone (and, dynamic, the target held; optimize, Adam's start feasible)."""
+    head = f"needle {s['mode']} ({s['inclusion']}, contact paddle, mu {s['friction']:g}): "
+    if s["mode"] == "static":
+        fin = s["deviation"]
+        best = int(np.nanargmin(np.abs(fin))) + 1 if np.isfinite(fin).any() else None
+        words = head + (f"best contact paddle {best}: deviation {abs(s['no_paddle_deviation']):.4f} -> "
+                        f"{abs(fin[best - 1]):.4f}" if best else "every contact insertion failed")
+        words += f"; glued only: {s['glued_only'] or 'none'}"
+        return bool(s["contact_ok"] and best), words + ("" if s["contact_ok"] else "; a contact force left the cone")
+    words = head + f"paddle {s['paddle']}: final deviation {abs(s['final']):.2e}; {s['status']}: {s['message']}"
+    ok = s["contact_ok"] and (s["status"] == "converged" if s["mode"] == "dynamic" else s["status"] != "start_failed")
+    return bool(ok), words
+
+
 def result(s: dict) -> tuple[bool, str]:
     """(goal reached, the result in words) of a needle summary. Static: the no-paddle run
     and the best paddle reach full insertion (other paddles stopping early is a finding, and
     is said); dynamic: the target held at every increment; optimize: Adam converged."""
     mode, inc = s["mode"], s["inclusion"]
+    if s.get("paddle_model") == "contact":
+        return contact_result(s)
     if mode == "static":
         failed = {i + 1: sorted({x for x in row if x != "converged"}) for i, row in enumerate(s["status"])
                   if any(x != "converged" for x in row)}
@@ -401,7 +448,9 @@ def main(argv=None):
     results = interface.results("needle", a, a.out or f"results/needle/{a.mode}_{a.inclusion}")
     with results as out:
         phantom = nd.Phantom(material_law=a.material)
-        if a.mode == "static":
+        if a.paddle_model == "contact":
+            summary = run_contact(phantom, a)
+        elif a.mode == "static":
             summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
         elif a.mode == "dynamic":
             summary = run_dynamic(phantom, a.inclusion, a.increments, out, a.paddle, a.devices)

@@ -1,0 +1,113 @@
+"""Needle studies with a contact (push-only) paddle (issue 36 item 4): the static sweep, the
+dynamic paddle and the optimised pose on the 2D phantom, at two increments (the studies'
+shape, not their converged figures: experiments/needle_contact.py has those)."""
+import numpy as np
+import pytest
+
+from jaxrkpm.thesis import contact_paddle as cp
+from jaxrkpm.thesis import needle as nd
+
+INCREMENTS = 2
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    return nd.Phantom()
+
+
+@pytest.fixture(scope="module")
+def runs(phantom):
+    """Paddle 3 pressed 1.5 spacings in (mu 0.8), the glued paddle 3 and no paddle."""
+    target = np.atleast_2d(phantom.target)
+    glued = {}
+    for p in (None, 3):
+        m, s = nd.static_state(phantom, "none", p, INCREMENTS)
+        glued[p] = float(phantom.deviation_of(np.asarray(m.displacement(s, target)[0])))
+    run = cp.contact_insertion(phantom, 3, [1.5 * phantom.spacing, 0.0], "none", INCREMENTS, cp.ContactPaddle(mu=0.8))
+    return run, glued
+
+
+def test_contact_face(phantom):
+    """The contact paddle's face lies on the glued paddle's boundary piece, its normal outward."""
+    c, n, t, half = phantom.contact_face(3)
+    np.testing.assert_allclose(c, [0.15, 0.35])
+    np.testing.assert_allclose(n, -np.ones(2) / np.sqrt(2))
+    assert abs(t[0] @ n) < 1e-12 and np.isclose(half[0], 0.5 * np.sqrt(2) * 0.1)
+    np.testing.assert_allclose(phantom.contact_face(5)[1], [-1.0, 0.0])
+    with pytest.raises(ValueError, match="out of range"):
+        phantom.contact_face(6)
+
+
+def test_static_contact_paddle_pushes_only(runs):
+    """Pressed in, the contact paddle pushes at every increment (every point force
+    compressive and in the friction cone), brings the target nearer the line than no paddle,
+    and holds it less well than the glued paddle, which pulls."""
+    run, glued = runs
+    assert run.converged and len(run.deviation) == INCREMENTS and run.contact_ok
+    assert all(c.active > 0 and c.min_normal > 0 and c.cone <= 1.01 for c in run.checks)
+    assert run.checks[0].push > 0
+    assert abs(run.final) < abs(glued[None])
+    assert abs(glued[3]) < abs(run.final)
+    sw = cp.ContactSweep("none", 0.8, run.control, [run], np.array([glued[3]]), glued[None])
+    assert sw.glued_only() == [1] and sw.contact_ok      # (1-based among the paddles swept)
+    row = sw.rows()[0]
+    assert row["contact_ok"] and row["in_contact_at_end"] and row["max_cone_ratio"] <= 1.01
+
+
+def test_frictionless_has_no_tangential_force(phantom):
+    """mu = 0: pressed in, the paddle's force on every point is along the tool's normal and
+    pushes the body in."""
+    spec = cp.ContactPaddle(mu=0.0)
+    st = cp.Stepper(phantom, cp.contact_model(phantom, "none", 3, spec), 3, spec)
+    sol, lag, res = st.step({"needle": np.zeros(2)}, [phantom.spacing, 0.0], None, None, steps=spec.press_steps)
+    chk = cp.check_contact(res, -phantom.contact_face(3)[1], 0.0)
+    assert chk.active > 0 and chk.cone < 1e-9 and chk.push > 0 and chk.ok()
+
+
+def test_contact_face_3d():
+    """The 3D contact paddle's face: on the skin at the patch centre, its normal outward."""
+    from jaxrkpm.thesis.phantom3d import Phantom3D
+    ph = Phantom3D(spacing=0.3, material_law="neohookean")
+    c, n, t, half = ph.contact_face(8)
+    semi = np.asarray(ph.semi_axes)
+    assert np.isclose(np.sum((c / semi) ** 2), 1.0) and n @ (c / semi ** 2) > 0
+    np.testing.assert_allclose(t @ t.T, np.eye(2), atol=1e-12)
+    np.testing.assert_allclose(t @ n, 0.0, atol=1e-12)
+    assert half.shape == (2,)
+
+
+def test_dynamic_contact_paddle(phantom):
+    """The closed loop moves the pose so the target comes nearer the line than with the
+    pose held, and never pulls."""
+    r = cp.dynamic_contact_paddle(phantom, 3, "none", INCREMENTS, cp.ContactPaddle(mu=0.8),
+                                  start=[0.5 * phantom.spacing, 0.0], max_corrections=2)
+    assert len(r.deviation) == INCREMENTS and r.contact_ok
+    assert np.all(np.abs(r.deviation) <= np.abs(r.uncorrected) + 1e-12)
+    assert np.abs(r.deviation[0]) < np.abs(r.uncorrected[0])
+    lo, hi = cp.control_bounds(phantom, 3)
+    assert np.all(r.control >= lo - 1e-12) and np.all(r.control <= hi + 1e-12)
+
+
+def test_optimised_pose(phantom):
+    """Adam on (indentation, shift): its best iterate is no worse than its start, the
+    insertion there converged with every contact force in the cone."""
+    o = cp.optimize_contact_paddle(phantom, 3, "none", INCREMENTS, cp.ContactPaddle(mu=0.8), iterations=2)
+    assert o.status != nd.OptimizeStatus.START_FAILED
+    assert abs(o.deviation) <= abs(o.history[0, 2]) + 1e-12
+    assert o.run.converged and o.run.contact_ok
+
+
+def test_bad_input(phantom):
+    with pytest.raises(ValueError, match="friction coefficient"):
+        cp.ContactPaddle(mu=-0.1)
+    with pytest.raises(ValueError, match="control must be 2"):
+        cp.contact_insertion(phantom, 3, [0.1], "none", 1)
+
+
+def test_cli_options():
+    from jaxrkpm.thesis.studies import interface
+    a = interface.parse("needle", ["--paddle-model", "contact", "--friction", "0.8"])
+    assert a.paddle_model == "contact" and a.friction == 0.8
+    assert interface.parse("needle", []).paddle_model == "glued"
+    with pytest.raises(SystemExit):
+        interface.parse("needle", ["--friction", "-1"])
