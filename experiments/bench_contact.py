@@ -20,6 +20,13 @@ import time
 from experiments import records
 
 
+# The paddle's rounded edges must span more than a particle spacing of the coarsest block: a
+# convex tool adds a negative tangential stiffness (barrier slope times the sdf's curvature) at
+# its edge, and with a sharper edge the 11-particle block's equilibrium is a saddle (the solve
+# stops with UNSTABLE_TANGENT, as it should).
+EDGE_RADIUS = 0.15
+
+
 def models(n, dim, depth):
     """(contact model, its params, glued model, its prescribed values) for a block of n
     particles a side."""
@@ -34,9 +41,9 @@ def models(n, dim, depth):
     mid = lambda X: (X[:, top] > 1 - tol) & np.all(np.abs(X[:, :top] - 0.5) < 1 / 6 + tol, axis=1)
     bottom = body.select(lambda X: X[:, top] < tol)
     mat = jr.NeoHookean(lam=1.0, mu=1.0)
-    half = (1 / 6,) * top + (0.05,)
-    c0 = (0.5,) * top + (1.1 + 2 * gap,)
-    paddle = jr.Contact(jr.Box(half, 0.05), position=c0, gap=gap, pressure=0.1, name="paddle",
+    half, radius = (1 / 6,) * top + (0.05,), EDGE_RADIUS
+    c0 = (0.5,) * top + (1 + half[-1] + radius + 2 * gap,)
+    paddle = jr.Contact(jr.Box(half, radius), position=c0, gap=gap, pressure=0.1, name="paddle",
                         where=lambda X: X[:, top] > 1 - tol)
     t0 = time.perf_counter()
     contact = jr.Model(body, mat, essential={"bottom": bottom}, terms=[paddle])
@@ -44,7 +51,8 @@ def models(n, dim, depth):
     t0 = time.perf_counter()
     glued = jr.Model(body, mat, essential={"bottom": bottom, "paddle": body.select(mid)})
     build_g = time.perf_counter() - t0
-    params = {"paddle": {"position": jnp.asarray(c0) - depth * jnp.eye(dim)[top]}}
+    # pressed ``depth`` past first touch (2 gap), as far as the glued particles are moved
+    params = {"paddle": {"position": jnp.asarray(c0) - (depth + 2 * gap) * jnp.eye(dim)[top]}}
     down = tuple(-depth * np.eye(dim)[top])
     return body, (contact, params, build_c), (glued, {"paddle": down}, build_g)
 

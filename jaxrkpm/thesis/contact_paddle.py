@@ -13,8 +13,9 @@ drag (friction, at most mu times the normal pressure).
 The path of one configuration: press the paddle in with the needle out (the tool moves with
 the load scale from clear of the body to its pose), then insert the needle increment by
 increment, each warm-started from the last with the paddle held. Friction is lagged
-(``contact_forces(...).lag``) and the lag iterated within each step until the normal
-pressure it holds changes by less than ``lag_tol`` of the largest one, so that the friction
+(``contact_forces(...).lag``) and the lagged normal pressure iterated within each step (the
+anchors, from which each point's slip is measured, stay at the step's start) until it
+changes by less than ``lag_tol`` of the largest one, so that the friction
 of an increment is bounded by that increment's pressure (without the iteration a point that
 left the tool would still carry the previous increment's friction). Every step is checked:
 each contact point's force compressive (along the tool's outward normal) and within the
@@ -242,8 +243,12 @@ class Stepper:
         if int(sol.status) != Status.CONVERGED:
             return sol, lag, None
         res = contact_forces(m, sol, NAME, self.params(control, lag))
+        # The anchors stay the step's start (where each point's slip of this step is measured
+        # from); only the pressure is iterated. A first step (no lag) anchors at its own
+        # frictionless end.
+        anchor = np.asarray(res.lag["anchor"] if lag is None else lag["anchor"])
         for _ in range(spec.lag_iterations if spec.mu > 0 else 0):
-            new = {k: np.asarray(v) for k, v in res.lag.items()}
+            new = {"pressure": np.asarray(res.lag["pressure"]), "anchor": anchor}
             old = np.zeros_like(new["pressure"]) if lag is None else np.asarray(lag["pressure"])
             if np.max(np.abs(new["pressure"] - old)) <= spec.lag_tol * max(float(np.max(new["pressure"])), 1e-300):
                 break
