@@ -53,13 +53,17 @@ the expected contact pressure and ghat a small fraction of the indentation.
 **Friction** (regularised Coulomb with lagged quantities, IPC's smoothed friction): the
 dissipation potential sum_b w_b mu lambda_b f0(|P_b (y_b - yhat_b)|) with lambda_b the lagged
 normal pressure, yhat_b the lagged anchor (the point's position in the tool's frame at the
-previous step), P_b the tangent projector at the anchor (I - n n^T, n the sdf's gradient
-there), and f0 the C1 smoothing of |s| (f0 = -s^3/(3 eps^2) + s^2/eps + eps/3 below the slip
+previous step), P_b the lagged tangent projector (I - n n^T, n the lagged unit normal in the
+tool's frame: by default the sdf's gradient at the anchor), and f0 the C1 smoothing of |s| (f0 = -s^3/(3 eps^2) + s^2/eps + eps/3 below the slip
 tolerance eps = ``slip``, s above): the friction force is mu lambda f0'(s), sticking (an elastic
 slip of up to eps) below mu lambda, sliding at it. The lagged quantities are parameters
-(``pressure``, ``anchor``; zero pressure: frictionless): a frictional load path is a sequence
-of solves, each lagging the previous one (``contact_forces(...).lag``), as in IPC's lagged
-iterations, so a solve's derivatives are those of one lagged step (the lagged quantities held).
+(``pressure``, ``anchor``, ``normal``; zero pressure: frictionless): a frictional load path is a
+sequence of solves, each lagging the previous one (``contact_forces(...).lag``), as in IPC's
+lagged iterations, so a solve's derivatives are those of one lagged step (the lagged quantities
+held). Within a step the pressure and the normal may be iterated with the anchors held (the
+step's start): at the fixed point the friction is bounded by the step's own pressure in its own
+tangent plane, i.e. inside the Coulomb cone (on a rounded edge a point slides around the tool,
+and the anchor's normal is no longer the point's).
 
 Results: ``contact_forces(model, sol, name)`` (force per tool, normal and tangential parts,
 pressure, gap and activity of each point). Derivatives are those of the equilibrium where the
@@ -83,6 +87,11 @@ LN2_HALF = float(np.log(2.0) + 0.5)   # p(ghat / 2) = kappa ghat (ln 2 + 1/2)
 
 
 # ------------------------------------------------------------------ tool shapes (sdf)
+def _unit(v):
+    """v (..., d) scaled to unit length over the last axis (0 stays 0)."""
+    return v / jnp.maximum(jnp.linalg.norm(v, axis=-1, keepdims=True), 1e-300)
+
+
 def _safe_norm(v):
     """|v| over the last axis with a zero (not NaN) gradient at v = 0."""
     s = jnp.sum(v * v, -1)
@@ -207,6 +216,8 @@ class ContactTerm(Term):
     mu                   () friction coefficient: a parameter
     pressure (S,)        lagged normal pressure: a parameter (0: frictionless)
     anchor (S, d)        lagged positions in the tool's frame: a parameter
+    normal (S, d)        lagged unit normals in the tool's frame (the friction's tangent
+                         planes): a parameter
     pair_id (S, K, K)    the pattern's index of each pair of a row (set by ``placed``)
     shape                the tool's shape (static)
     floor, slip          g_min / ghat and the friction's slip tolerance eps (static)
@@ -225,6 +236,7 @@ class ContactTerm(Term):
     mu: jax.Array
     pressure: jax.Array
     anchor: jax.Array
+    normal: jax.Array
     pair_id: jax.Array = None
     shape: object = static(None)
     floor: float = static(0.1)
@@ -250,26 +262,25 @@ class ContactTerm(Term):
     def gaps(self, x, load):
         return self.shape.sdf(self.local(x, load))
 
-    def _point_energy(self, x, load, pressure, anchor, w):
+    def _point_energy(self, x, load, pressure, anchor, n, w):
         """The energy of one contact point at x (d,)."""
         y = self.local(x[None], load)[0]
         e = w * barrier(self.shape.sdf(y), self.kappa, self.ghat, self.floor)
-        n = jax.grad(self.shape.sdf)(anchor)
-        n = n / jnp.maximum(jnp.linalg.norm(n), 1e-300)
         v = y - anchor
         v = v - jnp.dot(n, v) * n
         return e + w * self.mu * pressure * _f0(jnp.sum(v * v), self.slip)
 
     def _energies(self, x, load):
-        return jax.vmap(self._point_energy, in_axes=(0, None, 0, 0, 0))(x, load, self.pressure, self.anchor, self.w)
+        return jax.vmap(self._point_energy, in_axes=(0, None, 0, 0, 0, 0))(x, load, self.pressure, self.anchor,
+                                                                           self.normal, self.w)
 
     def energy(self, d, load, aux=None):
         return jnp.sum(self._energies(self.points(d), load)), None
 
     def blocks(self, d, load, pairs: Pairs):
         x = self.points(d)
-        H = jax.vmap(jax.hessian(self._point_energy), in_axes=(0, None, 0, 0, 0))(
-            x, load, self.pressure, self.anchor, self.w)                       # (S, d, d)
+        H = jax.vmap(jax.hessian(self._point_energy), in_axes=(0, None, 0, 0, 0, 0))(
+            x, load, self.pressure, self.anchor, self.normal, self.w)          # (S, d, d)
         dim = x.shape[-1]
         B = jnp.einsum("sk,sij,sm->skmij", self.psi, H, self.psi)
         return jax.ops.segment_sum(B.reshape(-1, dim, dim), self.pair_id.reshape(-1), num_segments=pairs.count)
@@ -283,8 +294,8 @@ class ContactTerm(Term):
         n_loc = jax.vmap(jax.grad(self.shape.sdf))(y)
         n = n_loc @ R.T
         n = n / jnp.maximum(jnp.linalg.norm(n, axis=1, keepdims=True), 1e-300)   # the tool's outward normal
-        f = -jax.vmap(jax.grad(self._point_energy), in_axes=(0, None, 0, 0, 0))(
-            x, load, self.pressure, self.anchor, self.w)   # force of the tool on each point
+        f = -jax.vmap(jax.grad(self._point_energy), in_axes=(0, None, 0, 0, 0, 0))(
+            x, load, self.pressure, self.anchor, self.normal, self.w)   # force of the tool on each point
         fn = jnp.sum(f * n, 1)
         p = jnp.where(g < self.ghat, -jax.vmap(jax.grad(barrier), in_axes=(0, None, None, None))(
             g, self.kappa, self.ghat, self.floor), 0.0)
@@ -292,13 +303,13 @@ class ContactTerm(Term):
         normal = jnp.sum(fn[:, None] * n, 0)
         return ContactResult(force=total, normal=normal, tangential=total - normal, point_force=f,
                              pressure=p, gap=g, active=g < self.ghat, points=x, normals=n,
-                             min_gap=jnp.min(g), lag={"pressure": p, "anchor": y})
+                             min_gap=jnp.min(g), lag={"pressure": p, "anchor": y, "normal": _unit(n_loc)})
 
     # ------------------------------------------------------------- parameters
     @property
     def params(self) -> dict:
         return {"position": self.position, "rotation": self.rotation, "mu": self.mu,
-                "pressure": self.pressure, "anchor": self.anchor}
+                "pressure": self.pressure, "anchor": self.anchor, "normal": self.normal}
 
     def with_params(self, params: dict) -> "ContactTerm":
         return replace(self, **params)
@@ -306,7 +317,7 @@ class ContactTerm(Term):
     def check_params(self, value) -> dict:
         """Any of the parameters (the rest keep their values): ``position`` (d,), ``rotation``
         (2D: an angle; 3D: a rotation vector (3,)), ``mu`` (), ``pressure`` (S,), ``anchor``
-        (S, d)."""
+        (S, d), ``normal`` (S, d; used as given: unit vectors)."""
         ref = self.params
         if not isinstance(value, Mapping) or not value or set(value) - set(ref):
             raise ValueError(f"params[{self.name!r}] must be a dict of some of " + ", ".join(
@@ -350,8 +361,8 @@ class ContactResult(NamedTuple):
     gap (S,)            each point's gap g; ``min_gap`` its smallest value
     active (S,)         g < ghat (the barrier acts)
     points, normals     the points' deformed positions and the tool's outward normal there
-    lag                 {"pressure", "anchor"}: the lagged friction parameters for the next
-                        step of a frictional path (``params={name: {**res.lag, ...}}``)"""
+    lag                 {"pressure", "anchor", "normal"}: the lagged friction parameters for
+                        the next step of a frictional path (``params={name: {**res.lag, ...}}``)"""
 
     force: jax.Array
     normal: jax.Array
@@ -449,7 +460,7 @@ class Contact(TermSpec):
                         w=jnp.asarray(w), kappa=jnp.asarray(kappa), ghat=jnp.asarray(float(self.gap)),
                         position0=jnp.asarray(c0), rotation0=jnp.asarray(r0), position=jnp.asarray(c0),
                         rotation=jnp.asarray(r0), mu=jnp.asarray(float(self.mu)), pressure=jnp.zeros(S),
-                        anchor=jnp.zeros((S, dim)), shape=self.shape, floor=float(self.floor),
+                        anchor=jnp.zeros((S, dim)), normal=jnp.zeros((S, dim)), shape=self.shape, floor=float(self.floor),
                         slip=float(self.slip), name=self.name)
         g = np.asarray(t.gaps(t.X, 0.0))
         if np.any(g <= 0):
@@ -458,7 +469,8 @@ class Contact(TermSpec):
                              f"(contact point {X[i].tolist()} at gap {g[i]:.3g}); place it clear of the body "
                              "(position=..., rotation=...) and move it in with params={name: {'position': ...}}")
         # the anchors start at the points themselves (in the tool's frame): no slip yet
-        return replace(t, anchor=t.local(t.X, 0.0))
+        anchor = t.local(t.X, 0.0)
+        return replace(t, anchor=anchor, normal=_unit(jax.vmap(jax.grad(self.shape.sdf))(anchor)))
 
 
 def _contact_points(ctx: Context, where, name) -> Table:

@@ -50,8 +50,11 @@ class ContactPaddle:
     """The contact paddle's tool and contact settings (None: from the phantom).
 
     mu              Coulomb friction coefficient (lagged, see the module docstring)
-    half_thickness  the box's half thickness behind its face (only the face touches; thick
-                    enough that a load step cannot carry a boundary point through it)
+    half_thickness  the box's half thickness behind its face (default two particle spacings:
+                    the tool reaches out of the tissue at the deepest indentation the
+                    controls allow, so no tissue closes over its back and the paddle can
+                    only push; a thinner tool pressed deeper than its thickness is buried,
+                    and the tissue around its back edges lets it pull)
     radius          the rounding of its edges (default a tenth of the particle spacing)
     gap             the barrier's range ghat (default a hundredth of the spacing): a touching
                     point stands off the face by less than this
@@ -62,8 +65,8 @@ class ContactPaddle:
                     sticking point slips elastically by up to this
     press_steps     load steps of the press (the tool moves less than a step's share of the
                     indentation per Newton solve)
-    lag_iterations  re-solves per step with the friction lag updated; ``lag_tol`` their
-                    tolerance on the lagged pressure (relative to its largest value)
+    lag_iterations  re-solves per step with the friction lag updated (at most); ``lag_tol``
+                    their tolerance on each point's lagged pressure (relative) and normal
     """
 
     mu: float = 0.3
@@ -73,7 +76,7 @@ class ContactPaddle:
     pressure: float | None = None
     slip: float | None = None
     press_steps: int = 8
-    lag_iterations: int = 8
+    lag_iterations: int = 30
     lag_tol: float = 1e-2
 
     def __post_init__(self):
@@ -93,7 +96,7 @@ class ContactPaddle:
     def resolved(self, phantom) -> dict:
         """The tool's sizes and barrier constants for ``phantom`` (its defaults filled in)."""
         h = float(phantom.spacing)
-        return {"half_thickness": self.half_thickness or 0.5 * h, "radius": self.radius or 0.1 * h,
+        return {"half_thickness": self.half_thickness or 2.0 * h, "radius": self.radius or 0.1 * h,
                 "gap": self.gap or 0.01 * h, "slip": self.slip or 0.01 * h, "pressure": self.pressure or tissue_shear_modulus(phantom)}
 
 
@@ -222,6 +225,20 @@ class ContactRun:
         return bool(self.checks and self.checks[-1].active > 0)
 
 
+LAG_RELAXATION = 0.5
+LAG_FLOOR = 1e-6     # as ContactCheck's tolerance on point forces
+
+
+def lag_settled(held, now, tol: float) -> bool:
+    """Whether the friction lag a solve held agrees with the state it reached: each point's
+    pressure within ``tol`` of its own (the friction cone is a bound per point; pressures below
+    ``LAG_FLOOR`` of the largest are not told apart), normals within ``tol`` (radians, about)."""
+    p = np.asarray(now["pressure"])
+    floor = LAG_FLOOR * max(float(np.max(p, initial=0.0)), 1e-300)
+    return bool(np.all(np.abs(p - held["pressure"]) <= tol * np.maximum(p, floor))
+                and np.max(np.abs(now["normal"] - held["normal"]), initial=0.0) <= tol)
+
+
 class Stepper:
     """Solves of one contact model with lagged friction iterated per step (see the module
     docstring); ``step`` returns (Solution, lag, ContactResult) or the failed Solution."""
@@ -243,22 +260,38 @@ class Stepper:
         if int(sol.status) != Status.CONVERGED:
             return sol, lag, None
         res = contact_forces(m, sol, NAME, self.params(control, lag))
-        # The anchors stay the step's start (where each point's slip of this step is measured
-        # from); only the pressure is iterated. A first step (no lag) anchors at its own
-        # frictionless end.
+        # The anchors stay the step's start (each point's slip of this step is measured from
+        # there); the pressure and the tangent planes are iterated, the pressure half-way to
+        # the new one each time (the plain update swings between the points sharing the load),
+        # a point that left the tool at once (it carries no friction).
+        # A first step (no lag) anchors at its own frictionless end.
         anchor = np.asarray(res.lag["anchor"] if lag is None else lag["anchor"])
+        held = None if lag is None else {k: np.asarray(v) for k, v in lag.items()}
         for _ in range(spec.lag_iterations if spec.mu > 0 else 0):
-            new = {"pressure": np.asarray(res.lag["pressure"]), "anchor": anchor}
-            old = np.zeros_like(new["pressure"]) if lag is None else np.asarray(lag["pressure"])
-            if np.max(np.abs(new["pressure"] - old)) <= spec.lag_tol * max(float(np.max(new["pressure"])), 1e-300):
+            now = {k: np.asarray(v) for k, v in res.lag.items()}
+            if held is not None and lag_settled(held, now, spec.lag_tol):
                 break
+            relaxed = now["pressure"] if held is None else np.where(
+                now["pressure"] > 0, held["pressure"] + LAG_RELAXATION * (now["pressure"] - held["pressure"]), 0.0)
+            new = {"pressure": relaxed,
+                   "normal": now["normal"], "anchor": anchor}
             again = m.solve(prescribed, params=self.params(control, new), initial=sol, max_iter=MAX_ITER,
                             throw=False)
             if int(again.status) != Status.CONVERGED:
                 break
-            sol, lag = again, new
-            res = contact_forces(m, sol, NAME, self.params(control, lag))
+            sol, held = again, new
+            res = contact_forces(m, sol, NAME, self.params(control, held))
         return sol, {k: np.asarray(v) for k, v in res.lag.items()}, res
+
+
+def check_not_buried(phantom, spec: ContactPaddle, control):
+    """A paddle pressed deeper than its own thickness would be buried in the tissue (which
+    then closes over its back and lets it pull): refuse it."""
+    c = spec.resolved(phantom)
+    reach = 2 * (c["half_thickness"] + c["radius"])
+    if float(control[0]) >= reach:
+        raise ValueError(f"indentation {float(control[0]):.4g} buries the paddle (it is {reach:.4g} thick): "
+                         "press it in less, or give ContactPaddle(half_thickness=...) a thicker tool")
 
 
 def contact_insertion(phantom, paddle: int, control, inclusion: str = "none", increments: int = 15,
@@ -272,6 +305,7 @@ def contact_insertion(phantom, paddle: int, control, inclusion: str = "none", in
     if control.shape != (d,) or not np.all(np.isfinite(control)):
         raise ValueError(f"control must be {d} finite numbers (indentation, then {d - 1} tangential "
                          f"shift(s)), got {control.tolist()}")
+    check_not_buried(phantom, spec, control)
     inward = -phantom.contact_face(paddle)[1]
     target = np.atleast_2d(phantom.target)
     sol, lag, res = st.step({"needle": np.zeros(d)}, control, None, None, steps=spec.press_steps)
