@@ -194,17 +194,42 @@ def test_pose_jacobian_2d_frictional(paddle_2d):
     assert abs(J[0, 0]) > abs(J0[0, 0])
 
 
-def test_pose_jacobian_3d():
+@pytest.fixture(scope="module")
+def ball_3d():
+    """A 2 x 2 x 2 cube held at its bottom, pressed off-centre by a sphere."""
     body = jr.Body.grid((3, 3, 3), 0.5, origin=(-0.5, -0.5, -0.5))
     ball = jr.Contact(jr.Sphere(0.4), position=(0.05, 0.0, 0.5 + 0.4 + 2 * GAP), gap=GAP, pressure=0.1,
                       name="ball", where=lambda X: X[:, 2] > 0.5 - 1e-9)
     model = jr.Model(body, MAT, essential={"bottom": body.select(lambda X: X[:, 2] < -0.5 + 1e-9)},
                      terms=[ball])
-    params = {"ball": {"position": model.params["ball"]["position"] + jnp.array([0.0, 0.0, -0.05])}}
-    sol = model.solve(params=params, steps=4, rtol=1e-12)
+    # every friction parameter given (frictionless: mu = 0): the frictional solve below
+    # reuses the compiled programs
+    params = {"ball": {**model.params["ball"],
+                       "position": model.params["ball"]["position"] + jnp.array([0.0, 0.0, -0.05])}}
+    return model, model.solve(params=params, steps=4, rtol=1e-12), params
+
+
+def test_pose_jacobian_3d(ball_3d):
+    model, sol, params = ball_3d
     J, fd = _fd_vs_implicit(model, sol, params, "ball", ("position",), np.array([[0.0, 0.0, 0.5]]), 1e-5)
     err = np.abs(J - fd).max() / np.abs(J).max()
     print(f"3D pose Jacobian (sphere): rel. difference to central FD {err:.2e}")
+    assert np.abs(J).max() > 0.1 and err < 1e-6
+
+
+def test_pose_jacobian_3d_frictional(ball_3d):
+    """mu = 0.3, one lagged step from the frictionless state: the tool then moves sideways,
+    the Jacobian of the lagged solve against central differences."""
+    model, sol, params = ball_3d
+    lag = jr.contact_forces(model, sol, "ball", params).lag
+    p = {"ball": {**params["ball"], "mu": jnp.asarray(0.3), **lag,
+                  "position": params["ball"]["position"] + jnp.array([0.02, 0.0, 0.0])}}
+    fr = model.solve(params=p, initial=sol, rtol=1e-12)
+    res = jr.contact_forces(model, fr, "ball", p)
+    assert np.abs(np.asarray(res.tangential)).max() > 1e-3 * np.abs(np.asarray(res.normal)).max()  # friction acts
+    J, fd = _fd_vs_implicit(model, fr, p, "ball", ("position",), np.array([[0.0, 0.0, 0.5]]), 1e-5)
+    err = np.abs(J - fd).max() / np.abs(J).max()
+    print(f"3D pose Jacobian, mu = 0.3 (lagged): rel. difference to central FD {err:.2e}")
     assert np.abs(J).max() > 0.1 and err < 1e-6
 
 
