@@ -180,6 +180,19 @@ def rotation(theta, dim: int):
     return jnp.eye(3) + A * W + B * W @ W
 
 
+def near_seam(shape, y, distance):
+    """Whether the tool's curvature (its sdf's Hessian) jumps within ``distance`` of y (d,)
+    in its frame: the Hessian at one of the 2d points ``distance`` away along the axes
+    differs from y's by more than a tenth of its size (in a smooth region it changes by
+    about distance / radius)."""
+    H = jax.hessian(shape.sdf)
+    shifts = distance * jnp.concatenate([jnp.eye(y.shape[-1]), -jnp.eye(y.shape[-1])])
+    h0, hs = H(y), jax.vmap(lambda s: H(y + s))(shifts)
+    size = jnp.maximum(jnp.max(jnp.abs(hs)), jnp.max(jnp.abs(h0)))
+    # (a curvature that turns the normal by less than 1e-8 over ``distance`` is round-off)
+    return (size * distance > 1e-8) & jnp.any(jnp.max(jnp.abs(hs - h0), axis=(1, 2)) > 0.1 * size)
+
+
 def barrier(g, kappa, ghat, floor):
     """IPC's barrier b(g) (see the module docstring), continued below g_min = floor ghat by
     its second-order Taylor expansion there; 0 from ghat."""
@@ -301,9 +314,13 @@ class ContactTerm(Term):
             g, self.kappa, self.ghat, self.floor), 0.0)
         total = jnp.sum(f, 0)
         normal = jnp.sum(fn[:, None] * n, 0)
+        active = g < self.ghat
         return ContactResult(force=total, normal=normal, tangential=total - normal, point_force=f,
-                             pressure=p, gap=g, active=g < self.ghat, points=x, normals=n,
-                             min_gap=jnp.min(g), lag={"pressure": p, "anchor": y, "normal": _unit(n_loc)})
+                             pressure=p, gap=g, active=active, points=x, normals=n, min_gap=jnp.min(g),
+                             seam=active & jax.vmap(near_seam, (None, 0, None))(self.shape, y, self.ghat),
+                             lag={"pressure": p, "anchor": y, "normal": _unit(n_loc)})
+
+
 
     # ------------------------------------------------------------- parameters
     @property
@@ -361,6 +378,11 @@ class ContactResult(NamedTuple):
     gap (S,)            each point's gap g; ``min_gap`` its smallest value
     active (S,)         g < ghat (the barrier acts)
     points, normals     the points' deformed positions and the tool's outward normal there
+    seam (S,)           active points within ghat of a seam of the tool's surface, where its
+                        curvature jumps (a box's face meeting a rounded edge, a capsule's
+                        ends): the implicit Jacobian is one-sided there (its derivative with
+                        respect to the pose differs on the two sides); elsewhere, with the
+                        C2 barrier, it is continuous as points enter and leave the contact
     lag                 {"pressure", "anchor", "normal"}: the lagged friction parameters for
                         the next step of a frictional path (``params={name: {**res.lag, ...}}``)"""
 
@@ -374,6 +396,7 @@ class ContactResult(NamedTuple):
     points: jax.Array
     normals: jax.Array
     min_gap: jax.Array
+    seam: jax.Array
     lag: dict
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxrkpm as jr
-from jaxrkpm.mechanics.contact import barrier, rotation
+from jaxrkpm.mechanics.contact import barrier, near_seam, rotation
 
 GAP = 1e-3
 MAT = jr.NeoHookean(lam=1.0, mu=1.0)
@@ -28,6 +28,21 @@ def test_barrier_is_c2_at_its_range_and_finite_below_the_floor():
     spec = jr.Contact(jr.Sphere(1.0), position=(0.0, 0.0), gap=ghat, pressure=3.0)
     k = spec.pressure / (ghat * (np.log(2) + 0.5))
     assert float(-db(ghat / 2, k, ghat, floor)) == pytest.approx(3.0, rel=1e-12)
+
+
+def test_seams_of_the_tools_are_found():
+    """Where a box's flat face meets its rounded edge, or a capsule's side its end, the
+    curvature jumps (the implicit Jacobian is one-sided there): found within the distance
+    asked, and nowhere on a face, a sphere or a plane."""
+    box, cap = jr.Box((0.5, 0.1), 0.2), jr.Capsule(0.4, 0.1)
+    seam = jax.jit(near_seam, static_argnums=0)
+    for shape, y, near in ((box, [0.5, 0.35], True), (box, [0.5 + 2e-3, 0.35], False),
+                           (box, [0.2, 0.35], False), (box, [0.6, 0.4], False),
+                           (jr.Sphere(1.0), [0.3, 1.2], False), (jr.HalfSpace((0.0, 1.0)), [0.3, 0.1], False)):
+        assert bool(seam(shape, jnp.asarray(y), 1e-3)) == near, (shape, y)
+    for x in (0.4, -0.4):     # the capsule's segment ends at x = +-0.4 along its first axis
+        assert bool(seam(cap, jnp.asarray([x, 0.15]), 1e-3))
+    assert not bool(seam(cap, jnp.asarray([0.0, 0.15]), 1e-3))
 
 
 def test_rotation_is_smooth_at_the_identity():
