@@ -643,7 +643,8 @@ def track(model: Model, path, driven: str, control_points, *, plant: Model | Non
       its ``params`` pose (default: ``model.solve(params=params)``, which raises where it
       fails). Frictionless tools only (mu = 0; a ``ValueError`` otherwise). A waypoint that
       needs the tool to pull is not reached (NO_PROGRESS or ITERATION_CAP): once the tool
-      leaves the body J is zero and the increment too. The moves are not load-stepped, so
+      leaves the body J is zero and the increment too (so a tool must touch the body at
+      the start to move it). The moves are not load-stepped, so
       ``clamp`` should be a few of the tool's ``gap``; ``TrackResult.tool_position`` is the
       tool's position at every iteration.
 
