@@ -3,9 +3,10 @@
 The whole tracking run is one jitted while-loop (``Tracker``, a driver of
 ``jaxrkpm.solvers.iterate.iterate``): at each iteration the controller model's
 implicit Jacobian J = d CP / d MP is taken at its converged state, the manipulation point
-(a rigidly driven essential set) moves by K J^+ e clamped to ``clamp`` per component, and
-the models re-equilibrate. The plant (whose control point is measured) is the controller
-itself, or a second model (reduced -> refined control, section 5.3.1).
+(a rigidly driven essential set, or the position of a contact tool that can only push) moves
+by K J^+ e clamped to ``clamp`` per component, and the models re-equilibrate. The plant
+(whose control point is measured) is the controller itself, or a second model (reduced ->
+refined control, section 5.3.1).
 
 Cost per iteration: one tangent assembly and one factorisation of K_ff at the converged
 state (the linear solver's explicit state, dense or sparse alike), shared by the Jacobian
@@ -25,7 +26,7 @@ second-order prediction (``predicted_change``): on the 9x9 box path, 0-1 CG iter
 from __future__ import annotations
 
 from functools import partial
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, NamedTuple
 
 import jax
@@ -34,9 +35,10 @@ import numpy as np
 
 from ..base.outcome import Outcome
 from ..discretise.polygons import distance_to_segment
+from ..mechanics.contact import ContactTerm
 from ..mechanics.problem import Problem
 from ..model.model import Model
-from ..solvers.implicit import point_jacobian, response
+from ..solvers.implicit import parameter_response, point_jacobian, response
 from ..solvers.iterate import iterate, when
 from ..solvers.linalg.dense import DenseSolver
 from ..solvers.linalg.quasi_newton import QuasiNewton
@@ -67,18 +69,32 @@ def control_increment(J, e, gain, clamp, damping=0.0):
     if m == n:  # undamped square J: the plain inverse (better conditioned than the normal equations)
         step = jnp.where(damping > 0, step, jnp.linalg.solve(J, e))
     step = gain * step
+    # a J of zeros (a contact tool that has lost contact moves nothing) gives no finite step: no move
+    step = jnp.where(jnp.all(jnp.isfinite(step)), step, 0.0)
     biggest = jnp.max(jnp.abs(step))
     return jnp.where(biggest > clamp, step * (clamp / biggest), step)
 
 
+def contact_tools(problem: Problem) -> list:
+    """The names of the problem's contact tools (its ``Contact`` terms)."""
+    return [t.name for t in problem.terms if isinstance(t, ContactTerm)]
+
+
 @partial(jax.tree_util.register_dataclass, data_fields=("problem", "G", "idx", "psi"),
-         meta_fields=("driver", "chord", "jacobian_rtol", "corrections"))
+         meta_fields=("driver", "chord", "jacobian_rtol", "corrections", "tool"))
 @dataclass(frozen=True)
 class ControlledModel:
     """One model inside the tracking loop (a pytree: the problem and the tables are its
-    arrays; the solvers and settings its static part): the rigid directions of the driven set,
-    the control points' shape functions, the adaptive solve (``driver``) and the chord that
-    settles each move (``chord``).
+    arrays; the solvers and settings its static part): its manipulation point, the control
+    points' shape functions, the adaptive solve (``driver``) and the chord that settles each
+    move (``chord``).
+
+    The manipulation point mp (d_mp,) is a displacement from the start of the run: of a
+    rigidly driven essential set (the prescribed values g + mp . G, G its rigid directions;
+    ``tool`` None), or of a contact tool (``tool``: the name of a ``Contact`` term of the
+    problem, whose position at load scale 1 moves by mp, its rotation held; G is zero, the
+    prescribed values stay). Both are driven by the same loop: ``at`` gives the problem at
+    mp, and ``response`` the implicit sensitivity to mp (through g or the tool's position).
 
     jacobian_rtol  with a kept factorisation the Jacobian is refined until
                    |K x - rhs| <= jacobian_rtol |rhs|: it only sets the direction of a gained,
@@ -95,22 +111,48 @@ class ControlledModel:
     chord: Chord
     jacobian_rtol: float = 1e-6
     corrections: int = 30
+    tool: str | None = None
 
     @staticmethod
     def of(model: Model, driven: str, control_points, params=None, reuse: float = 0.0,
            memory: int = 8) -> "ControlledModel":
-        """``reuse`` in (0, 1): keep factorisations across control steps (``keeps``); the
-        chord corrections must then cut |r| by at least this factor each. A dense model then
-        solves with ``QuasiNewton(DenseSolver(inverse=True), memory)``: L^-1 is kept (solves
-        are matrix-vector products, and a kept factorisation serves many) and the
-        corrections' secant pairs improve it (L-BFGS), across control steps too."""
+        """``driven``: an essential set of ``model`` (moved rigidly) or a ``Contact`` term
+        (its position moved, from its value in ``params``; frictionless only: the lagged
+        friction parameters would have to follow every control step). ``reuse`` in (0, 1):
+        keep factorisations across control steps (``keeps``); the chord corrections must
+        then cut |r| by at least this factor each. A dense model then solves with
+        ``QuasiNewton(DenseSolver(inverse=True), memory)``: L^-1 is kept (solves are
+        matrix-vector products, and a kept factorisation serves many) and the corrections'
+        secant pairs improve it (L-BFGS), across control steps too."""
+        problem = model.problem(params)
+        tools = contact_tools(problem)
+        if driven in model.set_names:
+            G, tool = model.directions(driven), None
+        elif driven in tools:
+            G, tool = jnp.zeros((model.dim,) + model.initial().g.shape), driven
+        else:
+            raise ValueError(f"driven must name an essential set of the model ({list(model.set_names)}) or one of "
+                             f"its Contact terms ({tools}), got {driven!r}")
+        if tool is not None and float(problem.term(tool).mu) > 0:
+            raise ValueError(f"contact {tool!r} has friction (mu = {float(problem.term(tool).mu)}): tracking drives "
+                             "frictionless tools only (the lagged friction parameters would have to follow every "
+                             "control step); give params={name: {'mu': 0.0}} or a tool with mu=0")
         sf = model.shape_functions(np.atleast_2d(np.asarray(control_points, float)), gradients=False)
         linear = model.linear
         if reuse and isinstance(linear, DenseSolver):
             linear = QuasiNewton(DenseSolver(inverse=True), memory)
         newton = Newton(linear, reuse=reuse)
-        return ControlledModel(model.problem(params), model.directions(driven), jnp.asarray(sf.idx),
-                               jnp.asarray(sf.psi), LoadPath(newton), Chord(linear, reuse=reuse))
+        return ControlledModel(problem, G, jnp.asarray(sf.idx), jnp.asarray(sf.psi), LoadPath(newton),
+                               Chord(linear, reuse=reuse), tool=tool)
+
+    def at(self, mp) -> "ControlledModel":
+        """This model with the manipulation point at ``mp`` (from the start): a tool's problem
+        with the tool moved there; a driven set's as it is (its move is in the prescribed
+        values, ``_moved``)."""
+        if self.tool is None:
+            return self
+        start = self.problem.term(self.tool).position
+        return replace(self, problem=self.problem.replace(params={self.tool: {"position": start + mp}}))
 
     @property
     def keeps(self) -> bool:
@@ -139,9 +181,15 @@ class ControlledModel:
         """du (d_mp, Nf, d): the free coefficients' sensitivity to the manipulation point at
         ``sol`` from its factorisation ``state`` (with ``keeps``, of an earlier state: refined
         with exact products to this state's, to ``jacobian_rtol``, from ``guess``, e.g. the
-        response of the previous control step, where given)."""
-        return response(self.problem, self.linear, sol.u, sol.g, sol.load, self.G, state,
-                        refine=self.jacobian_rtol if self.keeps else 0.0, guess=guess)
+        response of the previous control step, where given). Of a tool: to its position
+        (the residual's derivative in that parameter), the problem being this one's at the
+        manipulation point of ``sol`` (``at``)."""
+        refine = self.jacobian_rtol if self.keeps else 0.0
+        if self.tool is None:
+            return response(self.problem, self.linear, sol.u, sol.g, sol.load, self.G, state, refine=refine,
+                            guess=guess)
+        return parameter_response(self.problem, self.linear, sol.u, sol.g, sol.load, self.tool, "position", state,
+                                  refine=refine, guess=guess)
 
     def jacobian(self, sol: Solution, state, du=None):
         """J = d CP / d MP (C*d, d_mp) at ``sol`` from its factorisation ``state`` (see
@@ -151,7 +199,8 @@ class ControlledModel:
         return J.reshape(-1, self.G.shape[0])
 
     def settle(self, sol: Solution, state, g1, lim: Limits, max_corr: int, du=None, floor=None):
-        """Equilibrium at the prescribed values g1 from the converged ``sol``: returns
+        """Equilibrium at the prescribed values g1 (and, of a tool, at this model's problem:
+        ``at`` the new manipulation point) from the converged ``sol``: returns
         (Solution, the factorisation to keep). ``du`` (Nf, d): the change of the free
         coefficients predicted for the move (``predicted_change``); where given, the chord
         starts at g1 from sol.u + du (from sol.u where du is not finite) instead of from the
@@ -180,7 +229,9 @@ class ControlledModel:
         def chord(u, g0, st):
             return self.chord.solve(prob, u, g0, g1, sol.load, sol.load, st, max_iter=cap + 1, floor=floor)
 
-        u0, g0 = sol.u, sol.g
+        # a tool's move is in the problem, not in g: the first solve is a Newton step at the
+        # moved tool from the last state (the predictor's linearisation along g would be zero)
+        u0, g0 = sol.u, (sol.g if self.tool is None else None)
         if du is not None:
             # from the predicted state at g1; where the prediction is not finite (after a failed
             # solve), from the last state moved to g1, whose residual the first step takes up
@@ -215,7 +266,10 @@ class TrackResult:
     (plant), error (n+1,) |e| against the current waypoint, waypoint (n+1,) its index,
     newton (n+1,) nonlinear iterations (linear solves: predictor + corrections) of the step,
     solve_status (n+1,); reached (W,) iteration at which each waypoint was reached (-1 if
-    not); achieved (W, C*d) the control point there; desired (W, C*d)."""
+    not); achieved (W, C*d) the control point there; desired (W, C*d); tool_start (d,) where
+    a contact tool was driven, its position at the start (the plant's; None for a set).
+    Where a solve failed, its iteration's row holds the last converged state and the failed
+    solve's status."""
 
     mp: np.ndarray
     cp: np.ndarray
@@ -229,6 +283,15 @@ class TrackResult:
     status: TrackStatus
     controller_solution: Solution
     plant_solution: Solution
+    tool_start: np.ndarray | None = None
+
+    @property
+    def tool_position(self) -> np.ndarray:
+        """(n+1, d) the driven contact tool's position at every iteration (the plant's tool:
+        its start plus ``mp``); a ``ValueError`` where an essential set was driven."""
+        if self.tool_start is None:
+            raise ValueError("this run drove an essential set, not a contact tool: its displacement is mp")
+        return self.tool_start + self.mp
 
     @property
     def waypoint_errors(self) -> np.ndarray:
@@ -458,26 +521,29 @@ class Tracker:
         """The control increment K J^+ e from the controller's Jacobian at its state, and both
         models settled at the moved manipulation point."""
         ctrl, plant = models
-        state = self._factorisation(ctrl, s.c, s.c_state)
+        # a tool's problem moves with the manipulation point (``ControlledModel.at``; a driven set's stays)
+        here = ctrl.at(s.mp)
+        state = self._factorisation(here, s.c, s.c_state)
         # with a kept factorisation the response is refined by CG: it starts from the one
         # predicted for this state (the last one plus its trend), which saves most of CG's
         # iterations (``experiments/bench_tracking.py``, ``experiments/bench_cube3d.py``);
         # one that is not finite, after a failed solve, is no guess: CG starts from 0
         guess = jnp.where(jnp.all(jnp.isfinite(s.du_next)), s.du_next, 0.0) if ctrl.keeps else None
-        du = ctrl.response(s.c, state, guess)
-        dmp = control_increment(ctrl.jacobian(s.c, state, du), e, args.gain, args.clamp, args.damping)
+        du = here.response(s.c, state, guess)
+        dmp = control_increment(here.jacobian(s.c, state, du), e, args.gain, args.clamp, args.damping)
         mp = s.mp + dmp
         # with a kept factorisation (of an earlier state) its own predictor is poor: the
         # response, refined to this state's, predicts the move, to second order along the path
         trend = response_trend(du, dmp, s.du, s.last_move) if ctrl.keeps else jnp.zeros_like(du)
         du_move = predicted_change(du, dmp, trend) if ctrl.keeps else None
-        c, c_state = ctrl.settle(s.c, state, _moved(ctrl, args.c_base, mp), args.lim, self.max_corr, du_move,
-                                 args.c_floor)
+        c, c_state = ctrl.at(mp).settle(s.c, state, _moved(ctrl, args.c_base, mp), args.lim, self.max_corr,
+                                        du_move, args.c_floor)
         if self.same:
             p, p_state = c, c_state
         else:
-            p, p_state = plant.settle(s.p, self._factorisation(plant, s.p, s.p_state), _moved(plant, args.p_base, mp),
-                                      args.lim, self.max_corr, floor=args.p_floor)
+            p, p_state = plant.at(mp).settle(s.p, self._factorisation(plant.at(s.mp), s.p, s.p_state),
+                                             _moved(plant, args.p_base, mp), args.lim, self.max_corr,
+                                             floor=args.p_floor)
         return TrackStep(mp, c, p, plant.measure(p), c.iterations + (0 if self.same else p.iterations),
                          jnp.maximum(c.status, p.status), c_state, p_state, du, trend)
 
@@ -565,16 +631,34 @@ def track(model: Model, path, driven: str, control_points, *, plant: Model | Non
           tol: float = 1e-4, damping: float = 0.0, max_iter: int = 2000, max_steps: int = 20000,
           window: int = 300, initial: Solution | None = None, plant_initial: Solution | None = None,
           params=None, plant_params=None, reuse: float | None = None) -> TrackResult:
-    """Track a path of control point displacements (W, C*d) by moving the rigidly driven set
-    ``driven`` (Algorithm 3). ``plant``: a second model that is actually moved and measured
-    (its driven set ``plant_driven``, default the same name); the controller's Jacobian
-    drives it. Stops with a status (never raises on an unreachable waypoint) and keeps the
-    whole history. ``reuse`` in (0, 1): keep factorisations across iterations, refactorised
-    only where a chord correction cuts the residual by less than this factor (see
-    ``ControlledModel.of``; same residual tolerance; the Jacobian then comes from the kept
-    factorisation of a nearby earlier state, refined to this state's: ``ControlledModel.jacobian``);
-    0: one factorisation per iteration; None (default): 0.5 for a model on the dense
-    path, 0 on the sparse and Krylov paths."""
+    """Track a path of control point displacements (W, C*d) by moving ``driven``
+    (Algorithm 3), the name of either
+
+    - an essential set of ``model``: moved rigidly (translated), glued to the body; the run
+      starts from ``initial`` (default: the undeformed, unloaded state); or
+    - a ``Contact`` term of ``model`` (a tool that can push the body, never pull it): its
+      position at load scale 1 is moved (its rotation held at its value in ``params``),
+      and J = d CP / d(tool position) comes from the residual's derivative in that
+      parameter. The run starts from ``initial``, a solution at load scale 1 with the tool at
+      its ``params`` pose (default: ``model.solve(params=params)``, which raises where it
+      fails). Frictionless tools only (mu = 0; a ``ValueError`` otherwise). A waypoint that
+      needs the tool to pull is not reached (NO_PROGRESS or ITERATION_CAP): once the tool
+      leaves the body J is zero and the increment too (so a tool must touch the body at
+      the start to move it). The moves are not load-stepped, so
+      ``clamp`` should be a few of the tool's ``gap``; ``TrackResult.tool_position`` is the
+      tool's position at every iteration.
+
+    ``plant``: a second model that is actually moved and measured (its driven set or tool
+    ``plant_driven``, default the same name, of the same kind as ``driven``); the
+    controller's Jacobian drives it. Stops with a status (never raises on an unreachable
+    waypoint or a failed solve) and keeps the whole history.
+
+    ``reuse`` in (0, 1): keep factorisations across iterations, refactorised only where a
+    chord correction cuts the residual by less than this factor (see ``ControlledModel.of``;
+    same residual tolerance; the Jacobian then comes from the kept factorisation of a nearby
+    earlier state, refined to this state's: ``ControlledModel.jacobian``); 0: one
+    factorisation per iteration; None (default): 0.5 for a model on the dense path, 0 on the
+    sparse and Krylov paths."""
     path = np.atleast_2d(np.asarray(path, float))
     cps = np.atleast_2d(np.asarray(control_points, float))
     if path.ndim != 2 or path.shape[1] != cps.size or len(path) == 0:
@@ -599,14 +683,34 @@ def track(model: Model, path, driven: str, control_points, *, plant: Model | Non
                                                  _kept(plant_model, reuse))
     if pside.G.shape[0] != ctrl.G.shape[0]:
         raise ValueError("controller and plant must drive the same number of coordinates")
-    c0 = model.initial() if initial is None else initial
-    p0 = c0 if same else (plant_model.initial() if plant_initial is None else plant_initial)
+    if (pside.tool is None) != (ctrl.tool is None):
+        raise ValueError("controller and plant must both drive an essential set or both a contact tool, got "
+                         f"{driven!r} and {plant_driven or driven!r}")
+    c0 = _start(model, ctrl, initial, params, "initial")
+    p0 = c0 if same else _start(plant_model, pside, plant_initial, plant_params, "plant_initial")
+    # a tool's move is in the problem, not along the load path: cutting a failed step moves nothing
+    lim = Limits.of(steps=1) if ctrl.tool is None else Limits.of(steps=1, max_cuts=0)
     out = Tracker(same, int(max_iter), int(max_steps), int(window)).run(
-        ctrl, pside, Limits.of(steps=1), c0, p0, jnp.asarray(path), gain, clamp, tol, damping)
+        ctrl, pside, lim, c0, p0, jnp.asarray(path), gain, clamp, tol, damping)
     n = int(out.iterations) + 1
     h = History(*(np.asarray(v)[:n] for v in out.hist))
+    start = None if pside.tool is None else np.asarray(pside.problem.term(pside.tool).position)
     return TrackResult(*h, np.asarray(out.reached), np.asarray(out.achieved), path, TrackStatus.of(out.status),
-                       out.controller, out.plant)
+                       out.controller, out.plant, start)
+
+
+def _start(model: Model, side: ControlledModel, initial: Solution | None, params, what: str) -> Solution:
+    """Where ``side`` starts: ``initial``, or by default the undeformed, unloaded state (a
+    driven set) or the equilibrium with the tool at its ``params`` pose (a tool, whose pose
+    is that of load scale 1)."""
+    if side.tool is None:
+        return model.initial() if initial is None else initial
+    if initial is None:
+        return model.solve(params=params)
+    if float(initial.load) != 1.0:
+        raise ValueError(f"{what}: a contact tool is moved at load scale 1 (its pose there is its params' "
+                         f"position), so the run must start from a solution at loads=1, got load {float(initial.load)}")
+    return initial
 
 
 # ----------------------------------------------------------------- analysis of a TrackResult

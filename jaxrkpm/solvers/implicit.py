@@ -94,6 +94,27 @@ def response(problem, linear, u, g, load, dG, state=None, refine: float = 0.0, g
     K_ff du = -K_fg dG with one factorisation (``state``, or a new one; ``refine`` and
     ``guess``, a response (m, Nf, d) to start from: see ``sensitivity``). Returns (m, Nf, d)."""
     dr = jax.vmap(lambda dg: jax.jvp(lambda x: problem.residual(u, x, load), (g,), (dg,))[1])(dG)   # (m, Nf, d)
+    return _responses(problem, linear, u, g, load, dr, state, refine, guess)
+
+
+def parameter_response(problem, linear, u, g, load, name: str, key: str, state=None, refine: float = 0.0,
+                       guess=None):
+    """Implicit sensitivity of the free coefficients to each component of the parameter
+    ``problem.params[name][key]`` (m components, flattened), the rest held: K_ff du = -dr/dp
+    with one factorisation (``state``, ``refine``, ``guess``: see ``response``). Returns
+    (m, Nf, d)."""
+    p0 = jnp.asarray(problem.term(name).params[key])
+
+    def residual(p):
+        return problem.replace(params={name: {key: p.reshape(p0.shape)}}).residual(u, g, load)
+
+    flat = p0.ravel()
+    dr = jax.vmap(lambda e: jax.jvp(residual, (flat,), (e,))[1])(jnp.eye(flat.size, dtype=flat.dtype))
+    return _responses(problem, linear, u, g, load, dr, state, refine, guess)
+
+
+def _responses(problem, linear, u, g, load, dr, state, refine, guess):
+    """-K_ff^-1 dr for the m right-hand sides dr (m, Nf, d), as one block: (m, Nf, d)."""
     x0 = None if guess is None else -jnp.moveaxis(guess, 0, -1)
     du = -sensitivity(problem, linear, u, g, load, jnp.moveaxis(dr, 0, -1), state, refine, x0)   # (Nf, d, m)
     return jnp.moveaxis(du, -1, 0)

@@ -111,6 +111,11 @@ def test_preconditioned_cg_on_host_and_in_jit():
     warm = preconditioned_cg(matvec, precondition, b[:, 0], 1e-10, 40, x0=x0)
     assert warm[2] and warm[1] < cold[1]
     assert np.linalg.norm(b[:, 0] - K @ warm[0]) <= 1e-10 * np.linalg.norm(b[:, 0])
+    # a zero right-hand side gives zero whatever the guess (a contact tool off the body has no response)
+    rhs = b.copy()
+    rhs[:, 0] = 0.0
+    x, its, ok = preconditioned_cg(matvec, precondition, rhs, 1e-10, 40, columns=True, x0=exact)
+    assert np.all(x[:, 0] == 0) and np.all(ok) and np.allclose(x[:, 1:], exact[:, 1:], rtol=0, atol=1e-8 * np.abs(exact).max())
     indefinite = K - 10.0 * np.eye(40)
     x, its, ok = preconditioned_cg(lambda v: indefinite @ v, precondition, b[:, 0], 1e-10, 40)
     assert not ok
