@@ -111,3 +111,28 @@ def test_cli_options():
     assert interface.parse("needle", []).paddle_model == "glued"
     with pytest.raises(SystemExit):
         interface.parse("needle", ["--friction", "-1"])
+
+
+def test_contact_figure(phantom, runs, tmp_path):
+    """The CLI's figure of a contact run: the final state with the paddle and its contact
+    pressures, beside the deviation curves (the glued and no-paddle ones faked here)."""
+    from jaxrkpm.thesis.studies import needle as study
+    run, glued = runs
+    state = study.contact_state(3, run.control, run.solution, run.lag, run.depths, run.deviation, "contact paddle 3")
+    curves = {"depths": run.depths, "no_paddle": np.full(INCREMENTS, glued[None]),
+              "glued": np.full(INCREMENTS, glued[3]), "glued_ok": True}
+    name = study.contact_figure(tmp_path / "contact.png", phantom, "none", cp.ContactPaddle(mu=0.8), state, curves)
+    assert name == "contact.png" and (tmp_path / name).stat().st_size > 10_000
+
+
+@pytest.mark.slow(reason="3D contact solves with the implicit Jacobian of each correction: minutes on a CPU")
+def test_dynamic_contact_paddle_3d():
+    """The closed loop on the 3D phantom: the pose is (indentation, two shifts), the
+    corrections bring the target nearer the line than the pose held, and never pull."""
+    from jaxrkpm.thesis.phantom3d import Phantom3D
+    ph = Phantom3D(spacing=0.3, material_law="neohookean")
+    r = cp.dynamic_contact_paddle(ph, 5, "none", 1, cp.ContactPaddle(mu=0.3), start=[0.02, 0.0, 0.0],
+                                  max_corrections=2)
+    assert r.control.shape == (1, 3) and len(r.deviation) == 1 and r.solution is not None
+    assert abs(r.deviation[0]) < abs(r.uncorrected[0])
+    assert all(c.min_normal >= 0 for c in r.checks)

@@ -27,7 +27,6 @@ import numpy as np
 from matplotlib.patches import Patch
 
 from jaxrkpm.io import plot
-from jaxrkpm.mechanics.contact import contact_forces
 from jaxrkpm.thesis import needle as nd
 from jaxrkpm.thesis.studies import interface
 from jaxrkpm.thesis.data import INCLUSIONS, NEEDLE
@@ -398,7 +397,7 @@ def run_contact(phantom, a, out: Path) -> dict:
     if state is not None and state["solution"] is not None and state["control"] is not None:
         sw = nd.static_sweep(phantom, a.inclusion, a.increments, paddles=[state["paddle"]])
         s["figure"] = contact_figure(out / f"contact_{a.mode}_{a.inclusion}.png", phantom, a.inclusion, spec,
-                                     state, sw)
+                                     state, glued_curves(sw, 0))
     return s
 
 
@@ -417,17 +416,23 @@ def contact_params(phantom, inclusion, spec, state) -> tuple:
     return model, cp.Stepper(phantom, model, state["paddle"], spec).params(state["control"], state["lag"])
 
 
-def deviation_panel(ax, sw, state, scale: float = 1.0, magnitude: bool = False):
+def glued_curves(sw, k: int) -> dict:
+    """The deviation per increment with no paddle and with the glued paddle of row ``k`` of
+    the static sweep ``sw`` (whether it reached full depth), for ``deviation_panel``."""
+    return {"depths": np.asarray(sw.depths), "no_paddle": np.asarray(sw.no_paddle),
+            "glued": np.asarray(sw.deviation[k]), "glued_ok": bool(np.all(sw.status[k] == nd.Status.CONVERGED))}
+
+
+def deviation_panel(ax, curves, state, scale: float = 1.0, magnitude: bool = False):
     """The target's deviation against the needle depth (``scale``: depth to the axis' unit):
-    no paddle and the glued paddle at the contact paddle's position (``sw``: their static
-    sweep), the contact paddle (and, dynamic, before its corrections). ``magnitude``: |...|
-    (3D: the deviation is a length), else signed (2D: the x deviation)."""
+    no paddle and the glued paddle at the contact paddle's position (``glued_curves``), the
+    contact paddle (and, dynamic, before its corrections). ``magnitude``: |...| (3D: the
+    deviation is a length), else signed (2D: the x deviation)."""
     f = np.abs if magnitude else (lambda v: np.asarray(v))
     p = state["paddle"]
-    ok = bool(np.all(sw.status == nd.Status.CONVERGED))
-    ax.plot(scale * sw.depths, f(sw.no_paddle), "k--", label="no paddle")
-    ax.plot(scale * sw.depths, f(sw.deviation[0]), "s-", ms=4, color="C0",
-            label=f"glued paddle {p}" + ("" if ok else " (stopped early)"))
+    ax.plot(scale * curves["depths"], f(curves["no_paddle"]), "k--", label="no paddle")
+    ax.plot(scale * curves["depths"], f(curves["glued"]), "s-", ms=4, color="C0",
+            label=f"glued paddle {p}" + ("" if curves["glued_ok"] else " (stopped early)"))
     if state["uncorrected"] is not None:
         ax.plot(scale * state["depths"], f(state["uncorrected"]), "^:", ms=4, color="C1", alpha=0.7,
                 label="contact, before the corrections")
@@ -435,6 +440,25 @@ def deviation_panel(ax, sw, state, scale: float = 1.0, magnitude: bool = False):
     ax.axhline(0, color="0.5", lw=0.6)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
+
+
+def paddle_pose(model, params):
+    """(the contact paddle's term, its centre (d,), its rotation (d, d)) at the solve's pose."""
+    from jaxrkpm.thesis import contact_paddle as cp
+    tool = next(t for t in model.problem(params).terms if getattr(t, "name", None) == cp.NAME)
+    c, R = (np.asarray(v, float) for v in tool.pose(1.0))
+    return tool, c, R
+
+
+def tool_outline(model, params, project=lambda P: P) -> np.ndarray:
+    """(k, 2) the contact paddle's outline in a view: the convex hull of the corners of its box
+    grown by the rounding radius (``project``: (n, d) -> (n, 2); 2D: none), at the solve's pose."""
+    from scipy.spatial import ConvexHull
+    tool, c, R = paddle_pose(model, params)
+    half = np.asarray(tool.shape.half, float) + float(tool.shape.radius)
+    corners = np.array(np.meshgrid(*[[-1.0, 1.0]] * len(half), indexing="ij")).reshape(len(half), -1).T * half
+    P = project(c + corners @ R.T)
+    return P[ConvexHull(P).vertices]
 
 
 def contact_legend(ax, paddle: bool = True, arrow: str = "paddle's force on it", colour="0.2"):
@@ -447,11 +471,10 @@ def contact_legend(ax, paddle: bool = True, arrow: str = "paddle's force on it",
     ax.plot([], [], ls="none", marker=r"$\rightarrow$", ms=12, color=colour, label=arrow)
 
 
-def contact_figure(path: Path, phantom, inclusion, spec, state, sw) -> str:
+def contact_figure(path: Path, phantom, inclusion, spec, state, curves) -> str:
     """The final state with the contact paddle (its outline, the contact points coloured by
     pressure with the paddle's force on each, the needle and the target) beside the
     deviation against depth with no paddle and the glued paddle. Returns the file name."""
-    from jaxrkpm.thesis import contact_paddle as cp
     model, params = contact_params(phantom, inclusion, spec, state)
     sol = state["solution"]
     fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(12, 6), layout="constrained",
@@ -459,9 +482,7 @@ def contact_figure(path: Path, phantom, inclusion, spec, state, sw) -> str:
     x = model.body.X + np.asarray(model.particle_displacements(sol))
     sc = draw_phantom(a1, phantom, model, sol, inclusion, title=state["title"])
     pc = plot.contact_pressures(a1, model, sol, params)
-    res = contact_forces(model, sol, cp.NAME, params)
-    tool = np.asarray(res.points)[np.asarray(res.active)]
-    (x0, x1), (y0, y1) = extent(phantom.vertices, x, *([tool] if len(tool) else []), margin=0.08)
+    (x0, x1), (y0, y1) = extent(phantom.vertices, x, tool_outline(model, params), margin=0.05)
     a1.set_xlim(x0, x1)
     a1.set_ylim(y0, y1)
     contact_legend(a1)
@@ -469,11 +490,12 @@ def contact_figure(path: Path, phantom, inclusion, spec, state, sw) -> str:
     fig.colorbar(sc, ax=a1, label=f"|u| ({plot.UNITS})", shrink=0.7)
     if pc is not None:
         fig.colorbar(pc, ax=a1, label="contact pressure (units of the material constants)", shrink=0.7)
-    deviation_panel(a2, sw, state, 100.0)
+    deviation_panel(a2, curves, state, 100.0)
     a2.set_xlabel("needle insertion (% of height)")
     a2.set_ylabel(f"target x deviation ({plot.UNITS})")
     a2.set_title(f"mu {spec.mu:g}: final deviation {abs(state['deviation'][-1]) if len(state['deviation']) else np.nan:.2e}"
-                 f" (no paddle {abs(sw.no_paddle[-1]):.2e}, glued {abs(sw.deviation[0][-1]):.2e})", fontsize=10)
+                 f" (no paddle {abs(curves['no_paddle'][-1]):.2e}, glued {abs(curves['glued'][-1]):.2e})",
+                 fontsize=10)
     fig.savefig(path, dpi=120)
     plot.plt.close(fig)
     return path.name

@@ -36,7 +36,8 @@ from jaxrkpm.thesis.phantom3d import Phantom3D, ellipsoid_point
 from jaxrkpm.thesis.studies import interface
 from jaxrkpm.mechanics.contact import contact_forces
 from jaxrkpm.thesis.studies.needle import (contact_legend, contact_params, contact_result, contact_state,
-                                           deviation_panel, optimize_result)
+                                           deviation_panel, glued_curves, optimize_result, paddle_pose,
+                                           tool_outline)
 
 
 def object_size(phantom: Phantom3D) -> float:
@@ -303,34 +304,14 @@ def run_contact(phantom, a, out: Path) -> dict:
         state = contact_state(paddle, control, sol, lag, depths, dev,
                               f"{'dynamic' if a.mode == 'dynamic' else 'optimised' if a.mode == 'optimize' else 'static'}"
                               f" contact paddle at patch {paddle}", uncorrected)
-        glued = sw if a.paddle is not None else nd.static_sweep(phantom, a.inclusion, a.increments, paddles=[paddle])
         model, params = contact_params(phantom, a.inclusion, spec, state)
         s["figure"] = contact_figure(out / f"contact_{a.mode}_{a.inclusion}.png", phantom, model, params, spec,
-                                     state, glued)
+                                     state, glued_curves(sw, k))
         s["vtu"] = output.write_solution(out / f"contact_{a.mode}_{a.inclusion}.vtu", model, sol, params=params).name
     return s
 
 
-def paddle_pose(model, params):
-    """(the contact paddle's term, its centre (3,), its rotation (3, 3)) at the solve's pose."""
-    from jaxrkpm.thesis import contact_paddle as cp
-    tool = next(t for t in model.problem(params).terms if getattr(t, "name", None) == cp.NAME)
-    c, R = (np.asarray(v, float) for v in tool.pose(1.0))
-    return tool, c, R
-
-
-def tool_outline(model, params, project) -> np.ndarray:
-    """(k, 2) the contact paddle's outline in a view: the convex hull of its rounded box's
-    corners (``project``: (n, 3) -> (n, 2)) at the solve's pose."""
-    from scipy.spatial import ConvexHull
-    tool, c, R = paddle_pose(model, params)
-    half = np.asarray(tool.shape.half, float) + float(tool.shape.radius)
-    corners = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3, indexing="ij")).reshape(3, -1).T * half
-    P = project(c + corners @ R.T)
-    return P[ConvexHull(P).vertices]
-
-
-def contact_figure(path: Path, phantom, model, params, spec, state, sw) -> str:
+def contact_figure(path: Path, phantom, model, params, spec, state, curves) -> str:
     """The contact paddle's final state in the x-z view (the paddle's outline, the contact
     points coloured by pressure with the paddle's force on each, the needle and the target),
     the paddle's face seen along its normal (the contact points by pressure and their
@@ -388,11 +369,12 @@ def contact_figure(path: Path, phantom, model, params, spec, state, sw) -> str:
         fig.colorbar(pc, ax=a2, label="contact pressure (units of the material constants)", shrink=0.7)
 
     scale = 100.0 / phantom.chord
-    deviation_panel(a3, sw, state, scale, magnitude=True)
+    deviation_panel(a3, curves, state, scale, magnitude=True)
     a3.set_xlabel("needle insertion (% of the chord)")
     a3.set_ylabel(f"|lateral target deviation| ({plot.UNITS})")
     final = abs(state["deviation"][-1])
-    a3.set_title(f"final {final:.2e}: no paddle {abs(sw.no_paddle[-1]):.2e}, glued {abs(sw.deviation[0][-1]):.2e}",
+    a3.set_title(f"final {final:.2e}: no paddle {abs(curves['no_paddle'][-1]):.2e}, "
+                 f"glued {abs(curves['glued'][-1]):.2e}",
                  fontsize=10)
     fig.savefig(path, dpi=120)
     plot.plt.close(fig)
