@@ -136,3 +136,20 @@ def test_dynamic_contact_paddle_3d():
     assert r.control.shape == (1, 3) and len(r.deviation) == 1 and r.solution is not None
     assert abs(r.deviation[0]) < abs(r.uncorrected[0])
     assert all(c.min_normal >= 0 for c in r.checks)
+
+
+@pytest.mark.slow(reason="a 3D contact insertion through the CLI, compile included: minutes on a CPU")
+def test_needle3d_contact_cli(tmp_path):
+    """jaxrkpm needle3d --paddle-model contact: the summary beside the glued patch and no
+    paddle, the contact checked at each increment, the figure and the .vtu written."""
+    import json
+
+    from jaxrkpm.thesis import cli
+    out = tmp_path / "contact"
+    code = cli.main(["needle3d", "--paddle-model", "contact", "--spacing", "0.3", "--increments", "1",
+                     "--paddle", "5", "--material", "neohookean", "--indentation", "0.02", "--out", str(out)])
+    s = json.loads((out / "summary.json").read_text())
+    assert code in (0, 1) and s["paddle_model"] == "contact" and s["paddle"] == 5 and s["status"] == "converged"
+    assert len(s["contact_ok_per_increment"]) == 1 and s["active_points"][0] > 0
+    assert abs(s["final"]) < abs(s["no_paddle_deviation"])
+    assert {"contact_static_none.png", "contact_static_none.vtu"} <= {p.name for p in out.iterdir()}

@@ -301,9 +301,9 @@ def run_contact(phantom, a, out: Path) -> dict:
              active_points=[c.active for c in checks], cone_ratio=[c.cone for c in checks],
              min_point_normal_force=[c.min_normal for c in checks], wall_s=time.perf_counter() - t0)
     if sol is not None and control is not None and len(dev):
-        state = contact_state(paddle, control, sol, lag, depths, dev,
-                              f"{'dynamic' if a.mode == 'dynamic' else 'optimised' if a.mode == 'optimize' else 'static'}"
-                              f" contact paddle at patch {paddle}", uncorrected)
+        what = {"static": "static", "dynamic": "dynamic", "optimize": "optimised"}[a.mode]
+        state = contact_state(paddle, control, sol, lag, depths, dev, f"{what} contact paddle at patch {paddle}",
+                              uncorrected)
         model, params = contact_params(phantom, a.inclusion, spec, state)
         s["figure"] = contact_figure(out / f"contact_{a.mode}_{a.inclusion}.png", phantom, model, params, spec,
                                      state, glued_curves(sw, k))
