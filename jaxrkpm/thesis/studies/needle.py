@@ -394,7 +394,7 @@ def run_contact(phantom, a, out: Path) -> dict:
         state = contact_state(paddle, o.control, o.run.solution, o.run.lag, o.run.depths, o.run.deviation,
                               f"optimised contact paddle {paddle}")
     s["wall_s"] = time.perf_counter() - t0
-    if state is not None and state["solution"] is not None and state["control"] is not None:
+    if state is not None and state["solution"] is not None and state["control"] is not None and len(state["depths"]):
         sw = nd.static_sweep(phantom, a.inclusion, a.increments, paddles=[state["paddle"]])
         s["figure"] = contact_figure(out / f"contact_{a.mode}_{a.inclusion}.png", phantom, a.inclusion, spec,
                                      state, glued_curves(sw, 0))
@@ -426,8 +426,9 @@ def glued_curves(sw, k: int) -> dict:
 def deviation_panel(ax, curves, state, scale: float = 1.0, magnitude: bool = False):
     """The target's deviation against the needle depth (``scale``: depth to the axis' unit):
     no paddle and the glued paddle at the contact paddle's position (``glued_curves``), the
-    contact paddle (and, dynamic, before its corrections). ``magnitude``: |...| (3D: the
-    deviation is a length), else signed (2D: the x deviation)."""
+    contact paddle (and, dynamic, before its corrections). ``magnitude``: |...| on a log
+    scale (3D: the deviation is a length, and the contact paddle's can be orders below the
+    others), else signed (2D: the x deviation)."""
     f = np.abs if magnitude else (lambda v: np.asarray(v))
     p = state["paddle"]
     ax.plot(scale * curves["depths"], f(curves["no_paddle"]), "k--", label="no paddle")
@@ -437,9 +438,12 @@ def deviation_panel(ax, curves, state, scale: float = 1.0, magnitude: bool = Fal
         ax.plot(scale * state["depths"], f(state["uncorrected"]), "^:", ms=4, color="C1", alpha=0.7,
                 label="contact, before the corrections")
     ax.plot(scale * state["depths"], f(state["deviation"]), "o-", ms=4, color="C3", label=f"contact paddle {p}")
-    ax.axhline(0, color="0.5", lw=0.6)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    if magnitude:
+        ax.set_yscale("log")
+    else:
+        ax.axhline(0, color="0.5", lw=0.6)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2)   # below: never over a curve
 
 
 def paddle_pose(model, params):
@@ -493,9 +497,8 @@ def contact_figure(path: Path, phantom, inclusion, spec, state, curves) -> str:
     deviation_panel(a2, curves, state, 100.0)
     a2.set_xlabel("needle insertion (% of height)")
     a2.set_ylabel(f"target x deviation ({plot.UNITS})")
-    a2.set_title(f"mu {spec.mu:g}: final deviation {abs(state['deviation'][-1]) if len(state['deviation']) else np.nan:.2e}"
-                 f" (no paddle {abs(curves['no_paddle'][-1]):.2e}, glued {abs(curves['glued'][-1]):.2e})",
-                 fontsize=10)
+    a2.set_title(f"mu {spec.mu:g}: final |deviation| {abs(state['deviation'][-1]):.2e}\n"
+                 f"no paddle {abs(curves['no_paddle'][-1]):.2e}, glued {abs(curves['glued'][-1]):.2e}", fontsize=10)
     fig.savefig(path, dpi=120)
     plot.plt.close(fig)
     return path.name

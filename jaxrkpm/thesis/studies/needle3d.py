@@ -340,7 +340,7 @@ def contact_figure(path: Path, phantom, model, params, spec, state, curves) -> s
     hi = np.maximum(X[:, [0, 2]].max(0), hull.max(0)) + 0.05
     a1.set_xlim(lo[0], hi[0])
     a1.set_ylim(lo[1], hi[1])
-    a1.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=3)
+    a1.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=3)
     fig.colorbar(sc, ax=a1, label=f"|u| ({plot.UNITS})", shrink=0.7)
 
     # the face seen from outside along the paddle's normal: tool-frame tangential coordinates
