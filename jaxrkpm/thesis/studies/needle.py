@@ -431,7 +431,7 @@ def deviation_panel(ax, curves, state, scale: float = 1.0, magnitude: bool = Fal
     others), else signed (2D: the x deviation)."""
     f = np.abs if magnitude else (lambda v: np.asarray(v))
     p = state["paddle"]
-    ax.plot(scale * curves["depths"], f(curves["no_paddle"]), "k--", label="no paddle")
+    ax.plot(scale * curves["depths"], f(curves["no_paddle"]), "kx--", ms=5, label="no paddle")   # marked: one increment is one point
     ax.plot(scale * curves["depths"], f(curves["glued"]), "s-", ms=4, color="C0",
             label=f"glued paddle {p}" + ("" if curves["glued_ok"] else " (stopped early)"))
     if state["uncorrected"] is not None:
