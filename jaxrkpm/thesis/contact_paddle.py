@@ -421,6 +421,8 @@ class DynamicContactRun:
     checks: list                # ContactCheck per increment
     status: HoldStatus
     message: str
+    solution: object = None     # the last converged Solution (None: the press failed)
+    lag: dict | None = None     # the friction lag at it
 
     @property
     def final(self) -> float:
@@ -431,11 +433,17 @@ class DynamicContactRun:
         return all(c.ok() for c in self.checks)
 
 
+def max_indentation(phantom) -> float:
+    """The deepest indentation the pose takes (``control_bounds``, the CLI's --indentation):
+    two particle spacings."""
+    return 2.0 * float(phantom.spacing)
+
+
 def control_bounds(phantom, paddle: int):
-    """(lower, upper) (d,) of the pose: indentation 0..2 spacings, each shift within the
-    face's half extent (the face stays over the glued paddle's boundary piece)."""
+    """(lower, upper) (d,) of the pose: indentation 0..``max_indentation``, each shift within
+    the face's half extent (the face stays over the glued paddle's boundary piece)."""
     half = np.asarray(phantom.contact_face(paddle)[3], float)
-    return np.r_[0.0, -half], np.r_[2.0 * phantom.spacing, half]
+    return np.r_[0.0, -half], np.r_[max_indentation(phantom), half]
 
 
 def lateral_jacobian(stepper: Stepper, prescribed, control, sol, lag):
@@ -527,7 +535,7 @@ def dynamic_contact_paddle(phantom, paddle: int, inclusion: str = "none", increm
     n = len(out["dev"])
     return DynamicContactRun(paddle, depths[:n], np.array(out["dev"]), np.array(out["pre"][:n]),
                              np.array(out["ctl"]).reshape(n, d), np.array(out["its"], int), out["chk"],
-                             status, message)
+                             status, message, sol, lag)
 
 
 # ------------------------------------------------------------------ optimised placement

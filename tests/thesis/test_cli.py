@@ -296,6 +296,45 @@ def test_a_patch_out_of_range_is_refused_before_any_folder(tmp_path, capsys):
     assert not out.exists() and not list(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("command, deepest", [("needle", "0.2"), ("needle3d", "0.4")])
+def test_contact_paddle_options(command, deepest, tmp_path, capsys):
+    """--paddle-model contact takes --friction and --indentation (glued stays the default);
+    a negative friction, an indentation past two spacings, or either with the glued paddle
+    is a one-line usage error before any folder is made."""
+    a = interface.parse(command, ["--paddle-model", "contact", "--friction", "0.8", "--indentation", "0.02"])
+    assert (a.paddle_model, a.friction, a.indentation) == ("contact", 0.8, 0.02)
+    a = interface.parse(command, [])
+    assert (a.paddle_model, a.friction, a.indentation) == ("glued", 0.3, None)
+    out = tmp_path / "never"
+    one_line_usage(capsys, [command, "--paddle-model", "contact", "--friction", "-1", "--out", str(out)],
+                   "argument --friction: must be a number >= 0, got -1")
+    one_line_usage(capsys, [command, "--paddle-model", "push"], "argument --paddle-model: invalid choice: 'push'")
+    one_line_usage(capsys, [command, "--friction", "0.8", "--out", str(out)],
+                   "--friction applies to the contact paddle only: add --paddle-model contact, or leave it out")
+    one_line_usage(capsys, [command, "--fric", "0.8", "--indentation", "0.01", "--out", str(out)],
+                   "--friction, --indentation apply to the contact paddle only")
+    one_line_usage(capsys, [command, "--paddle-model", "contact", "--indentation", "0.5", "--out", str(out)],
+                   f"argument --indentation: must be a number in [0, {deepest}] (two particle spacings",
+                   "got 0.5")
+    assert not out.exists()
+
+
+def test_contact_summary_words():
+    """The contact paddle's summary line: the paddle, the final deviation and the status; a
+    contact force out of the cone misses the goal."""
+    from jaxrkpm.thesis.studies import needle3d
+    s = {"mode": "dynamic", "paddle_model": "contact", "friction": 0.8, "inclusion": "none", "paddle": 5,
+         "final": 1.2e-4, "status": "not_held", "message": "the push-only paddle cannot reach the needle line",
+         "contact_ok": True}
+    ok, words = needle3d.result(s)
+    assert not ok and words.startswith("needle3d dynamic (none, contact paddle, mu 0.8): paddle 5: final deviation "
+                                       "1.20e-04; not_held")
+    ok, words = needle3d.result({**s, "mode": "optimize", "status": "max_iterations", "message": "6 iterations"})
+    assert ok
+    ok, words = needle3d.result({**s, "mode": "static", "status": "converged", "message": "", "contact_ok": False})
+    assert not ok and "a contact force left the cone" in words
+
+
 def test_every_option_shows_its_default():
     for command, make in interface.PARSERS.items():
         p = make()

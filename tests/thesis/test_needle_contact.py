@@ -118,3 +118,45 @@ def test_cli_options():
     assert interface.parse("needle", []).paddle_model == "glued"
     with pytest.raises(SystemExit):
         interface.parse("needle", ["--friction", "-1"])
+
+
+def test_contact_figure(phantom, runs, tmp_path):
+    """The CLI's figure of a contact run: the final state with the paddle and its contact
+    pressures, beside the deviation curves (the glued and no-paddle ones faked here)."""
+    from jaxrkpm.thesis.studies import needle as study
+    run, glued = runs
+    state = study.contact_state(3, run.control, run.solution, run.lag, run.depths, run.deviation, "contact paddle 3")
+    curves = {"depths": run.depths, "no_paddle": np.full(INCREMENTS, glued[None]),
+              "glued": np.full(INCREMENTS, glued[3]), "glued_ok": True}
+    name = study.contact_figure(tmp_path / "contact.png", phantom, "none", cp.ContactPaddle(mu=0.8), state, curves)
+    assert name == "contact.png" and (tmp_path / name).stat().st_size > 10_000
+
+
+@pytest.mark.slow(reason="3D contact solves with the implicit Jacobian of each correction: minutes on a CPU")
+def test_dynamic_contact_paddle_3d():
+    """The closed loop on the 3D phantom: the pose is (indentation, two shifts), the
+    corrections bring the target nearer the line than the pose held, and never pull."""
+    from jaxrkpm.thesis.phantom3d import Phantom3D
+    ph = Phantom3D(spacing=0.3, material_law="neohookean")
+    r = cp.dynamic_contact_paddle(ph, 5, "none", 1, cp.ContactPaddle(mu=0.3), start=[0.02, 0.0, 0.0],
+                                  max_corrections=2)
+    assert r.control.shape == (1, 3) and len(r.deviation) == 1 and r.solution is not None
+    assert abs(r.deviation[0]) < abs(r.uncorrected[0])
+    assert all(c.min_normal >= 0 for c in r.checks)
+
+
+@pytest.mark.slow(reason="a 3D contact insertion through the CLI, compile included: minutes on a CPU")
+def test_needle3d_contact_cli(tmp_path):
+    """jaxrkpm needle3d --paddle-model contact: the summary beside the glued patch and no
+    paddle, the contact checked at each increment, the figure and the .vtu written."""
+    import json
+
+    from jaxrkpm.thesis import cli
+    out = tmp_path / "contact"
+    code = cli.main(["needle3d", "--paddle-model", "contact", "--spacing", "0.3", "--increments", "1",
+                     "--paddle", "5", "--material", "neohookean", "--indentation", "0.02", "--out", str(out)])
+    s = json.loads((out / "summary.json").read_text())
+    assert code in (0, 1) and s["paddle_model"] == "contact" and s["paddle"] == 5 and s["status"] == "converged"
+    assert len(s["contact_ok_per_increment"]) == 1 and s["active_points"][0] > 0
+    assert abs(s["final"]) < abs(s["no_paddle_deviation"])
+    assert {"contact_static_none.png", "contact_static_none.vtu"} <= {p.name for p in out.iterdir()}

@@ -298,16 +298,45 @@ def needle_parser():
                    help=f"optimize mode: Adam iterations, 1..{ADAM_MAX}")
     p.add_argument("--devices", type=number(int, 1, DEVICES_MAX), default=None,
                    help="shard the sweep over this many devices (default: all visible)")
+    contact_options(p, "the position, default 3", "static: one particle spacing; dynamic: half a spacing; "
+                                                  "optimize: 1.5 spacings")
+    return p
+
+
+def contact_options(p, paddle: str, indentation: str):
+    """The contact paddle's options of the needle studies (``paddle``, ``indentation``: what
+    --paddle picks and the default indentation of each mode, in words)."""
     p.add_argument("--paddle-model", choices=("glued", "contact"), default="glued",
                    help="glued: the paddle holds its particles (pulls and pushes; the thesis' results); "
                         "contact: a rigid box pressed against the boundary that only pushes, and drags by "
                         "friction (static: pressed --indentation in; dynamic and optimize: its pose is the "
-                        "control; --paddle picks the position, default 3)")
-    p.add_argument("--friction", type=number(float, 0), default=0.3,
-                   help="contact paddle: Coulomb friction coefficient mu (>= 0)")
-    p.add_argument("--indentation", type=number(float, 0, 0.5), default=None,
-                   help="contact paddle, static mode: how far it is pressed in (default: one particle spacing)")
-    return p
+                        f"control, from --indentation; --paddle picks {paddle})")
+    p.add_argument("--friction", type=number(float, 0), default=CONTACT_FRICTION,
+                   help=f"contact paddle: Coulomb friction coefficient mu (>= 0; default {CONTACT_FRICTION:g})")
+    p.add_argument("--indentation", type=number(float, 0), default=None,
+                   help="contact paddle: how far it is pressed in, at most two particle spacings (static: "
+                        f"its pose; dynamic and optimize: the start; default {indentation})")
+
+
+CONTACT_FRICTION = 0.3
+CONTACT_ONLY = ("friction", "indentation")   # options that only the contact paddle reads
+
+
+def contact_error(command: str, args: argparse.Namespace, argv, spacing: float, deepest: float) -> str | None:
+    """A usage message when a contact paddle option is given with the glued paddle (which has
+    neither friction nor an indentation), or the indentation passes ``deepest``
+    (``jaxrkpm.thesis.contact_paddle.max_indentation`` of the phantom, whose particle spacing
+    is ``spacing``); None when they are fine."""
+    if args.paddle_model == "glued":
+        wrong = [o for o in CONTACT_ONLY if o in given(command, argv)]
+        if wrong:
+            return (f"{', '.join('--' + o for o in wrong)} {'applies' if len(wrong) == 1 else 'apply'} to the "
+                    "contact paddle only: add --paddle-model contact, or leave "
+                    f"{'it' if len(wrong) == 1 else 'them'} out (the glued paddle holds its particles)")
+    if args.indentation is not None and args.indentation > deepest:
+        return (f"argument --indentation: must be a number in [0, {deepest:g}] (two particle spacings at "
+                f"spacing {spacing:g}: the contact paddle's travel), got {args.indentation:g}")
+    return None
 
 
 def needle3d_parser():
@@ -324,12 +353,14 @@ def needle3d_parser():
     p.add_argument("--increments", type=number(int, 1, INCREMENTS_3D_MAX), default=4,
                    help=f"insertion increments, 1..{INCREMENTS_3D_MAX}")
     p.add_argument("--paddle", type=COUNT, default=None,
-                   help="dynamic mode: patch to move, 1..the number of patches (default: the most controllable)")
+                   help="dynamic mode: patch to move, 1..the number of patches (default: the most controllable); "
+                        "contact paddle: its patch in every mode (default: the best glued patch)")
     p.add_argument("--tol", type=POSITIVE, default=1e-5, help="dynamic mode: |lateral deviation| to hold")
     p.add_argument("--iterations", type=number(int, 1, ADAM_MAX), default=12,
                    help=f"optimize mode: Adam iterations, 1..{ADAM_MAX}")
     p.add_argument("--devices", type=number(int, 1, DEVICES_MAX), default=None,
                    help="shard the sweep over this many devices (default: one)")
+    contact_options(p, "the patch, default the best glued one", "a tenth of a particle spacing")
     return p
 
 

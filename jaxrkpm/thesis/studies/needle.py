@@ -356,9 +356,10 @@ def optimize_figures(phantom, model, sw, summary, out: Path):
     plot.plt.close(fig)
 
 
-def run_contact(phantom, a) -> dict:
+def run_contact(phantom, a, out: Path) -> dict:
     """The study of ``a.mode`` with a contact (push-only) paddle: its results beside the glued
-    paddle's and the no-paddle run (``jaxrkpm.thesis.contact_paddle``)."""
+    paddle's and the no-paddle run (``jaxrkpm.thesis.contact_paddle``), and the figure of its
+    final state (``contact_figure``)."""
     from jaxrkpm.thesis import contact_paddle as cp
     spec = cp.ContactPaddle(mu=a.friction)
     paddle = a.paddle or 3
@@ -372,33 +373,155 @@ def run_contact(phantom, a) -> dict:
         sw = cp.contact_sweep(phantom, a.inclusion, a.increments, control, spec)
         s.update(table=sw.rows(), glued_only=sw.glued_only(), contact_ok=sw.contact_ok,
                  deviation=sw.final.tolist())
+        fin = np.abs(sw.final)
+        run = sw.runs[int(np.nanargmin(fin))] if np.isfinite(fin).any() else None
+        state = None if run is None else contact_state(run.paddle, run.control, run.solution, run.lag, run.depths,
+                                                       run.deviation, f"contact paddle {run.paddle} (best), "
+                                                       f"pressed {run.control[0]:.3g} in")
     elif a.mode == "dynamic":
-        r = cp.dynamic_contact_paddle(phantom, paddle, a.inclusion, a.increments, spec,
-                                      start=[0.5 * phantom.spacing, 0.0])
+        start = 0.5 * phantom.spacing if a.indentation is None else a.indentation
+        r = cp.dynamic_contact_paddle(phantom, paddle, a.inclusion, a.increments, spec, start=[start, 0.0])
         s.update(paddle=paddle, status=r.status.name.lower(), message=r.message, deviation=r.deviation.tolist(),
                  control=r.control.tolist(), contact_ok=r.contact_ok, final=r.final)
+        state = contact_state(paddle, r.control[-1] if len(r.control) else None, r.solution, r.lag, r.depths,
+                              r.deviation, f"dynamic contact paddle {paddle}", r.uncorrected)
     else:
-        o = cp.optimize_contact_paddle(phantom, paddle, a.inclusion, a.increments, spec, iterations=a.iterations)
+        start = None if a.indentation is None else [a.indentation, 0.0]
+        o = cp.optimize_contact_paddle(phantom, paddle, a.inclusion, a.increments, spec, start=start,
+                                       iterations=a.iterations)
         s.update(paddle=paddle, status=o.status.name.lower(), message=o.message, control=np.asarray(o.control).tolist(),
                  final=o.deviation, contact_ok=o.run.contact_ok, history=o.history.tolist())
+        state = contact_state(paddle, o.control, o.run.solution, o.run.lag, o.run.depths, o.run.deviation,
+                              f"optimised contact paddle {paddle}")
     s["wall_s"] = time.perf_counter() - t0
+    if state is not None and state["solution"] is not None and state["control"] is not None and len(state["depths"]):
+        sw = nd.static_sweep(phantom, a.inclusion, a.increments, paddles=[state["paddle"]])
+        s["figure"] = contact_figure(out / f"contact_{a.mode}_{a.inclusion}.png", phantom, a.inclusion, spec,
+                                     state, glued_curves(sw, 0))
     return s
 
 
-def contact_result(s: dict) -> tuple[bool, str]:
+def contact_state(paddle, control, solution, lag, depths, deviation, title, uncorrected=None) -> dict:
+    """What ``contact_figure`` draws of a contact run: its final state (paddle position,
+    pose, Solution, friction lag) and its deviation per increment."""
+    return {"paddle": paddle, "control": None if control is None else np.asarray(control, float),
+            "solution": solution, "lag": lag, "depths": np.asarray(depths), "deviation": np.asarray(deviation),
+            "uncorrected": None if uncorrected is None else np.asarray(uncorrected), "title": title}
+
+
+def contact_params(phantom, inclusion, spec, state) -> tuple:
+    """(model, solve parameters) of a contact state: the paddle at its pose with its lag."""
+    from jaxrkpm.thesis import contact_paddle as cp
+    model = cp.contact_model(phantom, inclusion, state["paddle"], spec)
+    return model, cp.Stepper(phantom, model, state["paddle"], spec).params(state["control"], state["lag"])
+
+
+def glued_curves(sw, k: int) -> dict:
+    """The deviation per increment with no paddle and with the glued paddle of row ``k`` of
+    the static sweep ``sw`` (whether it reached full depth), for ``deviation_panel``."""
+    return {"depths": np.asarray(sw.depths), "no_paddle": np.asarray(sw.no_paddle),
+            "glued": np.asarray(sw.deviation[k]), "glued_ok": bool(np.all(sw.status[k] == nd.Status.CONVERGED))}
+
+
+def deviation_panel(ax, curves, state, scale: float = 1.0, magnitude: bool = False):
+    """The target's deviation against the needle depth (``scale``: depth to the axis' unit):
+    no paddle and the glued paddle at the contact paddle's position (``glued_curves``), the
+    contact paddle (and, dynamic, before its corrections). ``magnitude``: |...| on a log
+    scale (3D: the deviation is a length, and the contact paddle's can be orders below the
+    others), else signed (2D: the x deviation)."""
+    f = np.abs if magnitude else (lambda v: np.asarray(v))
+    p = state["paddle"]
+    ax.plot(scale * curves["depths"], f(curves["no_paddle"]), "kx--", ms=5, label="no paddle")   # marked: one increment is one point
+    ax.plot(scale * curves["depths"], f(curves["glued"]), "s-", ms=4, color="C0",
+            label=f"glued paddle {p}" + ("" if curves["glued_ok"] else " (stopped early)"))
+    if state["uncorrected"] is not None:
+        ax.plot(scale * state["depths"], f(state["uncorrected"]), "^:", ms=4, color="C1", alpha=0.7,
+                label="contact, before the corrections")
+    ax.plot(scale * state["depths"], f(state["deviation"]), "o-", ms=4, color="C3", label=f"contact paddle {p}")
+    if magnitude:
+        ax.set_yscale("log")
+    else:
+        ax.axhline(0, color="0.5", lw=0.6)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2)   # below: never over a curve
+
+
+def paddle_pose(model, params):
+    """(the contact paddle's term, its centre (d,), its rotation (d, d)) at the solve's pose."""
+    from jaxrkpm.thesis import contact_paddle as cp
+    tool = next(t for t in model.problem(params).terms if getattr(t, "name", None) == cp.NAME)
+    c, R = (np.asarray(v, float) for v in tool.pose(1.0))
+    return tool, c, R
+
+
+def tool_outline(model, params, project=lambda P: P) -> np.ndarray:
+    """(k, 2) the contact paddle's outline in a view: the convex hull of the corners of its box
+    grown by the rounding radius (``project``: (n, d) -> (n, 2); 2D: none), at the solve's pose."""
+    from scipy.spatial import ConvexHull
+    tool, c, R = paddle_pose(model, params)
+    half = np.asarray(tool.shape.half, float) + float(tool.shape.radius)
+    corners = np.array(np.meshgrid(*[[-1.0, 1.0]] * len(half), indexing="ij")).reshape(len(half), -1).T * half
+    P = project(c + corners @ R.T)
+    return P[ConvexHull(P).vertices]
+
+
+def contact_legend(ax, paddle: bool = True, arrow: str = "paddle's force on it", colour="0.2"):
+    """Legend entries for the contact paddle (``paddle``), the contact points coloured by
+    pressure and their force arrows (``plot.contact_pressures`` labels nothing)."""
+    if paddle:
+        ax.fill([], [], facecolor="0.8", edgecolor="0.3", label="contact paddle")
+    ax.plot([], [], "o", ms=6, color=plot.plt.get_cmap("magma")(0.6), mec="k", mew=0.3,
+            label="contact point (colour: pressure)")
+    ax.plot([], [], ls="none", marker=r"$\rightarrow$", ms=12, color=colour, label=arrow)
+
+
+def contact_figure(path: Path, phantom, inclusion, spec, state, curves) -> str:
+    """The final state with the contact paddle (its outline, the contact points coloured by
+    pressure with the paddle's force on each, the needle and the target) beside the
+    deviation against depth with no paddle and the glued paddle. Returns the file name."""
+    model, params = contact_params(phantom, inclusion, spec, state)
+    sol = state["solution"]
+    fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(12, 6), layout="constrained",
+                                      gridspec_kw={"width_ratios": [1.15, 1]})
+    x = model.body.X + np.asarray(model.particle_displacements(sol))
+    sc = draw_phantom(a1, phantom, model, sol, inclusion, title=state["title"])
+    pc = plot.contact_pressures(a1, model, sol, params)
+    (x0, x1), (y0, y1) = extent(phantom.vertices, x, tool_outline(model, params), margin=0.05)
+    a1.set_xlim(x0, x1)
+    a1.set_ylim(y0, y1)
+    contact_legend(a1)
+    legend_below(fig, a1, ncol=3)
+    fig.colorbar(sc, ax=a1, label=f"|u| ({plot.UNITS})", shrink=0.7)
+    if pc is not None:
+        fig.colorbar(pc, ax=a1, label="contact pressure (units of the material constants)", shrink=0.7)
+    deviation_panel(a2, curves, state, 100.0)
+    a2.set_xlabel("needle insertion (% of height)")
+    a2.set_ylabel(f"target x deviation ({plot.UNITS})")
+    a2.set_title(f"mu {spec.mu:g}: final |deviation| {abs(state['deviation'][-1]):.2e}\n"
+                 f"no paddle {abs(curves['no_paddle'][-1]):.2e}, glued {abs(curves['glued'][-1]):.2e}", fontsize=10)
+    fig.savefig(path, dpi=120)
+    plot.plt.close(fig)
+    return path.name
+
+
+def contact_result(s: dict, what: str = "needle") -> tuple[bool, str]:
     """(goal reached, words) of a contact-paddle summary: every contact force compressive and
-    in the friction cone (and, dynamic, the target held; optimize, Adam's start feasible)."""
-    head = f"needle {s['mode']} ({s['inclusion']}, contact paddle, mu {s['friction']:g}): "
-    if s["mode"] == "static":
+    in the friction cone (and, static, the insertion at full depth; dynamic, the target held;
+    optimize, Adam's start feasible). ``what``: the command."""
+    head = f"{what} {s['mode']} ({s['inclusion']}, contact paddle, mu {s['friction']:g}): "
+    if "table" in s:                  # the 2D static sweep over every paddle position
         fin = s["deviation"]
         best = int(np.nanargmin(np.abs(fin))) + 1 if np.isfinite(fin).any() else None
         words = head + (f"best contact paddle {best}: deviation {abs(s['no_paddle_deviation']):.4f} -> "
                         f"{abs(fin[best - 1]):.4f}" if best else "every contact insertion failed")
         words += f"; glued only: {s['glued_only'] or 'none'}"
         return bool(s["contact_ok"] and best), words + ("" if s["contact_ok"] else "; a contact force left the cone")
-    words = head + f"paddle {s['paddle']}: final deviation {abs(s['final']):.2e}; {s['status']}: {s['message']}"
-    ok = s["contact_ok"] and (s["status"] == "converged" if s["mode"] == "dynamic" else s["status"] != "start_failed")
-    return bool(ok), words
+    final = "none (no increment converged)" if s["final"] is None else f"{abs(s['final']):.2e}"
+    said = f": {s['message']}" if s["message"] and s["message"] != s["status"] else ""
+    words = head + f"paddle {s['paddle']}: final deviation {final}; {s['status']}{said}"
+    ok = s["contact_ok"] and (s["status"] == "converged" if s["mode"] in ("static", "dynamic")
+                              else s["status"] != "start_failed")
+    return bool(ok), words + ("" if s["contact_ok"] else "; a contact force left the cone")
 
 
 def result(s: dict) -> tuple[bool, str]:
@@ -445,11 +568,14 @@ def main(argv=None):
     a = interface.parse("needle", argv)
     if too_many := interface.devices_error(a.devices):
         interface.needle_parser().error(too_many)
+    phantom = nd.Phantom(material_law=a.material)
+    from jaxrkpm.thesis.contact_paddle import max_indentation
+    if wrong := interface.contact_error("needle", a, argv, phantom.spacing, max_indentation(phantom)):
+        interface.needle_parser().error(wrong)
     results = interface.results("needle", a, a.out or f"results/needle/{a.mode}_{a.inclusion}")
     with results as out:
-        phantom = nd.Phantom(material_law=a.material)
         if a.paddle_model == "contact":
-            summary = run_contact(phantom, a)
+            summary = run_contact(phantom, a, out)
         elif a.mode == "static":
             summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
         elif a.mode == "dynamic":

@@ -34,7 +34,10 @@ from jaxrkpm.io import output
 from jaxrkpm.io import plot
 from jaxrkpm.thesis.phantom3d import Phantom3D, ellipsoid_point
 from jaxrkpm.thesis.studies import interface
-from jaxrkpm.thesis.studies.needle import optimize_result
+from jaxrkpm.mechanics.contact import contact_forces
+from jaxrkpm.thesis.studies.needle import (contact_legend, contact_params, contact_result, contact_state,
+                                           deviation_panel, glued_curves, optimize_result, paddle_pose,
+                                           tool_outline)
 
 
 def object_size(phantom: Phantom3D) -> float:
@@ -251,10 +254,139 @@ def run_optimize(phantom, inclusion, increments, out: Path, iterations=12, stiff
     return summary
 
 
+CONTACT_START = 0.1   # the contact paddle's default indentation, in particle spacings: a light press
+
+
+def run_contact(phantom, a, out: Path) -> dict:
+    """The study of ``a.mode`` with a contact (push-only) paddle at patch ``a.paddle`` (default:
+    the best glued patch of the static sweep): static, pressed ``a.indentation`` in; dynamic,
+    its pose (indentation, two shifts) moved during the insertion; optimize, Adam on that pose
+    (``jaxrkpm.thesis.contact_paddle``); beside the glued patch and no paddle. Writes the
+    figure and a .vtu of the final state."""
+    from jaxrkpm.thesis import contact_paddle as cp
+    t0 = time.perf_counter()
+    spec = cp.ContactPaddle(mu=a.friction)
+    sw = nd.static_sweep(phantom, a.inclusion, a.increments, paddles=None if a.paddle is None else [a.paddle],
+                         n_devices=a.devices)
+    paddle = sw.best if a.paddle is None else a.paddle
+    k = 0 if a.paddle is not None else paddle - 1            # the chosen patch's row of the sweep
+    delta = CONTACT_START * phantom.spacing if a.indentation is None else a.indentation
+    s = {"mode": a.mode, "paddle_model": "contact", "friction": a.friction, "inclusion": a.inclusion,
+         "increments": a.increments, "particles": phantom.body.n, "spacing": phantom.spacing,
+         "material": phantom.material_law, "paddle": paddle, "indentation": delta,
+         "no_paddle_deviation": float(sw.no_paddle[-1]), "glued_deviation": float(sw.final[k]),
+         "no_paddle_per_increment": sw.no_paddle.tolist(), "glued_per_increment": sw.deviation[k].tolist(),
+         "depths": sw.depths.tolist()}
+    start = [delta, 0.0, 0.0]
+    uncorrected = None
+    if a.mode == "static":
+        r = cp.contact_insertion(phantom, paddle, start, a.inclusion, a.increments, spec)
+        control, sol, lag, depths, dev, checks = r.control, r.solution, r.lag, r.depths, r.deviation, r.checks
+        s.update(status=r.status.name.lower(), message=r.status.message)
+    elif a.mode == "dynamic":
+        r = cp.dynamic_contact_paddle(phantom, paddle, a.inclusion, a.increments, spec, tol=a.tol, start=start)
+        control = r.control[-1] if len(r.control) else None
+        sol, lag, depths, dev, checks, uncorrected = r.solution, r.lag, r.depths, r.deviation, r.checks, r.uncorrected
+        s.update(status=r.status.name.lower(), message=r.message, control_per_increment=r.control.tolist(),
+                 corrections=r.iterations.tolist(), feed_forward_deviation=r.uncorrected.tolist())
+    else:
+        o = cp.optimize_contact_paddle(phantom, paddle, a.inclusion, a.increments, spec, start=start,
+                                       iterations=a.iterations, learning_rate=0.03 * phantom.spacing)
+        r = o.run
+        control, sol, lag, depths, dev, checks = o.control, r.solution, r.lag, r.depths, r.deviation, r.checks
+        s.update(status=o.status.name.lower(), message=o.message, history=o.history.tolist())
+    s.update(control=None if control is None else np.asarray(control).tolist(), final=float(dev[-1]) if len(dev) else None,
+             deviation=np.asarray(dev).tolist(), contact_depths=np.asarray(depths).tolist(),
+             contact_ok=all(c.ok() for c in checks), contact_ok_per_increment=[c.ok() for c in checks],
+             active_points=[c.active for c in checks], cone_ratio=[c.cone for c in checks],
+             min_point_normal_force=[c.min_normal for c in checks], wall_s=time.perf_counter() - t0)
+    if sol is not None and control is not None and len(dev):
+        what = {"static": "static", "dynamic": "dynamic", "optimize": "optimised"}[a.mode]
+        state = contact_state(paddle, control, sol, lag, depths, dev, f"{what} contact paddle at patch {paddle}",
+                              uncorrected)
+        model, params = contact_params(phantom, a.inclusion, spec, state)
+        s["figure"] = contact_figure(out / f"contact_{a.mode}_{a.inclusion}.png", phantom, model, params, spec,
+                                     state, glued_curves(sw, k))
+        s["vtu"] = output.write_solution(out / f"contact_{a.mode}_{a.inclusion}.vtu", model, sol, params=params).name
+    return s
+
+
+def contact_figure(path: Path, phantom, model, params, spec, state, curves) -> str:
+    """The contact paddle's final state in the x-z view (the paddle's outline, the contact
+    points coloured by pressure with the paddle's force on each, the needle and the target),
+    the paddle's face seen along its normal (the contact points by pressure and their
+    friction), and the lateral deviation against depth with no paddle and the glued patch.
+    Returns the file name."""
+    from jaxrkpm.thesis import contact_paddle as cp
+    sol = state["solution"]
+    res = contact_forces(model, sol, cp.NAME, params)
+    on = np.asarray(res.active)
+    pts, pr, f = np.asarray(res.points)[on], np.asarray(res.pressure)[on], np.asarray(res.point_force)[on]
+    vmax = float(pr.max()) if len(pr) else 1.0
+    fig, (a1, a2, a3) = plot.plt.subplots(1, 3, figsize=(17, 5.4), layout="constrained",
+                                          gridspec_kw={"width_ratios": [1.5, 1, 1.2]})
+    sc = draw_deformed(a1, phantom, model, sol, state["title"] + " (x-z view)")
+    hull = tool_outline(model, params, lambda P: P[:, [0, 2]])
+    a1.fill(*np.vstack([hull, hull[:1]]).T, facecolor="0.8", edgecolor="0.3", lw=1, zorder=3, label="contact paddle")
+    pc = None
+    if len(pts):
+        a1.quiver(pts[:, 0], pts[:, 2], f[:, 0], f[:, 2], color="0.2", width=0.003, zorder=4)
+        pc = a1.scatter(pts[:, 0], pts[:, 2], c=pr, s=25, cmap="magma", vmin=0, vmax=vmax, zorder=5,
+                        edgecolors="k", linewidths=0.3)
+    contact_legend(a1, paddle=False)
+    a1.set_aspect("equal")
+    X = model.body.X + np.asarray(model.particle_displacements(sol))
+    lo = np.minimum(X[:, [0, 2]].min(0), hull.min(0)) - 0.05
+    hi = np.maximum(X[:, [0, 2]].max(0), hull.max(0)) + 0.05
+    a1.set_xlim(lo[0], hi[0])
+    a1.set_ylim(lo[1], hi[1])
+    a1.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=3)
+    fig.colorbar(sc, ax=a1, label=f"|u| ({plot.UNITS})", shrink=0.7)
+
+    # the face seen from outside along the paddle's normal: tool-frame tangential coordinates
+    tool, c, R = paddle_pose(model, params)
+    local = (X - c) @ R
+    near = np.abs(local[:, 2] + float(tool.shape.half[2])) < phantom.spacing     # skin particles by the face
+    a2.scatter(local[near, 0], local[near, 1], s=12, color="0.7", label="particles by the face")
+    h = np.asarray(tool.shape.half[:2], float)
+    a2.add_patch(plot.plt.Rectangle(-h, *(2 * h), facecolor="0.92", edgecolor="0.3", lw=1, zorder=0,
+                                    label="paddle face"))
+    if len(pts):
+        lp, lf = (pts - c) @ R, f @ R
+        a2.quiver(lp[:, 0], lp[:, 1], lf[:, 0], lf[:, 1], color="C0", width=0.005, zorder=4)
+        a2.scatter(lp[:, 0], lp[:, 1], c=pr, s=60, cmap="magma", vmin=0, vmax=vmax, zorder=5, edgecolors="k",
+                   linewidths=0.3)
+        contact_legend(a2, paddle=False, arrow="friction on it", colour="C0")
+    a2.set_aspect("equal")
+    m = 1.3 * float(np.max(np.r_[h, np.abs(local[near, :2]).max() if near.any() else 0.0]))
+    a2.set_xlim(-m, m)
+    a2.set_ylim(-m, m)
+    a2.set_xlabel(f"along the face, first tangent ({plot.UNITS})")
+    a2.set_ylabel(f"second tangent ({plot.UNITS})")
+    a2.set_title(f"paddle face, seen along its normal (mu {spec.mu:g})", fontsize=10)
+    a2.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
+    if pc is not None:
+        fig.colorbar(pc, ax=a2, label="contact pressure (units of the material constants)", shrink=0.7)
+
+    scale = 100.0 / phantom.chord
+    deviation_panel(a3, curves, state, scale, magnitude=True)
+    a3.set_xlabel("needle insertion (% of the chord)")
+    a3.set_ylabel(f"|lateral target deviation| ({plot.UNITS})")
+    final = abs(state["deviation"][-1])
+    a3.set_title(f"final {final:.2e}: no paddle {abs(curves['no_paddle'][-1]):.2e}, "
+                 f"glued {abs(curves['glued'][-1]):.2e}",
+                 fontsize=10)
+    fig.savefig(path, dpi=120)
+    plot.plt.close(fig)
+    return path.name
+
+
 def result(s: dict) -> tuple[bool, str]:
     """(goal reached, the result in words) of a needle3d summary. Static: every patch and the
     no-paddle run reach full insertion; dynamic: the target held within the bound at every
     increment; optimize: the optimiser converged."""
+    if s.get("paddle_model") == "contact":
+        return contact_result(s, "needle3d")
     mode, inc, n = s["mode"], s["inclusion"], s["particles"]
     if mode == "static":
         failed = [i + 1 for i, row in enumerate(s["status"]) if any(x != "converged" for x in row)]
@@ -283,6 +415,9 @@ def main(argv=None):
     if a.paddle is not None and a.paddle > patches:   # refused before any folder is made
         interface.needle3d_parser().error(f"argument --paddle: must be an integer in [1, {patches}] "
                                           f"(the candidate patches), got {a.paddle}")
+    from jaxrkpm.thesis.contact_paddle import max_indentation
+    if wrong := interface.contact_error("needle3d", a, argv, phantom.spacing, max_indentation(phantom)):
+        interface.needle3d_parser().error(wrong)
     results = interface.results("needle3d", a, a.out or f"results/needle3d/{a.mode}_{a.inclusion}")
     with results as out:
         stages = interface.progress(total=2, desc=f"needle3d {a.mode} {a.inclusion}", unit="stage")
@@ -290,7 +425,9 @@ def main(argv=None):
         phantom.body
         stages.update()
         stages.set_postfix_str("sweep and solves")
-        if a.mode == "static":
+        if a.paddle_model == "contact":
+            summary = run_contact(phantom, a, out)
+        elif a.mode == "static":
             summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
         elif a.mode == "dynamic":
             summary = run_dynamic(phantom, a.inclusion, a.increments, out, a.paddle, a.tol, a.devices)
