@@ -156,7 +156,9 @@ class ContactCheck:
     """The contact's state at one step: resultant force (d,) of the paddle on the body, its
     component along the inward normal, the active points, the smallest point normal force
     (over active points), the largest |f_t| / (mu f_n) over active points, the largest
-    tangential force at an inactive point, and the smallest gap."""
+    tangential force at an inactive point, the smallest gap, and the active points behind
+    the tool's mid-plane (they passed through it: the tool's back then pushes them out of
+    the body, which pulls the tissue)."""
 
     force: np.ndarray
     push: float
@@ -165,13 +167,15 @@ class ContactCheck:
     cone: float
     loose_friction: float
     min_gap: float
+    behind: int = 0
 
     def ok(self, tol: float = 1e-6, cone_tol: float = 1e-2) -> bool:
         """Every contact force compressive and within the friction cone (``tol``: relative,
         against the largest point force; ``cone_tol``: the cone's, the lag's tolerance, since
         friction is bounded by the lagged pressure)."""
         return bool(self.min_normal >= -tol * max(abs(self.push), 1.0) and self.cone <= 1.0 + cone_tol
-                    and self.loose_friction <= tol * max(abs(self.push), 1.0) and self.min_gap > 0)
+                    and self.loose_friction <= tol * max(abs(self.push), 1.0) and self.min_gap > 0
+                    and self.behind == 0)
 
 
 def check_contact(res, inward, mu: float) -> ContactCheck:
@@ -190,7 +194,8 @@ def check_contact(res, inward, mu: float) -> ContactCheck:
     F = np.asarray(res.force)
     return ContactCheck(F, float(F @ np.asarray(inward, float)), int(act.sum()),
                         float(np.min(fn[act])) if act.any() else 0.0, cone,
-                        float(np.max(ft[~act])) if (~act).any() else 0.0, float(res.min_gap))
+                        float(np.max(ft[~act])) if (~act).any() else 0.0, float(res.min_gap),
+                        int(np.sum(act & (np.asarray(res.lag["anchor"])[:, -1] > 0))))
 
 
 # ------------------------------------------------------------------ one configuration
@@ -373,7 +378,8 @@ class ContactSweep:
                         "contact_ok": r.contact_ok,
                         "max_cone_ratio": max([c.cone for c in chk] or [0.0]),
                         "min_point_normal_force": min([c.min_normal for c in chk] or [0.0]),
-                        "min_gap": min([c.min_gap for c in chk] or [np.inf])})
+                        "min_gap": min([c.min_gap for c in chk] or [np.inf]),
+                        "most_points_behind": max([c.behind for c in chk] or [0])})
         return out
 
 

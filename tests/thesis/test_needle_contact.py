@@ -45,7 +45,7 @@ def test_static_contact_paddle_pushes_only(runs):
     sweep names the placement one that only a glued paddle achieves."""
     run, glued = runs
     assert run.converged and len(run.deviation) == INCREMENTS and run.contact_ok
-    assert all(c.active > 0 and c.min_normal > 0 and c.cone <= 1.01 for c in run.checks)
+    assert all(c.active > 0 and c.min_normal > 0 and c.cone <= 1.01 and c.behind == 0 for c in run.checks)
     assert run.checks[0].push > 0
     assert abs(glued[3]) < abs(glued[None]) < abs(run.final)
     sw = cp.ContactSweep("none", 0.8, run.control, [run], np.array([glued[3]]), glued[None])
