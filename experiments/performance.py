@@ -30,6 +30,7 @@ COMMANDS = {
     "bench_scni": ["python -m experiments.bench_scni"],
     "bench_tracking": ["python -m experiments.bench_tracking"],
     "bench_sweep": ["python -m experiments.bench_sweep"],
+    "bench_contact": ["python -m experiments.bench_contact"],
     "bench_cube3d": ["python -m experiments.bench_cube3d --n 6 10 --loop-steps 20 --crossover",
                      "python -m experiments.bench_cube3d --only-crossover"],
     "bench_cube3d_large": ["python -m experiments.bench_cube3d_large --n 14 20 --solver sparse krylov",
@@ -91,6 +92,21 @@ def t_solve(f):
     return [("Neo-Hookean blocks, 30% compression in 10 load steps (seconds; memory in GB)",
              ["case", "DOF", "solver", "build", "compile", "first solve", "warm solve", "Newton its", "peak RSS",
               "status"], rows)]
+
+
+def t_contact(f):
+    rows = []
+    for k, r in f.items():
+        if not (isinstance(r, dict) and "contact" in r):
+            continue
+        for m in ("contact", "glued"):
+            x = r[m]
+            rows.append([k, num(r.get("particles")), m, num(x.get("build_s")), num(x.get("first_solve_s")),
+                         spread(x.get("warm_solve_s")), num(x.get("load_steps")), num(x.get("newton_iterations")),
+                         num(x.get("force"))])
+    return [("A block pressed by a rigid paddle (contact) or by its glued particles (seconds)",
+             ["case", "particles", "paddle", "build", "first solve", "warm solve", "load steps", "Newton its",
+              "force"], rows)]
 
 
 def t_scni(f):
@@ -260,7 +276,7 @@ def t_generic(f):
     return [("Figures", ["quantity", "value"], rows), *tables]
 
 
-TABLES = {"bench_solve": t_solve, "bench_scni": t_scni, "bench_tracking": t_tracking, "bench_sweep": t_sweep,
+TABLES = {"bench_contact": t_contact, "bench_solve": t_solve, "bench_scni": t_scni, "bench_tracking": t_tracking, "bench_sweep": t_sweep,
           "bench_cube3d": t_cube3d, "bench_cube3d_large": t_cube3d_large, "bench_contention": t_contention,
           "bench_needle3d": t_needle3d, "bench_needle3d_memory": t_memory}
 
