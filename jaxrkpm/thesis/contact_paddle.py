@@ -199,8 +199,21 @@ def check_contact(res, inward, mu: float) -> ContactCheck:
 
 
 # ------------------------------------------------------------------ one configuration
+class ContactHistory:
+    """What an insertion with a contact paddle reports per increment (``deviation``,
+    ``checks``): its final deviation and whether every contact check held."""
+
+    @property
+    def final(self) -> float:
+        return float(self.deviation[-1]) if len(self.deviation) else np.nan
+
+    @property
+    def contact_ok(self) -> bool:
+        return all(c.ok() for c in self.checks)
+
+
 @dataclass
-class ContactRun:
+class ContactRun(ContactHistory):
     """One insertion with a contact paddle at glued paddle position ``paddle``."""
 
     paddle: int
@@ -213,16 +226,8 @@ class ContactRun:
     lag: dict | None = None      # the friction lag at it
 
     @property
-    def final(self) -> float:
-        return float(self.deviation[-1]) if len(self.deviation) else np.nan
-
-    @property
     def converged(self) -> bool:
         return self.status == Status.CONVERGED
-
-    @property
-    def contact_ok(self) -> bool:
-        return all(c.ok() for c in self.checks)
 
     @property
     def in_contact(self) -> bool:
@@ -414,7 +419,7 @@ def contact_sweep(phantom, inclusion: str = "none", increments: int = 15, contro
 
 # ------------------------------------------------------------------ dynamic paddle
 @dataclass
-class DynamicContactRun:
+class DynamicContactRun(ContactHistory):
     """Closed loop with a contact paddle: its pose (indentation, shift) moves during the
     insertion to hold the target on the needle line, as far as pushing and friction can."""
 
@@ -429,14 +434,6 @@ class DynamicContactRun:
     message: str
     solution: object = None     # the last converged Solution (None: the press failed)
     lag: dict | None = None     # the friction lag at it
-
-    @property
-    def final(self) -> float:
-        return float(self.deviation[-1]) if len(self.deviation) else np.nan
-
-    @property
-    def contact_ok(self) -> bool:
-        return all(c.ok() for c in self.checks)
 
 
 def max_indentation(phantom) -> float:
