@@ -24,16 +24,16 @@ Both solve alike: with "map" batching (CPU) modified Newton, as an eager ``model
 does by default (``Model.newton_reuse``); with "vmap" full Newton (the loop is given reuse=0).
 
 ``floor`` (for the largest count the loop ran): what the same solves cost in arithmetic
-alone, from the pieces of a Newton iteration timed per member inside one jitted
-``lax.map`` over that many states (no dispatch, no Python): assembly + Cholesky
-(``factorise``), the triangular solves, one energy + gradient (a line-search trial), the
-internal force scale (the convergence test); the Jacobian is one factorisation and the
-solves of its two directions. ``floor_s`` = the Newton iterations the batched run reported
-x an iteration without its factorisation + the factorisations (full Newton: one an
-iteration; modified Newton: at least one a solve, so a lower bound) + the Jacobians x a
-Jacobian; ``ceiling_speedup`` = loop / floor_s is the most any batching of these solves
-could gain over the loop on this machine, if it made every overhead vanish and cost no
-more per member than the unbatched kernels.
+alone. One more, untimed batched call counts every operation the solves execute
+(``count_operations``: assembly + Cholesky, triangular solves, energy + residual passes, the
+convergence test's force scales, the predictors), and each operation is costed by its kernel
+timed per member inside one jitted ``lax.map`` over that many states (no dispatch, no
+Python); the Jacobians add their right-hand sides. ``floor_s`` is that sum;
+``floor_iterations_s`` the earlier records' estimate from the iteration count alone (one
+factorisation per solve: modified Newton makes more, so it undercounts). ``ceiling_speedup`` =
+loop / floor_s is the most any batching of these solves could gain over the loop on this
+machine, if it made every overhead vanish and cost no more per member than the unbatched
+kernels.
 
 ``--gpu``: the GPU scaling table in one short run: 20, 80, 320, 1,280, 4,100 configurations
 in lock step (vmap), timed warm up to 320 (``--warm-max``; above it the cold call, compile
@@ -54,12 +54,15 @@ bench before device time is spent on it.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
 import statistics
 import sys
 import time
+from functools import partial
+from unittest import mock
 
 
 def _host_devices(argv) -> None:
@@ -166,13 +169,66 @@ def per_member(fn, states, repeats=3):
     return statistics.median(times) / jax.tree.leaves(states)[0].shape[0]
 
 
-def floor(model, phantom, depths, iterations: int, jacobians: int, factorisations: int,
+@contextlib.contextmanager
+def counted_operations():
+    """Count, per execution, the operations a Newton solve is made of (a host callback in each,
+    no effect on the results): the tangent's assembly + factorisation (``DenseSolver.factorise``:
+    every one follows an assembly), the triangular solves, the energy + residual evaluations (the
+    line-search trials and each solve's start), the force scale of the convergence test, the
+    round-off floor's pass, and the predictor's linearisation (``Newton.increment``). The compiled
+    programs are dropped on entry and exit, so that only the calls inside are instrumented."""
+    from jaxrkpm.mechanics.problem import Problem
+    from jaxrkpm.solvers.newton import Newton
+    counts = dict.fromkeys(OPERATIONS, 0)
+
+    def bump(name):
+        counts[name] += 1
+
+    def counting(cls, method, name):
+        original = getattr(cls, method)
+
+        def wrapped(*args, **kwargs):
+            jax.debug.callback(partial(bump, name))
+            return original(*args, **kwargs)
+        return mock.patch.object(cls, method, wrapped)
+
+    jax.clear_caches()
+    with contextlib.ExitStack() as stack:
+        for name, (cls, method) in {"factorise": (DenseSolver, "factorise"), "solve": (DenseSolver, "solve"),
+                                    "energy_residual": (Problem, "energy_residual"),
+                                    "force_scale": (Problem, "force_scale"),
+                                    "force_scales": (Problem, "force_scales"),
+                                    "predictor": (Newton, "increment")}.items():
+            stack.enter_context(counting(cls, method, name))
+        try:
+            yield counts
+        finally:
+            jax.effects_barrier()
+            jax.clear_caches()
+
+
+# the operations ``counted_operations`` counts, each costed by ``floor``'s kernel of that name
+OPERATIONS = ("factorise", "solve", "energy_residual", "force_scale", "force_scales", "predictor")
+
+
+def count_operations(models, depths, target, batching) -> dict:
+    """How many of each of ``OPERATIONS`` the batched sweep executes (one untimed, instrumented
+    call, compile included)."""
+    with counted_operations() as counts:
+        batched(models, depths, target, batching)
+    return dict(counts)
+
+
+def floor(model, phantom, depths, operations: dict, jacobians: int, iterations: int, solves: int,
           samples: int = 40) -> dict:
-    """The arithmetic of ``iterations`` Newton iterations, ``factorisations`` of them
-    assembling and factorising the tangent (full Newton: all; modified Newton: at least one
-    per solve, so the floor is a lower bound), and ``jacobians`` Jacobians of the phantom
-    sweep, from its kernels timed per member (see the module docstring), at ``samples``
-    states near the model's equilibrium at the last of ``depths`` (perturbed)."""
+    """The arithmetic of the sweep: each operation it executed (``operations``, counted by
+    ``count_operations``) at the cost of its kernel alone, timed per member inside one jitted
+    lax.map over ``samples`` states near the model's equilibrium at the last of ``depths``
+    (perturbed), plus ``jacobians`` Jacobian right-hand sides (their factorisations and solves
+    are among the counted operations). ``floor_iterations_s``: the estimate of earlier records,
+    from the Newton ``iterations`` (one solve, trial and force scale each) and one factorisation
+    per solve and per Jacobian (a lower bound for modified Newton, which refactorises where a
+    kept factorisation stops contracting)."""
     prob = model.problem()
     sol = model.initial()
     for depth in depths:
@@ -182,21 +238,31 @@ def floor(model, phantom, depths, iterations: int, jacobians: int, factorisation
     g = sol.g
     dG = model.directions("paddle")
     linear = model.linear
+    newton = model.solver(reuse=model.newton_reuse).newton
     state = linear.state_at(prob, sol.u, g)
     rhs = prob.residual(sol.u, g)
+    no_rhs = jnp.zeros((0,) + dG.shape[1:], dG.dtype)   # the response's right-hand sides alone
     piece = {
         "factorise_s": per_member(lambda u: linear.state_at(prob, u, g), us),
-        "triangular_solves_s": per_member(lambda r: linear.solve(state, r), us * 0 + rhs),
-        "energy_and_gradient_s": per_member(lambda u: jax.value_and_grad(lambda v: prob.energy(v, g)[0])(u), us),
+        "solve_s": per_member(lambda r: linear.solve(state, r), us * 0 + rhs),
+        "energy_residual_s": per_member(lambda u: prob.energy_residual(u, g), us),
         "force_scale_s": per_member(lambda u: prob.force_scale(prob.energy_residual(u, g)[3]), us),
+        "force_scales_s": per_member(lambda u: prob.force_scales(u, g), us),
+        "predictor_s": per_member(lambda u: newton.increment(prob, u, g, g + 1e-3, 1.0, 1.0, 25).rhs0, us),
         "jacobian_rhs_s": per_member(lambda u: response(prob, linear, u, g, sol.load, dG, state), us),
     }
-    iteration = piece["triangular_solves_s"] + piece["energy_and_gradient_s"] + piece["force_scale_s"]
-    jacobian = piece["factorise_s"] + piece["jacobian_rhs_s"]
-    total = iterations * iteration + factorisations * piece["factorise_s"] + jacobians * jacobian
-    return {"per_member": piece, "newton_iteration_s": iteration, "jacobian_s": jacobian,
-            "newton_iterations": int(iterations), "factorisations": int(factorisations),
-            "jacobians": int(jacobians), "floor_s": total}
+    # the force scale's own cost: its kernel above includes the residual pass that feeds it
+    piece["force_scale_s"] = max(piece["force_scale_s"] - piece["energy_residual_s"], 0.0)
+    # a Jacobian's own work beyond its factorisation: the right-hand sides (its solve is counted)
+    piece["jacobian_rhs_s"] = max(piece["jacobian_rhs_s"] - piece["solve_s"], 0.0)
+    terms = {op: operations[op] * piece[f"{op}_s"] for op in OPERATIONS}
+    terms["jacobian_rhs"] = jacobians * piece["jacobian_rhs_s"]
+    iteration = piece["solve_s"] + piece["energy_residual_s"] + piece["force_scale_s"]
+    estimate = (iterations * iteration + (solves + jacobians) * piece["factorise_s"]
+                + jacobians * piece["jacobian_rhs_s"])
+    return {"per_member": piece, "operations": dict(operations), "jacobians": int(jacobians),
+            "newton_iterations": int(iterations), "solves": int(solves), "terms_s": terms, "floor_s": sum(terms.values()),
+            "floor_iterations_s": estimate}
 
 
 def lock_step_profile(models, its, st, repeats: int = 3) -> dict:
@@ -330,7 +396,7 @@ def main(argv=None):
         do_loop = count <= args.loop_max
         if do_loop:
             cold_l, (dev_l, st_l) = timed(loop, models, depths, phantom.target, reuse)
-            solved = (its_b.sum(), int(np.sum(st_l == Status.CONVERGED)), its_b.sum() if reuse == 0 else st_l.size)
+            solved = (its_b.sum(), int(np.sum(st_l == Status.CONVERGED)), st_l.size)
             row["loop_cold_s"] = cold_l
             row["max_abs_difference"] = float(np.max(np.abs(dev_b - dev_l)))
             row["status_agree"] = bool(np.all(st_b == st_l))
@@ -355,7 +421,7 @@ def main(argv=None):
             row["speedup_warm"] = statistics.median(tl) / statistics.median(tb)
             row["speedup_cold"] = cold_l / cold_b
             # the floor's states: a configuration whose every increment converged
-            last_loop = (row, models[int(np.argmax(np.all(st_l == Status.CONVERGED, axis=1)))], solved)
+            last_loop = (row, models[int(np.argmax(np.all(st_l == Status.CONVERGED, axis=1)))], solved, sweep)
         if "lock_step_profile" in row:
             prof = row["lock_step_profile"]
             prof["other_s"] = row["batched_warm_median_s"] - prof["modelled_s"]
@@ -370,13 +436,15 @@ def main(argv=None):
               "per_configuration_vs_single": {r["configurations"]: r["batched_warm_per_configuration_s"] / base
                                               for r in rows if "batched_warm_per_configuration_s" in r}}
     if last_loop is not None:
-        row, model, (iterations, jacobians, factorisations) = last_loop
-        fl = floor(model, phantom, depths, iterations, jacobians, factorisations)
+        row, model, (iterations, jacobians, solves), sweep = last_loop
+        operations = count_operations(*sweep[:4])
+        fl = floor(model, phantom, depths, operations, jacobians, iterations, solves)
         fl["configurations"] = row["configurations"]
         fl["loop_warm_s"] = row["loop_warm_median_s"]
         fl["batched_warm_s"] = row["batched_warm_median_s"]
         fl["ceiling_speedup"] = row["loop_warm_median_s"] / fl["floor_s"]
         fl["batched_over_floor"] = row["batched_warm_median_s"] / fl["floor_s"]
+        fl["batched_over_floor_iterations"] = row["batched_warm_median_s"] / fl["floor_iterations_s"]
         result["floor"] = fl
     result["load_average_before"] = load_before
     result["load_average_after"] = os.getloadavg()
