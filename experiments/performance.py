@@ -151,6 +151,13 @@ def t_sweep(f):
         out.append(("The arithmetic floor of the same solves (seconds)", ["configurations", "floor", "loop",
                     "batched"], [[num(fl["configurations"]), num(fl["floor_s"]), num(fl["loop_warm_s"]),
                                   num(fl["batched_warm_s"])]]))
+        if "operations" in fl:    # the counted floor: each executed operation at its kernel's cost
+            ops = list(fl["operations"]) + ["jacobian_rhs"]
+            count = lambda op: fl["jacobians"] if op == "jacobian_rhs" else fl["operations"][op]
+            out.append(("The floor's operations: how many the sweep executed, each at its kernel's cost per "
+                        "member", ["operation", "executed", "per member (ms)", "total (s)"],
+                        [[op, num(count(op)), num(fl["per_member"][f"{op}_s"] * 1e3), num(fl["terms_s"][op])]
+                         for op in ops]))
     prof = [r for r in f.get("rows", []) if "lockstep" in r]
     if prof:
         piece = lambda ls, k: num(ls["pieces_s"][k] * 1e3)
