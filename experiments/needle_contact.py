@@ -23,6 +23,10 @@ from jaxrkpm.thesis import contact_paddle as cp
 from jaxrkpm.thesis import needle as nd
 
 
+# the optimised pose's start: indentation in particle spacings (no shift)
+OPTIMUM_START = 1.5
+
+
 def dynamic_row(r):
     return {"paddle": r.paddle, "status": r.status.name, "message": r.message, "final": r.final,
             "deviation": r.deviation.tolist(), "uncorrected": r.uncorrected.tolist(),
@@ -50,7 +54,8 @@ def main(argv=None):
     ap.add_argument("--paddle", type=int, default=3, help="paddle position of the dynamic and optimised runs")
     ap.add_argument("--iterations", type=int, default=6, help="Adam iterations of the optimised pose")
     ap.add_argument("--optimum-only", type=float, default=None, metavar="INDENTATION",
-                    help="only the optimised pose, from this indentation (no shift)")
+                    help="only the optimised pose, from this indentation (no shift; the full run starts it "
+                         f"{OPTIMUM_START} spacings in)")
     ap.add_argument("--quick", action="store_true", help="one case, paddles 3 and 5, two increments")
     ap.add_argument("--inclusion", choices=("none", "right"), default=None, help="one inclusion (default both)")
     ap.add_argument("--mu", type=float, default=None, help="one friction coefficient (default 0.3 and 0.8)")
@@ -87,9 +92,11 @@ def main(argv=None):
         case["dynamic"] = dynamic_row(dyn)
         dump(out, a.out)
         print(inclusion, mu, "dynamic", dyn.status.name, dyn.deviation, flush=True)
-        if not a.quick:   # from the pose the closed loop ended at (a static pose from the start: another path)
+        if not a.quick:
+            # from 1.5 spacings in, not from the pose the closed loop ended at: pressed in to follow
+            # the tissue to full insertion, that pose fails at the start of a static insertion
             opt = cp.optimize_contact_paddle(ph, a.paddle, inclusion, inc_n, spec, iterations=a.iterations,
-                                             start=dyn.control[-1] if len(dyn.control) else None)
+                                             start=[OPTIMUM_START * ph.spacing, 0.0])
             case["optimum"] = optimum_row(opt)
             print(inclusion, mu, "optimum", opt.control, opt.deviation, flush=True)
         case["seconds"] = time.perf_counter() - t0
