@@ -86,6 +86,7 @@ def pytest_cmdline_main(config):
 # pytest's order after them.
 SLOW_FIRST = (
     "tests/solvers/test_solver.py",
+    "tests/mechanics/test_hertz.py",
     "tests/thesis/test_needle3d.py",
     "tests/test_notebooks.py",
     "tests/model/test_jacobian.py",

@@ -81,6 +81,9 @@ def compressed_block(n, material=MATERIALS["NeoHookean"], solver="auto"):
     return np.asarray(model.displacement(sol, probes))
 
 
+@pytest.mark.slow(reason="a third convergence check, at large deformation against a 33x33 reference solve; the "
+                         "default run checks convergence rates on Timoshenko's cantilever and a manufactured "
+                         "solution (tests/discretise/test_mesh.py)")
 def test_large_deformation_against_fine_reference():
     # the reference by the sparse solver: the same equilibrium (the dense one agrees to 1e-12 here)
     # for half the CPU time of 2178 dense unknowns
