@@ -54,9 +54,10 @@ the expected contact pressure and ghat a small fraction of the indentation.
 dissipation potential sum_b w_b mu lambda_b f0(|P_b (y_b - yhat_b)|) with lambda_b the lagged
 normal pressure, yhat_b the lagged anchor (the point's position in the tool's frame at the
 previous step), P_b the lagged tangent projector (I - n n^T, n the lagged unit normal in the
-tool's frame: by default the sdf's gradient at the anchor), and f0 the C1 smoothing of |s| (f0 = -s^3/(3 eps^2) + s^2/eps + eps/3 below the slip
-tolerance eps = ``slip``, s above): the friction force is mu lambda f0'(s), sticking (an elastic
-slip of up to eps) below mu lambda, sliding at it. The lagged quantities are parameters
+tool's frame: by default the sdf's gradient at the anchor), and f0 the C1 smoothing of |s|
+(f0 = -s^3/(3 eps^2) + s^2/eps + eps/3 below the slip tolerance eps = ``slip``, s above): the
+friction force is mu lambda f0'(s), sticking (an elastic slip of up to eps) below mu lambda,
+sliding at it. The lagged quantities are parameters
 (``pressure``, ``anchor``, ``normal``; zero pressure: frictionless): a frictional load path is a
 sequence of solves, each lagging the previous one (``contact_forces(...).lag``), as in IPC's
 lagged iterations, so a solve's derivatives are those of one lagged step (the lagged quantities
@@ -305,8 +306,7 @@ class ContactTerm(Term):
         y = (x - c) @ R
         g = self.shape.sdf(y)
         n_loc = jax.vmap(jax.grad(self.shape.sdf))(y)
-        n = n_loc @ R.T
-        n = n / jnp.maximum(jnp.linalg.norm(n, axis=1, keepdims=True), 1e-300)   # the tool's outward normal
+        n = _unit(n_loc @ R.T)   # the tool's outward normal
         f = -jax.vmap(jax.grad(self._point_energy), in_axes=(0, None, 0, 0, 0, 0))(
             x, load, self.pressure, self.anchor, self.normal, self.w)   # force of the tool on each point
         fn = jnp.sum(f * n, 1)
@@ -319,8 +319,6 @@ class ContactTerm(Term):
                              pressure=p, gap=g, active=active, points=x, normals=n, min_gap=jnp.min(g),
                              seam=active & jax.vmap(near_seam, (None, 0, None))(self.shape, y, self.ghat),
                              lag={"pressure": p, "anchor": y, "normal": _unit(n_loc)})
-
-
 
     # ------------------------------------------------------------- parameters
     @property
@@ -483,8 +481,8 @@ class Contact(TermSpec):
                         w=jnp.asarray(w), kappa=jnp.asarray(kappa), ghat=jnp.asarray(float(self.gap)),
                         position0=jnp.asarray(c0), rotation0=jnp.asarray(r0), position=jnp.asarray(c0),
                         rotation=jnp.asarray(r0), mu=jnp.asarray(float(self.mu)), pressure=jnp.zeros(S),
-                        anchor=jnp.zeros((S, dim)), normal=jnp.zeros((S, dim)), shape=self.shape, floor=float(self.floor),
-                        slip=float(self.slip), name=self.name)
+                        anchor=jnp.zeros((S, dim)), normal=jnp.zeros((S, dim)), shape=self.shape,
+                        floor=float(self.floor), slip=float(self.slip), name=self.name)
         g = np.asarray(t.gaps(t.X, 0.0))
         if np.any(g <= 0):
             i = int(np.argmin(g))

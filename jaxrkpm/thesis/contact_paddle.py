@@ -283,8 +283,7 @@ class Stepper:
                 break
             relaxed = now["pressure"] if held is None else np.where(
                 now["pressure"] > 0, held["pressure"] + LAG_RELAXATION * (now["pressure"] - held["pressure"]), 0.0)
-            new = {"pressure": relaxed,
-                   "normal": now["normal"], "anchor": anchor}
+            new = {"pressure": relaxed, "normal": now["normal"], "anchor": anchor}
             again = m.solve(prescribed, params=self.params(control, new), initial=sol, max_iter=MAX_ITER,
                             throw=False)
             if int(again.status) != Status.CONVERGED:

@@ -1,9 +1,8 @@
 """Hertz's line contact: a rigid cylinder pressed into an elastic block (plane strain, small
 strains), the contact half-width and peak pressure against Hertz's at two loads. The setting and
 the fit are ``tests.problems.hertz_line_contact``'s (``experiments/hertz_contact.py`` runs it):
-a half-model of 2,601 particles, the half-width several particles wide and the block over ten
-half-widths (at this spacing a block of 861 particles, just ten half-widths at the second load,
-missed Hertz by 5.5% there)."""
+a half-model whose half-width is several particles wide and whose block is well over ten
+half-widths (a block of just ten half-widths at this spacing misses the 5% at the larger load)."""
 from tests.problems import hertz_line_contact
 
 
