@@ -15,6 +15,30 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
 # and the users' runs do.
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 
+
+def _with_legacy_cpu_emitters():
+    """XLA:CPU's MLIR fusion emitters take much of a compile's time; the older emitters make
+    code for the same fusions (same arithmetic) sooner (measured on the suite's heaviest
+    modules; docs/troubleshooting.md#compile-times-and-the-compile-cache). XLA aborts on a
+    flag it does not know, so the flag is added only where a throwaway interpreter with it
+    starts JAX's CPU backend (once per run: the xdist workers and subprocesses inherit the
+    environment)."""
+    flag = "--xla_cpu_use_fusion_emitters=false"
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_cpu_use_fusion_emitters" in flags or os.environ.get("JAXRKPM_TEST_XLA_FLAGS_CHECKED"):
+        return
+    import subprocess
+    import sys
+    probe = subprocess.run([sys.executable, "-c", "import jax; jax.numpy.zeros(1).block_until_ready()"],
+                           env={**os.environ, "XLA_FLAGS": f"{flags} {flag}".strip()},
+                           capture_output=True, timeout=120)
+    if probe.returncode == 0:
+        os.environ["XLA_FLAGS"] = f"{flags} {flag}".strip()
+    os.environ["JAXRKPM_TEST_XLA_FLAGS_CHECKED"] = "1"
+
+
+_with_legacy_cpu_emitters()
+
 import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)

@@ -86,7 +86,7 @@ def test_sharded_equals_unsharded():
                           "status": bool(np.array_equal(a.status, b.status)),
                           "iterations": bool(np.array_equal(a.iterations, b.iterations))}))
     """)
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     r = json.loads(out.stdout.strip().splitlines()[-1])
