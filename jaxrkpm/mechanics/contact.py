@@ -301,6 +301,9 @@ class ContactTerm(Term):
 
     def results(self, d, load) -> "ContactResult":
         """The contact's forces and state at coefficients d (N, d), load scale ``load``."""
+        return _compiled_results(self, d, load)
+
+    def _results(self, d, load) -> "ContactResult":
         x = self.points(d)
         c, R = self.pose(load)
         y = (x - c) @ R
@@ -363,6 +366,11 @@ class ContactTerm(Term):
             return True
         return bool(np.any(np.asarray(self.position) != np.asarray(self.position0))
                     or np.any(np.asarray(self.rotation) != np.asarray(self.rotation0)))
+
+
+# one compiled program per tool and body: op by op, its vmapped gradients dispatched hundreds of
+# small kernels per call, and a contact path checks its forces after every solve
+_compiled_results = jax.jit(ContactTerm._results)
 
 
 class ContactResult(NamedTuple):

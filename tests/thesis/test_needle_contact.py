@@ -7,6 +7,9 @@ import pytest
 from jaxrkpm.thesis import contact_paddle as cp
 from jaxrkpm.thesis import needle as nd
 
+# each contact insertion is tens of solves that run longer than they take to compile
+pytestmark = pytest.mark.xla_optimised
+
 INCREMENTS = 2
 
 
