@@ -106,24 +106,29 @@ def pytest_cmdline_main(config):
 # The files that take longest, first: each worker takes the next file when it is nearly done, so
 # with the long ones queued last one worker could still be in a 400 s file while the other has
 # run out of work (longest-processing-time-first scheduling; the order is that of a clean run's
-# durations; the files new since, by their own measured durations). The other files keep
+# durations, with the compile flags of this conftest). The other files keep
 # pytest's order after them.
 SLOW_FIRST = (
     "tests/solvers/test_solver.py",
-    "tests/mechanics/test_hertz.py",
-    "tests/thesis/test_needle3d.py",
-    "tests/test_notebooks.py",
-    "tests/model/test_jacobian.py",
-    "tests/solvers/test_stability.py",
+    "tests/mechanics/test_anti_locking.py",
+    "tests/thesis/test_needle.py",
     "tests/discretise/test_mesh.py",
     "tests/mechanics/test_contact.py",
-    "tests/thesis/test_needle.py",
-    "tests/mechanics/test_anti_locking.py",
-    "tests/thesis/test_reproduce.py",
-    "tests/discretise/test_scni.py",
-    "tests/mechanics/test_springs.py",
+    "tests/model/test_jacobian.py",
+    "tests/solvers/test_stability.py",
+    "tests/thesis/test_needle_contact.py",
     "tests/thesis/rigsim/test_sim.py",
     "tests/discretise/test_mesh_hostile.py",
+    "tests/mechanics/test_tissue.py",
+    "tests/control/test_batching.py",
+    "tests/mechanics/test_hertz.py",
+    "tests/discretise/test_scni.py",
+    "tests/mechanics/test_springs.py",
+    "tests/mechanics/test_pressure.py",
+    "tests/test_api.py",
+    "tests/model/test_hardening.py",
+    "tests/control/test_track_contact.py",
+    "tests/test_notebooks.py",
 )
 
 
