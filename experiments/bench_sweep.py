@@ -264,6 +264,26 @@ def floor(model, phantom, depths, operations: dict, jacobians: int, iterations: 
             "floor_iterations_s": estimate}
 
 
+def straggler_iterations(its, st, width: int) -> int:
+    """The Newton iterations of ``needle._lock_step``'s straggler phase, given each member's
+    iterations and statuses (B, n) (those of its unbatched solve, which the lock step
+    reproduces): the members that left, in index order, solved in groups of ``width``, one
+    group after another; a group runs from where each of its members left, and each of its
+    increments lasts as long as its slowest member's."""
+    converged = st == Status.CONVERGED
+    done = np.sum(np.cumprod(converged & (its <= nd.LOCK_ITERATIONS), axis=1), axis=1)
+    n = its.shape[1]
+    pending = np.flatnonzero(done < n)
+    total = 0
+    for g in range(0, len(pending), width):
+        group = pending[g:g + width]
+        for i in range(n):
+            active = group[done[group] + i < n]
+            if active.size:
+                total += int(np.max(its[active, done[active] + i]))
+    return total
+
+
 def lock_step_profile(models, its, st, repeats: int = 3) -> dict:
     """Where a lock-step ("vmap") iteration of ``models`` spends its time: each piece of a
     Newton iteration timed as its own jitted vmap over all the members (one batched kernel
@@ -277,10 +297,12 @@ def lock_step_profile(models, its, st, repeats: int = 3) -> dict:
 
     ``its``, ``st`` (the insertion's iterations and statuses, (B, n)) give the lock-step iterations: per increment, the
     largest count among the members in lock step (capped by ``needle.LOCK_ITERATIONS``; a
-    member that left counts 1), plus the stragglers' own lock step (the largest count among
-    them per increment, an estimate: they run in groups of ``needle.straggler_width`` members, costed as
-    that fraction of a full-width iteration). ``other_s`` is the warm time the
-    pieces do not account for (dispatch, loop control, selects, the Jacobians' extra solves)."""
+    member that left counts 1), plus the stragglers' (``straggler_iterations``: their groups one
+    after another, each costed as its fraction of a full-width iteration; the earlier records'
+    ``straggler_iterations_estimate`` counted them as one group). Both count Newton iterations
+    as one line-search trial each: the trials a failing iteration adds are in ``other_s``, the
+    warm time the pieces do not account for (with dispatch, loop control, selects, the
+    Jacobians' extra solves)."""
     prob, batched = batching.stack_models(models)
     axes = batching.batch_axes(prob, batched)
     linear = models[0].solver(reuse=0.0).linear
@@ -317,16 +339,16 @@ def lock_step_profile(models, its, st, repeats: int = 3) -> dict:
     stay = np.cumprod((st == Status.CONVERGED) & (its <= nd.LOCK_ITERATIONS), axis=1).astype(bool)
     locked = int(np.sum(np.max(np.where(stay, its, np.minimum(its, nd.LOCK_ITERATIONS)), axis=0)))
     left = ~stay
-    stragglers = int(np.sum(np.max(np.where(left, its, 0), axis=0))) if left.any() else 0
+    width = nd.straggler_width(B)     # the stragglers' group: its pieces scaled by its width
+    stragglers = straggler_iterations(its, st, width)
     iteration = piece["assembly_s"] + piece["factorisation_s"] + piece["triangular_solves_s"] + \
         piece["energy_residual_s"] + piece["force_scale_s"]
     jacobian = piece["assembly_s"] + piece["factorisation_s"] + piece["triangular_solves_s"]
     increments = its.shape[1]
-    width = nd.straggler_width(B)     # the stragglers' group: its pieces scaled by its width
     return {"members": B, "unknowns": n, "pieces_s": piece,
             "flops_per_member": {"cholesky": n ** 3 / 3, "lu": 2 * n ** 3 / 3, "triangular_pair": 2 * n ** 2},
             "cholesky_gflops": B * n ** 3 / 3 / piece["factorisation_s"] / 1e9,
-            "lock_step_iterations": locked, "straggler_iterations_estimate": stragglers,
+            "lock_step_iterations": locked, "straggler_iterations": stragglers,
             "members_that_left": int(np.sum(left.any(axis=1))),
             "straggler_width": width / B, "iteration_s": iteration,
             "modelled_s": (locked + stragglers * width / B) * iteration + increments * jacobian}
