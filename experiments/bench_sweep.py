@@ -264,14 +264,13 @@ def floor(model, phantom, depths, operations: dict, jacobians: int, iterations: 
             "floor_iterations_s": estimate}
 
 
-def straggler_iterations(its, st, width: int) -> int:
+def straggler_iterations(its, stay, width: int) -> int:
     """The Newton iterations of ``needle._lock_step``'s straggler phase, given each member's
-    iterations and statuses (B, n) (those of its unbatched solve, which the lock step
-    reproduces): the members that left, in index order, solved in groups of ``width``, one
-    group after another; a group runs from where each of its members left, and each of its
-    increments lasts as long as its slowest member's."""
-    converged = st == Status.CONVERGED
-    done = np.sum(np.cumprod(converged & (its <= nd.LOCK_ITERATIONS), axis=1), axis=1)
+    iterations (B, n) (those of its unbatched solve, which the lock step reproduces) and where
+    it stayed in the lock step (B, n): the members that left, in index order, solved in groups
+    of ``width``, one group after another; a group runs from where each of its members left,
+    and each of its increments lasts as long as its slowest member's."""
+    done = np.sum(stay, axis=1)
     n = its.shape[1]
     pending = np.flatnonzero(done < n)
     total = 0
@@ -340,7 +339,7 @@ def lock_step_profile(models, its, st, repeats: int = 3) -> dict:
     locked = int(np.sum(np.max(np.where(stay, its, np.minimum(its, nd.LOCK_ITERATIONS)), axis=0)))
     left = ~stay
     width = nd.straggler_width(B)     # the stragglers' group: its pieces scaled by its width
-    stragglers = straggler_iterations(its, st, width)
+    stragglers = straggler_iterations(its, stay, width)
     iteration = piece["assembly_s"] + piece["factorisation_s"] + piece["triangular_solves_s"] + \
         piece["energy_residual_s"] + piece["force_scale_s"]
     jacobian = piece["assembly_s"] + piece["factorisation_s"] + piece["triangular_solves_s"]
