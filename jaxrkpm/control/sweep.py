@@ -592,7 +592,11 @@ def sweep(configurations, evaluate: Callable[[dict], Mapping], out, *, chunk_siz
 def _files(out: Path) -> list:
     out = Path(out)
     if not (out / SWEEP_FILE).exists():
-        raise FileNotFoundError(f"{out}/ holds no sweep (no {SWEEP_FILE}): give the folder a sweep wrote")
+        # a run's output folder often holds its sweep one level down (the CLI's DIR/table/)
+        below = sorted(p.parent.name for p in out.glob(f"*/{SWEEP_FILE}")) if out.is_dir() else []
+        hint = f": the sweep is in {out / below[0]}/" if len(below) == 1 else \
+            (f": sweeps are in its subfolders {below}" if below else ": give the folder a sweep wrote")
+        raise FileNotFoundError(f"{out}/ holds no sweep (no {SWEEP_FILE}){hint}")
     return [str(p) for _, p in sorted(_finished_chunks(out).items())]
 
 

@@ -4,6 +4,8 @@ are refused, and a two-worker Dask cluster (processes) writes the same table as 
 also when a worker is killed mid-chunk. The evaluators are tiny JAX programs (the needle
 evaluator is tested in tests/thesis/test_sweeps.py)."""
 import os
+import re
+import shutil
 import signal
 
 import numpy as np
@@ -174,8 +176,13 @@ def test_a_folder_of_another_sweep_is_refused(reference, tmp_path):
     with FileLock(str(out / ".sweep.lock")):
         with pytest.raises(sw.SweepFolderError, match="another sweep is writing"):
             sw.sweep(configurations(), Square(), out, progress=False)
-    with pytest.raises(FileNotFoundError, match="holds no sweep"):
+    with pytest.raises(FileNotFoundError, match="holds no sweep.*give the folder a sweep wrote"):
         sw.read_sweep(tmp_path)
+    # the folder above a sweep (the CLI's --out above its table/) names where the sweep is
+    (tmp_path / "run" / "table").mkdir(parents=True)
+    shutil.copy(out / sw.SWEEP_FILE, tmp_path / "run" / "table")
+    with pytest.raises(FileNotFoundError, match=re.escape(f"the sweep is in {tmp_path / 'run' / 'table'}/")):
+        sw.read_sweep(tmp_path / "run")
 
 
 # ------------------------------------------------------------------ on a Dask cluster

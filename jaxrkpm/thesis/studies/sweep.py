@@ -3,7 +3,7 @@ inclusion stiffness ratio and Fung alpha, beta, each inserted through the increm
 paddle Jacobian at each, a chunk of configurations per batched call.
 
 The results go to DIR/table/ as Parquet, one file per finished chunk (read them with
-jaxrkpm.control.sweep.read_sweep, pandas.read_parquet or any Parquet reader); DIR/summary.json
+jaxrkpm.read_sweep("DIR/table"), pandas.read_parquet or any Parquet reader); DIR/summary.json
 counts the statuses. Interrupted (Ctrl-C, a killed worker), the same command again skips the
 finished chunks. --workers N runs the chunks on a local Dask cluster of N processes,
 --executor tcp://host:8786 on a running Dask cluster (pip install 'jaxrkpm[cluster]').
