@@ -64,8 +64,9 @@ def main(argv=None) -> int:
     if command not in COMMANDS:
         print(unknown(command), file=sys.stderr)
         return interface.EXIT_USAGE
+    args = None
     try:
-        interface.parse(command, rest)   # --help and bad options end here, before JAX loads
+        args = interface.parse(command, rest)   # --help and bad options end here, before JAX loads
         use_compilation_cache()          # a second run loads its programs instead of compiling
         study = importlib.import_module(COMMANDS[command][0])
         summary = study.main(rest)
@@ -74,6 +75,12 @@ def main(argv=None) -> int:
     except interface.OutputError as e:
         print(f"jaxrkpm {command}: error: {' '.join(str(e).split())}", file=sys.stderr)
         return interface.EXIT_OUTPUT
+    except KeyboardInterrupt:            # Ctrl-C: one line on what was kept, not a traceback
+        module = sys.modules.get(COMMANDS[command][0])
+        kept = getattr(module, "ON_INTERRUPT", "nothing was written (a run puts its folder in place when it ends)")
+        kept = kept.replace("DIR", str(getattr(args, "out", None) or "DIR"))
+        print(f"jaxrkpm {command}: interrupted; {kept}", file=sys.stderr)
+        return interface.EXIT_INTERRUPTED
     reached, _ = study.result(summary)
     return interface.EXIT_OK if reached else interface.EXIT_GOAL
 

@@ -395,6 +395,36 @@ def test_a_failed_run_leaves_the_earlier_results(tmp_path, monkeypatch, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]                  # no temporary folder left
 
 
+def test_ctrl_c_is_one_line_that_says_what_was_kept(tmp_path, monkeypatch, capsys):
+    """Ctrl-C ends with exit 130 and one line: a staged study keeps the earlier results (no
+    traceback, no temporary folder); the sweep says its finished chunks are kept and resume."""
+    cantilever = fake_cantilever(monkeypatch)
+    out = tmp_path / "res"
+    assert cli.main(["cantilever", "--out", str(out)]) == interface.EXIT_OK
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    capsys.readouterr()
+
+    def interrupted(out, s):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(cantilever, "figure", interrupted)
+    assert cli.main(["cantilever", "--out", str(out)]) == interface.EXIT_INTERRUPTED == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["jaxrkpm cantilever: interrupted; nothing was written (a run puts its folder in place when "
+                   "it ends)"]
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]
+
+    from jaxrkpm.thesis import sweeps
+
+    def sweep_interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(sweeps, "needle_sweep", sweep_interrupted)
+    assert cli.main(["sweep", "--out", str(tmp_path / "sw")]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"jaxrkpm sweep: interrupted; the chunks finished so far are kept in "
+                              f"{tmp_path / 'sw'}/table/")
+
+
 def test_needle_modes_write_their_own_folders(tmp_path, monkeypatch, capsys):
     from jaxrkpm.thesis.studies import needle
     static = {"mode": "static", "inclusion": "none", "best": 3, "deviation": [0.02, 0.01, 0.001, 0.004, 0.006],

@@ -34,6 +34,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 EXIT_OK, EXIT_GOAL, EXIT_USAGE, EXIT_OUTPUT = 0, 1, 2, 3
+EXIT_INTERRUPTED = 130          # the shell's code for a run ended by Ctrl-C (128 + SIGINT)
 EXIT_CODES = {
     EXIT_OK: "the study ran and reached its goal",
     EXIT_GOAL: "the study ran but did not reach its goal (a solve failed, a path was not tracked, ...): "
@@ -41,6 +42,7 @@ EXIT_CODES = {
     EXIT_USAGE: "bad command line: unknown command or option, or a number out of its range",
     EXIT_OUTPUT: "the output folder (--out) cannot be created or written, or holds another run's "
                  "results (--overwrite replaces them), or results to --reuse are unreadable",
+    EXIT_INTERRUPTED: "interrupted (Ctrl-C): the last line says what was kept",
 }
 
 # bounds of the counts the options make (each option's help shows its range):

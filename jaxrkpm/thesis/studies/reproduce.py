@@ -26,6 +26,10 @@ from jaxrkpm.thesis.studies import interface
 from jaxrkpm.thesis.studies.experiments import AGREES, DIFFERS, ENTRIES, IN_KIND, Entry
 
 
+# what ``jaxrkpm reproduce`` keeps when interrupted (the CLI's last line)
+ON_INTERRUPT = ("the experiments finished so far are kept in DIR/<id>/; the same command with --reuse "
+                "reads them instead of running them again")
+
 # the studies an experiment runs (their ``main(argv)``, the command line's options)
 STUDIES = {"track": "jaxrkpm.thesis.studies.track", "compress": "jaxrkpm.thesis.studies.compress",
            "cantilever": "jaxrkpm.thesis.studies.cantilever", "rig-sim": "jaxrkpm.thesis.studies.rig_sim",

@@ -19,6 +19,11 @@ import numpy as np
 from jaxrkpm.thesis.studies import interface
 
 
+# what ``jaxrkpm sweep`` keeps when interrupted (the CLI's last line)
+ON_INTERRUPT = ("the chunks finished so far are kept in DIR/table/; the same command again skips them "
+                "and runs the rest")
+
+
 def _cluster(args):
     """(executor, close) for --executor / --workers."""
     if args.executor:
