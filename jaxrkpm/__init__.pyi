@@ -6,8 +6,10 @@ from .base.outcome import Outcome as Outcome
 from .base.cache import use_compilation_cache as use_compilation_cache
 from .base.programs import release_if_crowded as release_if_crowded
 from .control.sweep import (
+    ChunkChoice as ChunkChoice,
     SweepFolderError as SweepFolderError,
     SweepSummary as SweepSummary,
+    choose_chunk_size as choose_chunk_size,
     read_sweep as read_sweep,
     results_dataset as results_dataset,
     sweep as sweep,

@@ -10,7 +10,14 @@ of NumPy arrays, one per configuration column, plus ``"id"``) and returns one va
 for each of its result columns (an array of shape (B, ...) becomes a column of fixed-size
 lists), optionally with ``"status"`` (one name per row, "OK" where not given) and
 ``"reason"`` (words, "" where not given). A batched solver evaluates a whole chunk in one
-compiled call (:class:`jaxrkpm.thesis.sweeps.NeedleSweep` is the needle study's evaluator).
+compiled call (:class:`jaxrkpm.thesis.sweeps.NeedleSweep` is the needle study's evaluator);
+one with a ``for_chunk_size(size)`` method is replaced by what it returns once the chunk size
+is known (an evaluator that pads each batch to that size, so that every chunk, the last and
+short one too, runs one compiled program).
+
+**Chunk size.** Given, or ``"auto"``: measured on the first configurations by
+:func:`choose_chunk_size` (the throughput of a batched solver grows with its batch until the
+device is busy, which on a GPU is thousands of configurations and on a CPU a few).
 
 **Format: Parquet** (through pyarrow), one file per finished chunk. Parquet is columnar
 (a column of a million rows reads without the others), typed (floats stay float64, lists
@@ -68,6 +75,7 @@ CHUNK_DIGITS = 7
 MAX_CONFIGURATIONS = 10_000_000     # bounds the table checked before anything is allocated
 MAX_CHUNK = 65_536                  # configurations in one chunk (one evaluate call)
 DEFAULT_CHUNK = 64
+AUTO = "auto"                       # chunk_size: measured (``choose_chunk_size``)
 KINDS = ("int", "float", "bool", "str")
 # the JAX settings the driver passes on to the workers where it has them (``worker_settings``)
 FORWARDED_CONFIG = ("jax_enable_x64", "jax_disable_most_optimizations", "jax_default_matmul_precision")
@@ -513,6 +521,127 @@ def _run_dask(executor, todo, chunks, evaluate, settings, done):
             client.close()
 
 
+# ------------------------------------------------------------------ the chunk size
+class ChunkChoice(NamedTuple):
+    """What :func:`choose_chunk_size` measured: the chunk ``sizes`` tried (doubling), the
+    ``seconds`` of one evaluation of each once compiled, and the size ``chosen``."""
+
+    sizes: tuple
+    seconds: tuple
+    chosen: int
+    why: str
+
+    @property
+    def throughput(self) -> tuple:
+        """Configurations per second at each size."""
+        return tuple(n / t for n, t in zip(self.sizes, self.seconds))
+
+
+def _measure_chunk_sizes(evaluate, table, start, gain, max_chunk_s, budget, settings, report) -> ChunkChoice:
+    """Evaluate the first rows of ``table`` at doubling chunk sizes (each twice: the first
+    call compiles, the second is timed) until the throughput stops growing by ``gain``; see
+    :func:`choose_chunk_size`."""
+    apply_settings(settings)
+    n = table.num_rows
+    largest = min(n, MAX_CHUNK)
+    sizes, seconds, t0 = [], [], time.perf_counter()
+    size, why = min(start, largest), ""
+    while True:
+        chunk = table.slice(0, size)
+        first = _evaluate_isolating(evaluate, chunk)
+        tic = time.perf_counter()
+        _evaluate_isolating(evaluate, chunk)
+        sizes.append(size)
+        seconds.append(time.perf_counter() - tic)
+        rate = [s / t for s, t in zip(sizes, seconds)]
+        report(f"chunk size {size}: {seconds[-1]:.3g} s per chunk, {rate[-1]:.3g} configurations/s")
+        if ERROR in first.column(STATUS).to_pylist():
+            why = "the evaluator raised on some of these configurations: their timing is not the chunk's"
+        elif len(rate) > 1 and rate[-1] < gain * rate[-2]:
+            why = f"the throughput grew by less than {gain:g}x from the size before"
+        elif size >= largest:
+            why = "the whole table" if size >= n else f"MAX_CHUNK ({MAX_CHUNK})"
+        elif 2 * seconds[-1] > max_chunk_s:
+            why = f"a chunk of twice the size would take over {max_chunk_s:g} s (what an interruption may lose)"
+        elif time.perf_counter() - t0 > budget * n / max(rate):
+            why = f"the measurement reached {budget:g} of the sweep's estimated time"
+        if why:
+            break
+        size = min(2 * size, largest)
+    # the smallest size within ``gain`` of the best throughput: smaller chunks lose less to an
+    # interruption and show progress sooner
+    best = max(rate)
+    chosen = min(s for s, r in zip(sizes, rate) if r * gain >= best)
+    return ChunkChoice(tuple(sizes), tuple(seconds), int(chosen), why)
+
+
+def choose_chunk_size(configurations, evaluate, *, executor=None, start: int = 4, gain: float = 1.1,
+                      max_chunk_s: float = 60.0, budget: float = 0.1, progress: bool = True,
+                      requires: Mapping | None = None, settings: Mapping | None = None,
+                      max_configurations: int = MAX_CONFIGURATIONS) -> ChunkChoice:
+    """The chunk size of a sweep by measured throughput: the first ``start`` configurations
+    of the table, then twice as many, and so on, each evaluated twice (the second call,
+    compiled, is timed), until the configurations per second grow by less than ``gain`` from
+    one size to the next, or the next chunk would take over ``max_chunk_s`` seconds (the work
+    an interruption may lose), or the measuring has taken ``budget`` of the sweep's estimated
+    time, or the whole table (or ``MAX_CHUNK``) is one chunk. Chosen: the smallest size whose
+    throughput is within ``gain`` of the best measured. A batched solver's throughput grows
+    with its batch until the device is busy (a GPU: thousands; a CPU: a few), which is why
+    the size is measured, not fixed (``experiments/bench_sweep.py``).
+
+    With an ``executor`` (a ``distributed.Client`` or a scheduler address) the measuring runs
+    on one of its workers, where the chunks will. The results computed while measuring are
+    not kept (the chunk files follow the chosen size)."""
+    requires = getattr(evaluate, "requires", None) if requires is None else requires
+    table = configuration_table(configurations, requires, max_configurations)
+    if table.num_rows == 0:
+        raise ValueError("no configurations to measure the chunk size on")
+    _count_in("start", start, 1, MAX_CHUNK)
+    for name, v, low in (("gain", gain, 1.0), ("max_chunk_s", max_chunk_s, 0.0), ("budget", budget, 0.0)):
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float)) or not (np.isfinite(v) and v > low):
+            raise ValueError(f"{name} must be a finite number > {low:g}, got {v!r}")
+    settings = worker_settings() if settings is None else settings
+    if executor is None:
+        from tqdm import tqdm
+        report = tqdm.write if progress else (lambda line: None)
+        return _measure_chunk_sizes(evaluate, table, start, gain, max_chunk_s, budget, settings, report)
+    client, owned = _dask(executor)
+    try:
+        fut = client.submit(_measure_chunk_sizes, evaluate, table, start, gain, max_chunk_s, budget, settings,
+                            _quiet, pure=False)
+        return fut.result()
+    finally:
+        if owned:
+            client.close()
+
+
+def _quiet(line) -> None:
+    """A worker's report (it has no terminal to show it on)."""
+
+
+def _count_in(name, v, low, high) -> None:
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not low <= v <= high:
+        raise ValueError(f"{name} must be a whole number in {low}..{high}, got {v!r}")
+
+
+def _chunk_size_of(out, configurations, evaluate, chunk_size=AUTO, **measure) -> tuple[int, ChunkChoice | None]:
+    """The chunk size a sweep into ``out`` uses: ``chunk_size`` where given as a number; for
+    ``"auto"`` the folder's (a rerun resumes with the size it started with), else one
+    measured by :func:`choose_chunk_size` (``measure``: its options), with what it measured."""
+    if isinstance(chunk_size, str) and chunk_size != AUTO or not isinstance(chunk_size, str) and (
+            isinstance(chunk_size, (bool, np.bool_)) or not isinstance(chunk_size, (int, np.integer))
+            or not 1 <= chunk_size <= MAX_CHUNK):
+        raise ValueError(f"chunk_size must be a whole number of configurations in 1..{MAX_CHUNK} or "
+                         f"{AUTO!r}, got {chunk_size!r}")
+    if chunk_size != AUTO:
+        return int(chunk_size), None
+    try:
+        return int(json.loads((Path(out) / SWEEP_FILE).read_text())["chunk_size"]), None
+    except (OSError, ValueError, KeyError, TypeError):
+        choice = choose_chunk_size(configurations, evaluate, **measure)
+        return choice.chosen, choice
+
+
 # ------------------------------------------------------------------ the sweep
 def sweep(configurations, evaluate: Callable[[dict], Mapping], out, *, chunk_size: int | None = None,
           executor=None, progress: bool = True, requires: Mapping | None = None,
@@ -522,7 +651,9 @@ def sweep(configurations, evaluate: Callable[[dict], Mapping], out, *, chunk_siz
     resume, failures, executors). A rerun of the same call skips the chunks already written.
 
     ``chunk_size``: configurations per ``evaluate`` call (1..``MAX_CHUNK``; default the
-    evaluator's ``chunk_size`` attribute, else the folder's, else ``DEFAULT_CHUNK``).
+    evaluator's ``chunk_size`` attribute, else the folder's, else ``DEFAULT_CHUNK``), or
+    ``"auto"``: the folder's, else measured on the first configurations
+    (:func:`choose_chunk_size`, recorded in the manifest).
     ``executor``: None (in process), a ``distributed.Client`` or a scheduler address.
     ``requires``: {column: kind} the table must hold (default ``evaluate.requires``).
     ``settings``: what the workers set before computing (default :func:`worker_settings`).
@@ -540,10 +671,10 @@ def sweep(configurations, evaluate: Callable[[dict], Mapping], out, *, chunk_siz
             chunk_size = int(json.loads((out / SWEEP_FILE).read_text())["chunk_size"])
         except (OSError, ValueError, KeyError, TypeError):
             chunk_size = DEFAULT_CHUNK
-    if isinstance(chunk_size, (bool, np.bool_)) or not isinstance(chunk_size, (int, np.integer)) \
-            or not 1 <= chunk_size <= MAX_CHUNK:
-        raise ValueError(f"chunk_size must be a whole number of configurations in 1..{MAX_CHUNK}, got {chunk_size!r}")
-    chunk_size = int(chunk_size)
+    chunk_size, choice = _chunk_size_of(out, table, evaluate, chunk_size, executor=executor, progress=progress,
+                                          requires=requires, settings=settings, max_configurations=max_configurations)
+    if hasattr(evaluate, "for_chunk_size"):    # it pads every batch to the chunk size: one program for all
+        evaluate = evaluate.for_chunk_size(chunk_size)
     n = table.num_rows
     n_chunks = -(-n // chunk_size)
     key = evaluator_key(evaluate)
@@ -552,6 +683,9 @@ def sweep(configurations, evaluate: Callable[[dict], Mapping], out, *, chunk_siz
                 "columns": {c: str(t) for c, t in zip(table.column_names, table.schema.types)},
                 "files": f"chunk-{'N' * CHUNK_DIGITS}.parquet: configurations [N * chunk_size, (N + 1) * chunk_size)",
                 "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    if choice is not None:
+        manifest["chunk_size_measured"] = {"sizes": list(choice.sizes), "seconds": list(choice.seconds),
+                                           "why_stopped": choice.why}
     lock = _lock(out)
     try:
         _claim(out, manifest)

@@ -6,6 +6,7 @@ resumable, in process or on a Dask cluster).
 """
 from __future__ import annotations
 
+import copy
 import json
 from typing import Sequence
 
@@ -64,6 +65,13 @@ class NeedleSweep:
         return "jaxrkpm.thesis.sweeps.NeedleSweep:" + json.dumps(
             {"increments": self.increments, "jacobian": self.jacobian, "keep_jacobians": self.keep_jacobians,
              "phantom": self.phantom_options}, sort_keys=True)
+
+    def for_chunk_size(self, size: int) -> "NeedleSweep":
+        """This evaluator with every batch padded to ``size`` members (what
+        :func:`jaxrkpm.control.sweep.sweep` asks once it knows the chunk size)."""
+        new = copy.copy(self)
+        new.batch = int(size)
+        return new
 
     def __getstate__(self):
         return {**self.__dict__, "_phantom": None, "_like": None}    # the phantom's cache (models, arrays) stays home
@@ -184,12 +192,14 @@ def paddle_configurations(paddles: Sequence[int] | None = None, ratios: Sequence
             "alpha": np.asarray(a, float), "beta": np.asarray(b, float)}
 
 
-def needle_sweep(out, configurations=None, *, increments: int = 15, chunk_size: int = 20,
+def needle_sweep(out, configurations=None, *, increments: int = 15, chunk_size: int | str = 20,
                  executor=None, progress: bool = True, **options):
     """The 2D needle sweep of ``configurations`` (default :func:`paddle_configurations`)
     into the folder ``out``: :class:`NeedleSweep` (``options``: its own and the phantom's)
-    padded to ``chunk_size`` members, through :func:`jaxrkpm.control.sweep.sweep`; a rerun
-    resumes. Returns its ``SweepSummary``; ``read_sweep(out)`` gives the table."""
-    evaluate = NeedleSweep(increments, batch=chunk_size, **options)
+    padded to ``chunk_size`` members (``"auto"``: measured, see
+    :func:`jaxrkpm.control.sweep.choose_chunk_size`), through
+    :func:`jaxrkpm.control.sweep.sweep`; a rerun resumes. Returns its ``SweepSummary``;
+    ``read_sweep(out)`` gives the table."""
+    evaluate = NeedleSweep(increments, **options)
     return sweep(paddle_configurations() if configurations is None else configurations, evaluate, out,
                  chunk_size=chunk_size, executor=executor, progress=progress)

@@ -3,10 +3,12 @@ after an interruption gives the same table, failures are rows, bad tables and fo
 are refused, and a two-worker Dask cluster (processes) writes the same table as the local run,
 also when a worker is killed mid-chunk. The evaluators are tiny JAX programs (the needle
 evaluator is tested in tests/thesis/test_sweeps.py)."""
+import json
 import os
 import re
 import shutil
 import signal
+import time
 
 import numpy as np
 import pyarrow as pa
@@ -185,6 +187,67 @@ def test_a_folder_of_another_sweep_is_refused(reference, tmp_path):
         sw.read_sweep(tmp_path / "run")
 
 
+# ------------------------------------------------------------------ the chunk size, measured
+class Knee:
+    """A batched evaluator whose call takes 0.1 s up to KNEE rows, then in proportion to them
+    (a device that is busy from KNEE members on): its throughput doubles with the chunk up to
+    KNEE and stays flat beyond."""
+
+    KNEE = 32
+    requires = {"x": "float"}
+    sweep_key = "tests.control.test_sweep.Knee"
+
+    def __init__(self):
+        self.calls = []
+
+    def __call__(self, chunk):
+        B = len(chunk["x"])
+        self.calls.append(B)
+        time.sleep(0.1 * max(1.0, B / self.KNEE))
+        return {"y": np.asarray(chunk["x"]) ** 2}
+
+
+def table_of(n):
+    return {"x": np.arange(n, dtype=float)}
+
+
+def test_the_chunk_size_is_where_the_throughput_stops_growing():
+    knee = Knee()
+    choice = sw.choose_chunk_size(table_of(1000), knee, start=4, budget=10.0, progress=False)
+    assert choice.sizes == (4, 8, 16, 32, 64) and choice.chosen == Knee.KNEE
+    assert "grew by less than 1.1x" in choice.why
+    assert knee.calls == [4, 4, 8, 8, 16, 16, 32, 32, 64, 64]      # each size compiled, then timed
+    rate = choice.throughput
+    assert 1.6 < rate[1] / rate[0] < 2.1 and rate[4] / rate[3] < 1.1
+    # bounded: by the table, by what an interruption may lose, by the measuring's share
+    assert sw.choose_chunk_size(table_of(12), Knee(), start=4, budget=10.0, progress=False).sizes == (4, 8, 12)
+    short = sw.choose_chunk_size(table_of(1000), Knee(), start=4, max_chunk_s=0.15, budget=10.0, progress=False)
+    assert short.sizes == (4,) and short.chosen == 4 and "twice the size" in short.why
+    quick = sw.choose_chunk_size(table_of(1000), Knee(), start=4, budget=0.002, progress=False)
+    assert quick.sizes == (4,) and "estimated time" in quick.why
+    for bad in ({"start": 0}, {"gain": 1.0}, {"max_chunk_s": float("nan")}, {"budget": -1}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            sw.choose_chunk_size(table_of(10), Knee(), progress=False, **bad)
+
+
+def test_an_auto_sweep_measures_once_and_resumes_with_its_size(tmp_path):
+    out = tmp_path / "auto"
+    knee = Knee()
+    summary = sw.sweep(table_of(200), knee, out, chunk_size="auto", progress=False,
+                       settings=sw.worker_settings())
+    manifest = json.loads((out / sw.SWEEP_FILE).read_text())
+    # a sweep this small spends at most a tenth of its time measuring: 4, then 8, and stop
+    measured = manifest["chunk_size_measured"]
+    assert measured["sizes"] == [4, 8] and "estimated time" in measured["why_stopped"]
+    assert manifest["chunk_size"] == 8 and summary.chunks == 25
+    assert sw.read_sweep(out).num_rows == 200
+    again = Knee()
+    rerun = sw.sweep(table_of(200), again, out, chunk_size="auto", progress=False)
+    assert again.calls == [] and rerun.skipped == rerun.chunks       # the folder's size: nothing measured
+    with pytest.raises(ValueError, match="chunk_size must be .* or 'auto'"):
+        sw.sweep(table_of(5), Knee(), tmp_path / "bad", chunk_size="fast", progress=False)
+
+
 # ------------------------------------------------------------------ on a Dask cluster
 @pytest.fixture(scope="module")
 def client():
@@ -217,3 +280,8 @@ def test_a_killed_workers_chunk_is_redone(reference, client, tmp_path):
     assert marker.exists()                          # a worker died running chunk 1
     assert summary.evaluated == 5 and summary.complete
     assert sw.read_sweep(out).equals(expected)     # its chunk redone elsewhere, nothing lost or twice
+
+
+def test_the_chunk_size_is_measured_on_a_worker(client):
+    choice = sw.choose_chunk_size(table_of(1000), Knee(), executor=client, start=8, budget=10.0, progress=False)
+    assert choice.sizes == (8, 16, 32, 64) and choice.chosen == Knee.KNEE

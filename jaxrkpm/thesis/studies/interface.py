@@ -419,8 +419,19 @@ def sweep_parser():
                    help=f"insertion increments, 1..{INCREMENTS_MAX}")
     p.add_argument("--insertion", type=number(float, 0, 0.5, low_open=True), default=0.15,
                    help="needle depth at full insertion (fraction of the phantom's height)")
-    p.add_argument("--chunk-size", type=number(int, 1, SWEEP_CHUNK_MAX), default=20,
-                   help=f"configurations per batched call (one file each), 1..{SWEEP_CHUNK_MAX}")
+    count = number(int, 1, SWEEP_CHUNK_MAX)
+
+    def chunk_size(text: str):
+        if text == "auto":
+            return text
+        try:
+            return count(text)
+        except argparse.ArgumentTypeError as e:
+            raise argparse.ArgumentTypeError(str(e).replace(", got", " or auto, got")) from None
+    p.add_argument("--chunk-size", type=chunk_size, default=20,
+                   help=f"configurations per batched call (one file each), 1..{SWEEP_CHUNK_MAX}, or auto: "
+                        "measured on the first configurations (throughput per chunk size; a rerun keeps the "
+                        "size the sweep started with)")
     p.add_argument("--jacobians", action="store_true", help="keep every increment's paddle Jacobian")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--executor", default=None, metavar="ADDRESS",
