@@ -537,22 +537,24 @@ class ChunkChoice(NamedTuple):
         return tuple(n / t for n, t in zip(self.sizes, self.seconds))
 
 
-def _measure_chunk_sizes(evaluate, table, start, gain, max_chunk_s, budget, settings, report) -> ChunkChoice:
+def _measure_chunk_sizes(evaluate, table, start, gain, max_chunk_s, settings, report) -> ChunkChoice:
     """Evaluate the first rows of ``table`` at doubling chunk sizes (each twice: the first
     call compiles, the second is timed) until the throughput stops growing by ``gain``; see
     :func:`choose_chunk_size`."""
     apply_settings(settings)
     n = table.num_rows
     largest = min(n, MAX_CHUNK)
-    sizes, seconds, t0 = [], [], time.perf_counter()
+    sizes, seconds = [], []
     size, why = min(start, largest), ""
     while True:
         chunk = table.slice(0, size)
+        t0 = time.perf_counter()
         first = _evaluate_isolating(evaluate, chunk)
         tic = time.perf_counter()
         _evaluate_isolating(evaluate, chunk)
         sizes.append(size)
         seconds.append(time.perf_counter() - tic)
+        cost = time.perf_counter() - t0          # this size's measuring: compile and two calls
         rate = [s / t for s, t in zip(sizes, seconds)]
         report(f"chunk size {size}: {seconds[-1]:.3g} s per chunk, {rate[-1]:.3g} configurations/s")
         if ERROR in first.column(STATUS).to_pylist():
@@ -563,8 +565,10 @@ def _measure_chunk_sizes(evaluate, table, start, gain, max_chunk_s, budget, sett
             why = "the whole table" if size >= n else f"MAX_CHUNK ({MAX_CHUNK})"
         elif 2 * seconds[-1] > max_chunk_s:
             why = f"a chunk of twice the size would take over {max_chunk_s:g} s (what an interruption may lose)"
-        elif time.perf_counter() - t0 > budget * n / max(rate):
-            why = f"the measurement reached {budget:g} of the sweep's estimated time"
+        elif len(rate) > 1 and n / rate[-1] * (1 - rate[-2] / rate[-1]) < cost + 2 * seconds[-1]:
+            # the next size, if it gained as much as this one did, would shorten the sweep by
+            # less than measuring it costs (its compile, and two calls of twice this chunk)
+            why = "the next size would save less time than measuring it takes"
         if why:
             break
         size = min(2 * size, largest)
@@ -576,15 +580,16 @@ def _measure_chunk_sizes(evaluate, table, start, gain, max_chunk_s, budget, sett
 
 
 def choose_chunk_size(configurations, evaluate, *, executor=None, start: int = 4, gain: float = 1.1,
-                      max_chunk_s: float = 60.0, budget: float = 0.1, progress: bool = True,
+                      max_chunk_s: float = 60.0, progress: bool = True,
                       requires: Mapping | None = None, settings: Mapping | None = None,
                       max_configurations: int = MAX_CONFIGURATIONS) -> ChunkChoice:
     """The chunk size of a sweep by measured throughput: the first ``start`` configurations
     of the table, then twice as many, and so on, each evaluated twice (the second call,
     compiled, is timed), until the configurations per second grow by less than ``gain`` from
     one size to the next, or the next chunk would take over ``max_chunk_s`` seconds (the work
-    an interruption may lose), or the measuring has taken ``budget`` of the sweep's estimated
-    time, or the whole table (or ``MAX_CHUNK``) is one chunk. Chosen: the smallest size whose
+    an interruption may lose), or the next size, gaining as much as the last did, would
+    shorten the sweep by less than measuring it costs (a small sweep does not spend its time
+    measuring), or the whole table (or ``MAX_CHUNK``) is one chunk. Chosen: the smallest size whose
     throughput is within ``gain`` of the best measured. A batched solver's throughput grows
     with its batch until the device is busy (a GPU: thousands; a CPU: a few), which is why
     the size is measured, not fixed (``experiments/bench_sweep.py``).
@@ -597,18 +602,18 @@ def choose_chunk_size(configurations, evaluate, *, executor=None, start: int = 4
     if table.num_rows == 0:
         raise ValueError("no configurations to measure the chunk size on")
     _count_in("start", start, 1, MAX_CHUNK)
-    for name, v, low in (("gain", gain, 1.0), ("max_chunk_s", max_chunk_s, 0.0), ("budget", budget, 0.0)):
+    for name, v, low in (("gain", gain, 1.0), ("max_chunk_s", max_chunk_s, 0.0)):
         if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float)) or not (np.isfinite(v) and v > low):
             raise ValueError(f"{name} must be a finite number > {low:g}, got {v!r}")
     settings = worker_settings() if settings is None else settings
     if executor is None:
         from tqdm import tqdm
         report = tqdm.write if progress else (lambda line: None)
-        return _measure_chunk_sizes(evaluate, table, start, gain, max_chunk_s, budget, settings, report)
+        return _measure_chunk_sizes(evaluate, table, start, gain, max_chunk_s, settings, report)
     client, owned = _dask(executor)
     try:
-        fut = client.submit(_measure_chunk_sizes, evaluate, table, start, gain, max_chunk_s, budget, settings,
-                            _quiet, pure=False)
+        fut = client.submit(_measure_chunk_sizes, evaluate, table, start, gain, max_chunk_s, settings, _quiet,
+                            pure=False)
         return fut.result()
     finally:
         if owned:

@@ -213,19 +213,21 @@ def table_of(n):
 
 def test_the_chunk_size_is_where_the_throughput_stops_growing():
     knee = Knee()
-    choice = sw.choose_chunk_size(table_of(1000), knee, start=4, budget=10.0, progress=False)
+    choice = sw.choose_chunk_size(table_of(1000), knee, start=4, progress=False)
     assert choice.sizes == (4, 8, 16, 32, 64) and choice.chosen == Knee.KNEE
     assert "grew by less than 1.1x" in choice.why
     assert knee.calls == [4, 4, 8, 8, 16, 16, 32, 32, 64, 64]      # each size compiled, then timed
     rate = choice.throughput
     assert 1.6 < rate[1] / rate[0] < 2.1 and rate[4] / rate[3] < 1.1
-    # bounded: by the table, by what an interruption may lose, by the measuring's share
-    assert sw.choose_chunk_size(table_of(12), Knee(), start=4, budget=10.0, progress=False).sizes == (4, 8, 12)
-    short = sw.choose_chunk_size(table_of(1000), Knee(), start=4, max_chunk_s=0.15, budget=10.0, progress=False)
+    # bounded: by the table, by what an interruption may lose, by what measuring saves
+    whole = sw.choose_chunk_size(table_of(12), Knee(), start=16, progress=False)
+    assert whole.sizes == (12,) and whole.chosen == 12 and whole.why == "the whole table"
+    short = sw.choose_chunk_size(table_of(1000), Knee(), start=4, max_chunk_s=0.15, progress=False)
     assert short.sizes == (4,) and short.chosen == 4 and "twice the size" in short.why
-    quick = sw.choose_chunk_size(table_of(1000), Knee(), start=4, budget=0.002, progress=False)
-    assert quick.sizes == (4,) and "estimated time" in quick.why
-    for bad in ({"start": 0}, {"gain": 1.0}, {"max_chunk_s": float("nan")}, {"budget": -1}):
+    # 100 configurations: at 16 (0.6 s left), 32 would save 0.3 s and cost 0.4 s (compile, two calls)
+    small = sw.choose_chunk_size(table_of(100), Knee(), start=4, progress=False)
+    assert small.sizes == (4, 8, 16) and small.chosen == 16 and "save less time" in small.why
+    for bad in ({"start": 0}, {"gain": 1.0}, {"max_chunk_s": float("nan")}, {"gain": True}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             sw.choose_chunk_size(table_of(10), Knee(), progress=False, **bad)
 
@@ -236,10 +238,9 @@ def test_an_auto_sweep_measures_once_and_resumes_with_its_size(tmp_path):
     summary = sw.sweep(table_of(200), knee, out, chunk_size="auto", progress=False,
                        settings=sw.worker_settings())
     manifest = json.loads((out / sw.SWEEP_FILE).read_text())
-    # a sweep this small spends at most a tenth of its time measuring: 4, then 8, and stop
     measured = manifest["chunk_size_measured"]
-    assert measured["sizes"] == [4, 8] and "estimated time" in measured["why_stopped"]
-    assert manifest["chunk_size"] == 8 and summary.chunks == 25
+    assert measured["sizes"] == [4, 8, 16, 32] and "save less time" in measured["why_stopped"]
+    assert manifest["chunk_size"] == 32 and summary.chunks == 7
     assert sw.read_sweep(out).num_rows == 200
     again = Knee()
     rerun = sw.sweep(table_of(200), again, out, chunk_size="auto", progress=False)
@@ -283,5 +284,5 @@ def test_a_killed_workers_chunk_is_redone(reference, client, tmp_path):
 
 
 def test_the_chunk_size_is_measured_on_a_worker(client):
-    choice = sw.choose_chunk_size(table_of(1000), Knee(), executor=client, start=8, budget=10.0, progress=False)
+    choice = sw.choose_chunk_size(table_of(1000), Knee(), executor=client, start=8, progress=False)
     assert choice.sizes == (8, 16, 32, 64) and choice.chosen == Knee.KNEE
