@@ -67,8 +67,11 @@ class NeedleSweep:
              "phantom": self.phantom_options}, sort_keys=True)
 
     def for_chunk_size(self, size: int) -> "NeedleSweep":
-        """This evaluator with every batch padded to ``size`` members (what
-        :func:`jaxrkpm.control.sweep.sweep` asks once it knows the chunk size)."""
+        """This evaluator with every batch padded to ``size`` members, unless it was given a
+        ``batch`` of its own (what :func:`jaxrkpm.control.sweep.sweep` asks once it knows the
+        chunk size)."""
+        if self.batch is not None:
+            return self
         new = copy.copy(self)
         new.batch = int(size)
         return new

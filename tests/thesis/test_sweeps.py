@@ -101,3 +101,12 @@ def test_the_evaluator_travels_without_its_phantom(swept):
     copy = pickle.loads(pickle.dumps(ev))
     assert len(pickle.dumps(ev)) < 2000 and copy._phantom is None and copy._like is None
     assert copy.sweep_key == ev.sweep_key and copy.phantom.insertion == INSERTION
+
+
+def test_the_sweep_sets_the_batch_to_its_chunk_size():
+    """A sweep pads every batch to its chunk size (one program for the last, short chunk too),
+    unless the evaluator was given a batch of its own."""
+    ev = sweeps.NeedleSweep(INCREMENTS, insertion=INSERTION)
+    assert ev.for_chunk_size(8).batch == 8 and ev.batch is None
+    mine = sweeps.NeedleSweep(INCREMENTS, insertion=INSERTION, batch=3)
+    assert mine.for_chunk_size(8) is mine and mine.batch == 3
