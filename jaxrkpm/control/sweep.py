@@ -537,9 +537,9 @@ class ChunkChoice(NamedTuple):
         return tuple(n / t for n, t in zip(self.sizes, self.seconds))
 
 
-def _measure_chunk_sizes(evaluate, table, start, gain, max_chunk_s, settings, report) -> ChunkChoice:
+def _measure_chunk_sizes(evaluate, table, start, tolerance, max_chunk_s, settings, report) -> ChunkChoice:
     """Evaluate the first rows of ``table`` at doubling chunk sizes (each twice: the first
-    call compiles, the second is timed) until the throughput stops growing by ``gain``; see
+    call compiles, the second is timed) while a larger size is worth measuring; see
     :func:`choose_chunk_size`."""
     apply_settings(settings)
     n = table.num_rows
@@ -559,38 +559,37 @@ def _measure_chunk_sizes(evaluate, table, start, gain, max_chunk_s, settings, re
         report(f"chunk size {size}: {seconds[-1]:.3g} s per chunk, {rate[-1]:.3g} configurations/s")
         if ERROR in first.column(STATUS).to_pylist():
             why = "the evaluator raised on some of these configurations: their timing is not the chunk's"
-        elif len(rate) > 1 and rate[-1] < gain * rate[-2]:
-            why = f"the throughput grew by less than {gain:g}x from the size before"
         elif size >= largest:
             why = "the whole table" if size >= n else f"MAX_CHUNK ({MAX_CHUNK})"
         elif 2 * seconds[-1] > max_chunk_s:
             why = f"a chunk of twice the size would take over {max_chunk_s:g} s (what an interruption may lose)"
         elif len(rate) > 1 and n / rate[-1] * (1 - rate[-2] / rate[-1]) < cost + 2 * seconds[-1]:
             # the next size, if it gained as much as this one did, would shorten the sweep by
-            # less than measuring it costs (its compile, and two calls of twice this chunk)
+            # less than measuring it costs (its compile, and two calls of twice this chunk):
+            # where the throughput has stopped growing, it saves nothing
             why = "the next size would save less time than measuring it takes"
         if why:
             break
         size = min(2 * size, largest)
-    # the smallest size within ``gain`` of the best throughput: smaller chunks lose less to an
-    # interruption and show progress sooner
+    # the smallest size within ``tolerance`` of the best throughput (one timing each: a few
+    # percent is noise), as smaller chunks lose less to an interruption
     best = max(rate)
-    chosen = min(s for s, r in zip(sizes, rate) if r * gain >= best)
+    chosen = min(s for s, r in zip(sizes, rate) if r >= (1 - tolerance) * best)
     return ChunkChoice(tuple(sizes), tuple(seconds), int(chosen), why)
 
 
-def choose_chunk_size(configurations, evaluate, *, executor=None, start: int = 4, gain: float = 1.1,
+def choose_chunk_size(configurations, evaluate, *, executor=None, start: int = 4, tolerance: float = 0.05,
                       max_chunk_s: float = 60.0, progress: bool = True,
                       requires: Mapping | None = None, settings: Mapping | None = None,
                       max_configurations: int = MAX_CONFIGURATIONS) -> ChunkChoice:
     """The chunk size of a sweep by measured throughput: the first ``start`` configurations
     of the table, then twice as many, and so on, each evaluated twice (the second call,
-    compiled, is timed), until the configurations per second grow by less than ``gain`` from
-    one size to the next, or the next chunk would take over ``max_chunk_s`` seconds (the work
-    an interruption may lose), or the next size, gaining as much as the last did, would
-    shorten the sweep by less than measuring it costs (a small sweep does not spend its time
-    measuring), or the whole table (or ``MAX_CHUNK``) is one chunk. Chosen: the smallest size whose
-    throughput is within ``gain`` of the best measured. A batched solver's throughput grows
+    compiled, is timed), until the next size, gaining as much throughput as the last did,
+    would shorten the sweep by less than measuring it costs (so measuring stops where the
+    throughput stops growing, and a small sweep does not spend its time measuring), or the
+    next chunk would take over ``max_chunk_s`` seconds (the work an interruption may lose), or
+    the whole table (or ``MAX_CHUNK``) is one chunk. Chosen: the smallest size whose
+    throughput is within ``tolerance`` (a fraction) of the best measured. A batched solver's throughput grows
     with its batch until the device is busy (a GPU: thousands; a CPU: a few), which is why
     the size is measured, not fixed (``experiments/bench_sweep.py``).
 
@@ -602,17 +601,18 @@ def choose_chunk_size(configurations, evaluate, *, executor=None, start: int = 4
     if table.num_rows == 0:
         raise ValueError("no configurations to measure the chunk size on")
     _count_in("start", start, 1, MAX_CHUNK)
-    for name, v, low in (("gain", gain, 1.0), ("max_chunk_s", max_chunk_s, 0.0)):
-        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float)) or not (np.isfinite(v) and v > low):
-            raise ValueError(f"{name} must be a finite number > {low:g}, got {v!r}")
+    if isinstance(tolerance, (bool, np.bool_)) or not isinstance(tolerance, (int, float)) or not 0 <= tolerance < 1:
+        raise ValueError(f"tolerance must be a fraction in [0, 1), got {tolerance!r}")
+    if isinstance(max_chunk_s, (bool, np.bool_)) or not isinstance(max_chunk_s, (int, float)) or not max_chunk_s > 0:
+        raise ValueError(f"max_chunk_s must be a positive number of seconds, got {max_chunk_s!r}")
     settings = worker_settings() if settings is None else settings
     if executor is None:
         from tqdm import tqdm
         report = tqdm.write if progress else (lambda line: None)
-        return _measure_chunk_sizes(evaluate, table, start, gain, max_chunk_s, settings, report)
+        return _measure_chunk_sizes(evaluate, table, start, tolerance, max_chunk_s, settings, report)
     client, owned = _dask(executor)
     try:
-        fut = client.submit(_measure_chunk_sizes, evaluate, table, start, gain, max_chunk_s, settings, _quiet,
+        fut = client.submit(_measure_chunk_sizes, evaluate, table, start, tolerance, max_chunk_s, settings, _quiet,
                             pure=False)
         return fut.result()
     finally:
