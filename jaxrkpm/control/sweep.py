@@ -546,6 +546,8 @@ def _measure_chunk_sizes(evaluate, table, start, tolerance, max_chunk_s, setting
     largest = min(n, MAX_CHUNK)
     sizes, seconds = [], []
     size, why = min(start, largest), ""
+    if size == n:
+        return ChunkChoice((), (), n, "the whole table is one chunk of the first size: nothing to measure")
     while True:
         chunk = table.slice(0, size)
         t0 = time.perf_counter()

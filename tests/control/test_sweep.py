@@ -220,8 +220,10 @@ def test_the_chunk_size_is_where_the_throughput_stops_growing():
     rate = choice.throughput
     assert 1.6 < rate[1] / rate[0] < 2.1 and rate[4] / rate[3] < 1.1
     # bounded: by the table, by what an interruption may lose, by what measuring saves
-    whole = sw.choose_chunk_size(table_of(12), Knee(), start=16, progress=False)
-    assert whole.sizes == (12,) and whole.chosen == 12 and whole.why == "the whole table"
+    knee = Knee()
+    whole = sw.choose_chunk_size(table_of(12), knee, start=16, progress=False)
+    assert whole.sizes == () and whole.chosen == 12 and "nothing to measure" in whole.why and knee.calls == []
+    assert sw.choose_chunk_size(table_of(20), Knee(), start=16, progress=False).sizes == (16, 20)
     short = sw.choose_chunk_size(table_of(1000), Knee(), start=4, max_chunk_s=0.15, progress=False)
     assert short.sizes == (4,) and short.chosen == 4 and "twice the size" in short.why
     # 100 configurations: at 16 (0.6 s left), 32 would save 0.3 s and cost 0.4 s (compile, two calls)
