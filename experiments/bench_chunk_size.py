@@ -1,5 +1,5 @@
 """Benchmark: the chunk size ``chunk_size="auto"`` measures and chooses for the 2D needle
-sweep on this machine (``jaxrkpm.control.sweep.choose_chunk_size``), and the throughput of
+sweep on this machine (``jaxrkpm.choose_chunk_size``), and the throughput of
 the sizes it tried.
 
 The table is the needle sweep of ``--configurations`` configurations (5 paddle positions x
@@ -27,8 +27,8 @@ import jax
 import numpy as np
 
 from experiments import records
-from jaxrkpm.control.sweep import choose_chunk_size
-from jaxrkpm.thesis.sweeps import NeedleSweep, paddle_configurations
+from jaxrkpm import choose_chunk_size
+from jaxrkpm.thesis import NeedleSweep, paddle_configurations
 
 
 def main(argv=None):
