@@ -140,8 +140,10 @@ def point_fields(model, sol) -> dict:
     u = np.asarray(model.particle_displacements(sol))
     sigma = _pad(np.asarray(model.stress(sol, X, kind="cauchy")), (3, 3))
     F = np.asarray(model.deformation_gradient(sol, X))
+    with np.errstate(invalid="ignore"):     # a non-finite F: the writer names the field and refuses it
+        det_F = np.linalg.det(F)
     fields = {"displacement": _pad(u, (3,)), "cauchy_stress": sigma.reshape(n, 9),
-              "von_mises": von_mises(sigma), "det_F": np.linalg.det(F),
+              "von_mises": von_mises(sigma), "det_F": det_F,
               "volume": np.asarray(model.body.volumes, float)}
     for name in model.set_names:
         mask = np.zeros(n, np.uint8)
