@@ -41,6 +41,11 @@ from .needle import (
     static_state as static_state,
     static_sweep as static_sweep,
 )
-from .sweeps import NeedleSweep as NeedleSweep, needle_sweep as needle_sweep, paddle_configurations as paddle_configurations
+from .sweeps import (
+    NeedleSweep as NeedleSweep,
+    NeedleSweep3D as NeedleSweep3D,
+    needle_sweep as needle_sweep,
+    paddle_configurations as paddle_configurations,
+)
 from .phantom3d import Phantom3D as Phantom3D, ball_field as ball_field, ellipsoid_point as ellipsoid_point
 from .scenarios import cube as cube, cube_path as cube_path, planar_square as planar_square

@@ -66,6 +66,16 @@ def ellipsoid_point(semi_axes, theta, phi, scale=1.0):
     return scale * jnp.stack([a * s * jnp.cos(phi), b * s * jnp.sin(phi), c * jnp.cos(theta) * jnp.ones_like(phi)], -1)
 
 
+# the material constants a model of the phantom may take in place of the phantom's own
+# (``Phantom3D.material``; a 3D sweep's optional columns)
+MATERIAL_VALUES = ("stiffness_ratio", "mu", "nu", "lam", "alpha", "beta")
+
+
+def _ones(X):
+    """X (Q, 3) -> (Q,) ones: the factor of a material without an inclusion, as a field."""
+    return np.ones(len(np.asarray(X)))
+
+
 def ball_field(centre, radius: float, ratio: float):
     """X (Q, 3) -> (Q,): ``ratio`` inside the ball, 1 outside (an inclusion as data)."""
     centre = np.asarray(centre, float)
@@ -335,7 +345,7 @@ class Phantom3D(NeedleTrack):
         return out
 
     # ------------------------------------------------------------------ material, models
-    def material(self, inclusion: str = "none"):
+    def material(self, inclusion: str = "none", *, as_field: bool = False, **values):
         """The phantom's material, x ``stiffness_ratio`` inside the inclusion ball.
 
         Nearly incompressible neo-Hookean tissue by default (mu = 1, Poisson's ratio ``nu`` =
@@ -343,22 +353,40 @@ class Phantom3D(NeedleTrack):
         compressible neo-Hookean solid (lam = 4, mu = 1: nu = 0.4) that was the default before;
         ``"fung"`` chapter 6's law with the Table 5.2 pattern extended to 3D (its tensors are
         the 2D thesis' numbers), ``"fung-barrier"`` the same with the volumetric barrier
-        (:func:`jaxrkpm.thesis.needle.tissue_material`)."""
+        (:func:`jaxrkpm.thesis.needle.tissue_material`).
+
+        ``values``: constants in place of the phantom's (any of :data:`MATERIAL_VALUES`, e.g.
+        a sweep's row); ``as_field``: the stiffnesses as fields of X also without an inclusion
+        (a factor of one), so that the models of every inclusion batch together
+        (:class:`jaxrkpm.thesis.sweeps.NeedleSweep3D`)."""
         if inclusion not in INCLUSIONS_3D:
             raise ValueError(f"unknown inclusion {inclusion!r}: choose {list(INCLUSIONS_3D)}")
+        unknown = set(values) - set(MATERIAL_VALUES)
+        if unknown:
+            raise TypeError(f"unknown material value(s) {sorted(unknown)}: choose from {list(MATERIAL_VALUES)}")
+        v = {name: values.get(name, getattr(self, name)) for name in MATERIAL_VALUES}
         spec = INCLUSIONS_3D[inclusion]
         factor = None
         if spec is not None:
             offset, radius = spec
-            factor = ball_field(np.asarray(self.target) + np.asarray(offset), radius, self.stiffness_ratio)
+            factor = ball_field(np.asarray(self.target) + np.asarray(offset), radius, v["stiffness_ratio"])
+        elif as_field:
+            factor = _ones
         if self.material_law in TISSUE_LAWS:
-            return tissue_material(self.material_law, self.alpha, self.beta, factor, nu=self.nu,
-                                   mu=self.mu if self.material_law == "neo-hookean" else None)
+            return tissue_material(self.material_law, v["alpha"], v["beta"], factor, nu=v["nu"],
+                                   mu=v["mu"] if self.material_law == "neo-hookean" else None)
         if factor is None:
-            return NeoHookean(lam=self.lam, mu=self.mu)
-        return NeoHookean(lam=lambda X: self.lam * factor(X), mu=lambda X: self.mu * factor(X))
+            return NeoHookean(lam=v["lam"], mu=v["mu"])
+        return NeoHookean(lam=lambda X: v["lam"] * factor(X), mu=lambda X: v["mu"] * factor(X))
 
-    def model(self, inclusion: str = "none", paddle: int | None = None) -> Model:
+    def model(self, inclusion: str = "none", paddle: int | None = None, *, as_field: bool = False,
+              **values) -> Model:
+        """The phantom's model with the inclusion and the paddle patch (1-based; None: no
+        paddle); ``as_field``, ``values``: its material's (see ``material``), a model built
+        anew (the phantom keeps its own models only)."""
+        if as_field or values:
+            return Model(self.body, self.material(inclusion, as_field=as_field, **values), self.integration,
+                         essential=self.sets(paddle), support=self.support, order=self.order)
         key = ("model", inclusion, paddle)
         if key not in self._cache:
             self._cache[key] = Model(self.body, self.material(inclusion), self.integration,

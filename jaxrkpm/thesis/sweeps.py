@@ -1,8 +1,10 @@
 """The needle study's sweeps to disk: many static paddle configurations of the 2D phantom
-(paddle position, inclusion, its stiffness ratio, the phantom's Fung parameters), evaluated a
-chunk at a time by the batched insertion (``needle.insert``: every configuration x every
-increment in one compiled call) and written by :func:`jaxrkpm.control.sweep.sweep` (Parquet,
-resumable, in process or on a Dask cluster).
+(paddle position, inclusion, its stiffness ratio, the phantom's Fung parameters;
+:class:`NeedleSweep`) or of the 3D half-ellipsoid phantom (paddle patch, inclusion, stiffness
+ratio, the tissue's constants; :class:`NeedleSweep3D`), evaluated a chunk at a time by the
+batched insertion (``needle.insert``: every configuration x every increment in one compiled
+call) and written by :func:`jaxrkpm.control.sweep.sweep` (Parquet, resumable, in process or on
+a Dask cluster).
 """
 from __future__ import annotations
 
@@ -16,14 +18,169 @@ from ..control.sweep import sweep
 from ..model.model import Model
 from ..mechanics.materials import Fung
 from ..solvers.results import Status
-from .data import INCLUSIONS
+from .data import INCLUSIONS, INCLUSIONS_3D
 from .needle import Phantom, controllability, inclusion_field, insert
+from .phantom3d import MATERIAL_VALUES, Phantom3D
 
 PHANTOM_OPTIONS = ("spacing", "immobile", "needle_x", "needle_particles", "insertion", "support", "integration")
+PHANTOM_3D_OPTIONS = ("spacing", "material_law", "integration", "order", "insertion", "support", "patch_radius",
+                      "needle_radius", "track_spacing")
+# the material columns a 3D row may give, by the phantom's material law (``Phantom3D.material``)
+LAW_VALUES_3D = {"neo-hookean": ("mu", "nu"), "neohookean": ("lam", "mu"), "fung": ("alpha", "beta"),
+                 "fung-barrier": ("alpha", "beta")}
 INVALID = "INVALID"
 
 
-class NeedleSweep:
+class _InsertionSweep:
+    """What the 2D and 3D needle evaluators share: a chunk's valid configurations inserted in
+    batched calls (``needle.insert``) padded to ``batch`` members (one compiled program for
+    every chunk), the result columns, and the rows that cannot be run (``INVALID``). A
+    subclass names its phantom, its options, inclusions and optional material columns, and
+    builds a configuration's model (``model``) and the models that set the batch's shapes
+    (``like``)."""
+
+    requires = {"paddle": "int", "inclusion": "str", "stiffness_ratio": "float"}
+    PHANTOM: type = Phantom
+    OPTIONS: tuple = PHANTOM_OPTIONS
+    INCLUSIONS: dict = INCLUSIONS
+
+    def __init__(self, increments: int = 15, *, jacobian: bool = True, keep_jacobians: bool = False,
+                 batch: int | None = None, batching: str | None = None, n_devices: int | None = None,
+                 chunk_size: int | str | None = None, **phantom):
+        unknown = set(phantom) - set(self.OPTIONS)
+        if unknown:
+            raise TypeError(f"unknown phantom option(s) {sorted(unknown)}: choose from {list(self.OPTIONS)}")
+        if batch is not None and not (isinstance(batch, int) and batch >= 1):
+            raise ValueError(f"batch must be a positive number of members (or None), got {batch!r}")
+        self.increments, self.jacobian, self.keep_jacobians = increments, jacobian, keep_jacobians
+        self.batch, self.batching, self.n_devices, self.chunk_size = batch, batching, n_devices, chunk_size
+        self.phantom_options = dict(sorted(phantom.items()))
+        self._phantom = self._like = None
+        self.PHANTOM(**self.phantom_options).depths(increments)   # checks the options and the increments now
+
+    @property
+    def sweep_key(self) -> str:
+        """What the results depend on besides the configurations (the sweep's manifest)."""
+        kind = type(self)
+        return f"{kind.__module__}.{kind.__qualname__}:" + json.dumps(
+            {"increments": self.increments, "jacobian": self.jacobian, "keep_jacobians": self.keep_jacobians,
+             "phantom": self.phantom_options}, sort_keys=True)
+
+    def for_chunk_size(self, size: int):
+        """This evaluator with every batch padded to ``size`` members, unless it was given a
+        ``batch`` of its own (what :func:`jaxrkpm.control.sweep.sweep` asks once it knows the
+        chunk size)."""
+        if self.batch is not None:
+            return self
+        new = copy.copy(self)
+        new.batch = int(size)
+        return new
+
+    def __getstate__(self):
+        return {**self.__dict__, "_phantom": None, "_like": None}    # the phantom's cache (models, arrays) stays home
+
+    @property
+    def phantom(self):
+        if self._phantom is None:
+            self._phantom = self.PHANTOM(**self.phantom_options)
+        return self._phantom
+
+    @property
+    def values(self) -> tuple:
+        """The optional material columns of a row (the phantom's value where absent)."""
+        raise NotImplementedError
+
+    def model(self, paddle: int, inclusion: str, values: dict) -> Model:
+        """The model of one configuration (``values``: stiffness_ratio and the material columns)."""
+        raise NotImplementedError
+
+    @property
+    def like(self) -> list:
+        """Models that set the padded shapes and the batched leaves of every chunk's batch
+        (``stack_models(like=)``: their materials differ in every constant a row may set), so
+        that all chunks share one compiled program."""
+        raise NotImplementedError
+
+    def _invalid(self, paddle, inclusion, values: dict, unused: Sequence[str]) -> str:
+        P = len(self.phantom.paddles)
+        if not 1 <= paddle <= P:
+            return f"paddle {paddle} out of range 1..{P}"
+        if inclusion not in self.INCLUSIONS:
+            return f"unknown inclusion {inclusion!r}: choose {list(self.INCLUSIONS)}"
+        if unused:
+            return f"column(s) {list(unused)} are not constants of this phantom's material (it takes {list(self.values)})"
+        for name, v in values.items():
+            if not (np.isfinite(v) and v > 0):
+                return f"{name} must be positive and finite, got {v}"
+        if "nu" in values and not values["nu"] < 0.5:
+            return f"nu must be a Poisson's ratio below 0.5, got {values['nu']}"
+        return ""
+
+    def _unused(self, chunk: dict) -> list:
+        """Material columns of the table this evaluator's phantom does not take."""
+        return []
+
+    def __call__(self, chunk: dict) -> dict:
+        ph = self.phantom
+        B, n, dim = len(chunk["paddle"]), self.increments, len(ph.needle_direction)
+        paddle = np.asarray(chunk["paddle"], int)
+        inclusion = [str(s) for s in chunk["inclusion"]]
+        columns = {"stiffness_ratio": np.asarray(chunk["stiffness_ratio"], float)}
+        for name in self.values:
+            columns[name] = np.asarray(chunk.get(name, np.full(B, getattr(ph, name))), float)
+        rows = [{k: float(v[i]) for k, v in columns.items()} for i in range(B)]
+        unused = self._unused(chunk)
+        reasons = [self._invalid(paddle[i], inclusion[i], rows[i], unused) for i in range(B)]
+        valid = [i for i, r in enumerate(reasons) if not r]
+        out = {"deviation": np.full((B, n), np.nan), "final_deviation": np.full(B, np.nan),
+               "target_u": np.full((B, dim), np.nan), "increment_status": np.full((B, n), -1, np.int8),
+               "iterations": np.full(B, -1, np.int64)}
+        if self.jacobian:
+            out["controllability"] = np.full(B, np.nan)
+        if self.keep_jacobians:
+            out["jacobian"] = np.full((B, n, dim, dim), np.nan)
+        status = np.array([INVALID if r else "" for r in reasons], object)
+        reason = np.array(reasons, object)
+        depths = ph.depths(n)
+        size = self.batch or max(len(valid), 1)
+        for start in range(0, len(valid), size):
+            part = valid[start:start + size]
+            models = [self.model(int(paddle[i]), inclusion[i], rows[i]) for i in part]
+            models += [models[-1]] * (size - len(models))       # one program for every chunk
+            run = insert(models, depths, ph.target, jacobian_set="paddle" if self.jacobian else None,
+                         direction=ph.needle_direction, batching=self.batching, n_devices=self.n_devices,
+                         like=self.like)
+            k = len(part)
+            tu = np.asarray(run.target_u)[:k]                   # (k, n, d)
+            st = np.asarray(run.status)[:k]
+            dev = np.asarray(ph.deviation_of(tu))
+            out["deviation"][part] = dev
+            out["target_u"][part] = tu[:, -1]
+            out["increment_status"][part] = st
+            out["iterations"][part] = np.asarray(run.iterations)[:k].sum(axis=1)
+            ok = np.all(st == Status.CONVERGED, axis=1)
+            out["final_deviation"][part] = np.where(ok, dev[:, -1], np.nan)
+            J = np.asarray(run.jacobian)[:k]
+            for j, i in enumerate(part):
+                bad = np.flatnonzero(st[j] != Status.CONVERGED)
+                if len(bad):
+                    s = Status.of(st[j, bad[0]])
+                    status[i] = s.name
+                    reason[i] = f"increment {bad[0] + 1} of {n} (depth {depths[bad[0]]:.4g}): {s.message}"
+                else:
+                    status[i] = Status.CONVERGED.name
+                if self.jacobian and st[j, 0] == Status.CONVERGED:
+                    try:
+                        out["controllability"][i] = float(controllability(J[j, 0], ph.lateral))
+                    except np.linalg.LinAlgError:
+                        pass
+            if self.keep_jacobians:
+                out["jacobian"][part] = J
+        out["status"], out["reason"] = status, reason
+        return out
+
+
+class NeedleSweep(_InsertionSweep):
     """The evaluator of a 2D needle sweep: ``evaluate(chunk) -> columns`` for
     :func:`jaxrkpm.control.sweep.sweep`. A configuration is a row with ``paddle`` (1-based
     Table 6.2 position), ``inclusion`` (a name of ``INCLUSIONS``), ``stiffness_ratio`` and,
@@ -43,47 +200,7 @@ class NeedleSweep:
     The evaluator holds numbers only (it is sent to cluster workers); each process builds
     its phantom once."""
 
-    requires = {"paddle": "int", "inclusion": "str", "stiffness_ratio": "float"}
-
-    def __init__(self, increments: int = 15, *, jacobian: bool = True, keep_jacobians: bool = False,
-                 batch: int | None = None, batching: str | None = None, n_devices: int | None = None,
-                 chunk_size: int | None = None, **phantom):
-        unknown = set(phantom) - set(PHANTOM_OPTIONS)
-        if unknown:
-            raise TypeError(f"unknown phantom option(s) {sorted(unknown)}: choose from {list(PHANTOM_OPTIONS)}")
-        if batch is not None and not (isinstance(batch, int) and batch >= 1):
-            raise ValueError(f"batch must be a positive number of members (or None), got {batch!r}")
-        self.increments, self.jacobian, self.keep_jacobians = increments, jacobian, keep_jacobians
-        self.batch, self.batching, self.n_devices, self.chunk_size = batch, batching, n_devices, chunk_size
-        self.phantom_options = dict(sorted(phantom.items()))
-        self._phantom = self._like = None
-        Phantom(**self.phantom_options).depths(increments)   # checks the options and the increments now
-
-    @property
-    def sweep_key(self) -> str:
-        """What the results depend on besides the configurations (the sweep's manifest)."""
-        return "jaxrkpm.thesis.sweeps.NeedleSweep:" + json.dumps(
-            {"increments": self.increments, "jacobian": self.jacobian, "keep_jacobians": self.keep_jacobians,
-             "phantom": self.phantom_options}, sort_keys=True)
-
-    def for_chunk_size(self, size: int) -> "NeedleSweep":
-        """This evaluator with every batch padded to ``size`` members, unless it was given a
-        ``batch`` of its own (what :func:`jaxrkpm.control.sweep.sweep` asks once it knows the
-        chunk size)."""
-        if self.batch is not None:
-            return self
-        new = copy.copy(self)
-        new.batch = int(size)
-        return new
-
-    def __getstate__(self):
-        return {**self.__dict__, "_phantom": None, "_like": None}    # the phantom's cache (models, arrays) stays home
-
-    @property
-    def phantom(self) -> Phantom:
-        if self._phantom is None:
-            self._phantom = Phantom(**self.phantom_options)
-        return self._phantom
+    values = ("alpha", "beta")
 
     def material(self, inclusion: str, ratio: float, alpha: float, beta: float):
         """Fung with alpha and beta x ratio inside the inclusion: fields for every
@@ -98,85 +215,55 @@ class NeedleSweep:
             factor = inclusion_field(((x0 - h, x1 + h), (y0 - h, y1 + h)), ratio)
         return Fung(alpha=lambda X: alpha * factor(X), beta=lambda X: beta * factor(X))
 
+    def model(self, paddle: int, inclusion: str, values: dict) -> Model:
+        ph = self.phantom
+        return Model(ph.body, self.material(inclusion, values["stiffness_ratio"], values["alpha"], values["beta"]),
+                     ph.integration, essential=ph.sets(paddle), support=ph.support)
+
     @property
     def like(self) -> list:
-        """One model per paddle position, with differing materials: every chunk's batch is
-        padded and batched like them (``stack_models(like=)``), so all chunks share one
-        compiled program."""
         if self._like is None:
-            ph = self.phantom
-            self._like = [Model(ph.body, self.material("right", 2.0 + p, 1.0 + 0.1 * p, 1.0 + 0.2 * p), ph.integration,
-                                essential=ph.sets(p), support=ph.support) for p in range(1, len(ph.paddles) + 1)]
+            self._like = [self.model(p, "right", {"stiffness_ratio": 2.0 + p, "alpha": 1.0 + 0.1 * p,
+                                                  "beta": 1.0 + 0.2 * p})
+                          for p in range(1, len(self.phantom.paddles) + 1)]
         return self._like
 
-    def _invalid(self, paddle, inclusion, ratio, alpha, beta) -> str:
-        P = len(self.phantom.paddles)
-        if not 1 <= paddle <= P:
-            return f"paddle {paddle} out of range 1..{P}"
-        if inclusion not in INCLUSIONS:
-            return f"unknown inclusion {inclusion!r}: choose {list(INCLUSIONS)}"
-        for name, v in (("stiffness_ratio", ratio), ("alpha", alpha), ("beta", beta)):
-            if not (np.isfinite(v) and v > 0):
-                return f"{name} must be positive and finite, got {v}"
-        return ""
 
-    def __call__(self, chunk: dict) -> dict:
-        ph = self.phantom
-        B, n = len(chunk["paddle"]), self.increments
-        paddle = np.asarray(chunk["paddle"], int)
-        inclusion = [str(s) for s in chunk["inclusion"]]
-        ratio = np.asarray(chunk["stiffness_ratio"], float)
-        alpha = np.asarray(chunk.get("alpha", np.full(B, ph.alpha)), float)
-        beta = np.asarray(chunk.get("beta", np.full(B, ph.beta)), float)
-        reasons = [self._invalid(*row) for row in zip(paddle, inclusion, ratio, alpha, beta)]
-        valid = [i for i, r in enumerate(reasons) if not r]
-        out = {"deviation": np.full((B, n), np.nan), "final_deviation": np.full(B, np.nan),
-               "target_u": np.full((B, 2), np.nan), "increment_status": np.full((B, n), -1, np.int8),
-               "iterations": np.full(B, -1, np.int64)}
-        if self.jacobian:
-            out["controllability"] = np.full(B, np.nan)
-        if self.keep_jacobians:
-            out["jacobian"] = np.full((B, n, 2, 2), np.nan)
-        status = np.array([INVALID if r else "" for r in reasons], object)
-        reason = np.array(reasons, object)
-        depths = ph.depths(n)
-        size = self.batch or max(len(valid), 1)
-        for start in range(0, len(valid), size):
-            rows = valid[start:start + size]
-            models = [Model(ph.body, self.material(inclusion[i], ratio[i], alpha[i], beta[i]), ph.integration,
-                            essential=ph.sets(int(paddle[i])), support=ph.support) for i in rows]
-            models += [models[-1]] * (size - len(models))       # one program for every chunk
-            run = insert(models, depths, ph.target, jacobian_set="paddle" if self.jacobian else None,
-                         direction=ph.needle_direction, batching=self.batching, n_devices=self.n_devices,
-                         like=self.like)
-            k = len(rows)
-            tu = np.asarray(run.target_u)[:k]                   # (k, n, 2)
-            st = np.asarray(run.status)[:k]
-            dev = np.asarray(ph.deviation_of(tu))
-            out["deviation"][rows] = dev
-            out["target_u"][rows] = tu[:, -1]
-            out["increment_status"][rows] = st
-            out["iterations"][rows] = np.asarray(run.iterations)[:k].sum(axis=1)
-            ok = np.all(st == Status.CONVERGED, axis=1)
-            out["final_deviation"][rows] = np.where(ok, dev[:, -1], np.nan)
-            J = np.asarray(run.jacobian)[:k]
-            for j, i in enumerate(rows):
-                bad = np.flatnonzero(st[j] != Status.CONVERGED)
-                if len(bad):
-                    s = Status.of(st[j, bad[0]])
-                    status[i] = s.name
-                    reason[i] = f"increment {bad[0] + 1} of {n} (depth {depths[bad[0]]:.4g}): {s.message}"
-                else:
-                    status[i] = Status.CONVERGED.name
-                if self.jacobian and st[j, 0] == Status.CONVERGED:
-                    try:
-                        out["controllability"][i] = float(controllability(J[j, 0], ph.lateral))
-                    except np.linalg.LinAlgError:
-                        pass
-            if self.keep_jacobians:
-                out["jacobian"][rows] = J
-        out["status"], out["reason"] = status, reason
-        return out
+class NeedleSweep3D(_InsertionSweep):
+    """The evaluator of a 3D needle sweep on the half-ellipsoid phantom
+    (:class:`jaxrkpm.thesis.phantom3d.Phantom3D`): a row is ``paddle`` (1-based patch on the
+    skin), ``inclusion`` (``none``, ``side``, ``above``), ``stiffness_ratio`` and, optionally,
+    the constants of the phantom's material law (``LAW_VALUES_3D``: ``mu`` and ``nu`` for the
+    default nearly incompressible tissue; the phantom's where absent; a column of another
+    law's constant makes the row ``INVALID``). The result columns are those of
+    :class:`NeedleSweep` in 3D: ``target_u`` (3,), ``jacobian`` (n, 3, 3), the deviation the
+    length of the target's displacement across the needle.
+
+    ``phantom``: options of ``Phantom3D`` (``PHANTOM_3D_OPTIONS``: spacing, material_law, ...)."""
+
+    PHANTOM = Phantom3D
+    OPTIONS = PHANTOM_3D_OPTIONS
+    INCLUSIONS = INCLUSIONS_3D
+
+    @property
+    def values(self) -> tuple:
+        return LAW_VALUES_3D[self.phantom_options.get("material_law", Phantom3D.material_law)]
+
+    def _unused(self, chunk: dict) -> list:
+        return [c for c in MATERIAL_VALUES if c in chunk and c != "stiffness_ratio" and c not in self.values]
+
+    def model(self, paddle: int, inclusion: str, values: dict) -> Model:
+        return self.phantom.model(inclusion, paddle, as_field=True, **values)
+
+    @property
+    def like(self) -> list:
+        if self._like is None:
+            base = {name: getattr(self.phantom, name) for name in self.values}
+            self._like = [self.model(p, "side", {"stiffness_ratio": 2.0 + p,
+                                                 **{k: (v * (1.0 - 0.02 * p) if k == "nu" else v * (1.0 + 0.1 * p))
+                                                    for k, v in base.items()}})
+                          for p in range(1, len(self.phantom.paddles) + 1)]
+        return self._like
 
 
 def paddle_configurations(paddles: Sequence[int] | None = None, ratios: Sequence[float] = (100.0,),

@@ -110,3 +110,67 @@ def test_the_sweep_sets_the_batch_to_its_chunk_size():
     assert ev.for_chunk_size(8).batch == 8 and ev.batch is None
     mine = sweeps.NeedleSweep(INCREMENTS, insertion=INSERTION, batch=3)
     assert mine.for_chunk_size(8) is mine and mine.batch == 3
+
+
+# ------------------------------------------------------------------ the 3D phantom
+SPACING_3D = 0.3        # the coarse phantom of tests/thesis/test_needle3d.py
+
+
+@pytest.fixture(scope="module")
+def sweep3d():
+    return sweeps.NeedleSweep3D(1, spacing=SPACING_3D)
+
+
+def test_3d_rows_that_cannot_run_are_named(sweep3d):
+    """Rows that cannot run are INVALID with the reason, before any solve (no row here runs):
+    a patch out of range, an unknown inclusion, a constant of another material law, a Poisson's
+    ratio of 0.5 or more."""
+    P = len(sweep3d.phantom.paddles)
+    chunk = {"id": np.arange(4), "paddle": np.array([P + 1, 1, 1, 1]),
+             "inclusion": np.array(["none", "right", "none", "none"], object),
+             "stiffness_ratio": np.array([10.0, 10.0, -1.0, 10.0]), "nu": np.array([0.45, 0.45, 0.45, 0.5])}
+    r = sweep3d(chunk)
+    assert list(r["status"]) == ["INVALID"] * 4
+    assert f"paddle {P + 1} out of range 1..{P}" in r["reason"][0]
+    assert "unknown inclusion 'right'" in r["reason"][1] and "'side'" in r["reason"][1]
+    assert "stiffness_ratio must be positive" in r["reason"][2]
+    assert "nu must be a Poisson's ratio below 0.5" in r["reason"][3]
+    r = sweep3d({**chunk, "lam": np.full(4, 4.0)})
+    assert all("['lam'] are not constants of this phantom's material" in why for why in r["reason"][2:])
+    assert sweep3d.values == ("mu", "nu") and r["target_u"].shape == (4, 3)
+    with pytest.raises(TypeError, match="unknown phantom option"):
+        sweeps.NeedleSweep3D(1, immobile=("bottom",))
+
+
+def test_3d_models_are_the_phantoms_with_the_rows_constants(sweep3d):
+    """A row's model is the phantom's with the row's constants; without an inclusion its
+    material is a field of ones times the constants (so that every row batches together),
+    which gives the phantom's own model's residual."""
+    import jax
+    ph = sweep3d.phantom
+    mine = sweep3d.model(2, "none", {"stiffness_ratio": 5.0, "mu": 1.0, "nu": 0.45})
+    own = ph.model("none", 2)
+    u = 1e-3 * jax.random.normal(jax.random.PRNGKey(0), (own.problem().n_free, 3))
+    g = own.prescribed({"needle": ph.needle_at(0.01)})
+    r_mine, r_own = mine.problem().residual(u, g, 1.0), own.problem().residual(u, g, 1.0)
+    np.testing.assert_allclose(r_mine, r_own, rtol=1e-12, atol=1e-12 * float(np.abs(r_own).max()))
+    stiffer = sweep3d.model(2, "side", {"stiffness_ratio": 10.0, "mu": 2.0, "nu": 0.45})
+    assert not np.allclose(stiffer.problem().residual(u, g, 1.0), r_own)
+
+
+@pytest.mark.slow(reason="a 3D needle sweep to disk: its rows against the batched insertion of the phantom's "
+                         "models (the evaluator's rows and models are checked in the default run)")
+def test_3d_sweep_rows_are_the_batched_insertion(sweep3d, tmp_path):
+    ph = sweep3d.phantom
+    table = {"paddle": [1, 2, 3], "inclusion": ["none", "side", "above"], "stiffness_ratio": [1.0, 10.0, 100.0],
+             "mu": [1.0, 1.0, 2.0]}
+    from jaxrkpm.control.sweep import sweep
+    summary = sweep(table, sweep3d, tmp_path / "s3", chunk_size=3, progress=False)
+    assert summary.complete and summary.statuses == {"CONVERGED": 3}
+    rows = read_sweep(tmp_path / "s3")
+    models = [ph.model(i, p, stiffness_ratio=r, mu=m) for p, i, r, m in
+              zip(table["paddle"], table["inclusion"], table["stiffness_ratio"], table["mu"])]
+    ref = nd.insert(models, ph.depths(1), ph.target, direction=ph.needle_direction)
+    got = np.asarray(rows.column("target_u").to_pylist())
+    np.testing.assert_allclose(got, np.asarray(ref.target_u)[:, -1], rtol=0, atol=1e-10)
+    assert rows.column("iterations").to_pylist() == list(np.asarray(ref.iterations).sum(axis=1))
