@@ -44,6 +44,7 @@ from .needle import (
 from .sweeps import (
     NeedleSweep as NeedleSweep,
     NeedleSweep3D as NeedleSweep3D,
+    TrackSweep as TrackSweep,
     needle_sweep as needle_sweep,
     paddle_configurations as paddle_configurations,
 )

@@ -4,7 +4,8 @@
 ratio, the tissue's constants; :class:`NeedleSweep3D`), evaluated a chunk at a time by the
 batched insertion (``needle.insert``: every configuration x every increment in one compiled
 call) and written by :func:`jaxrkpm.control.sweep.sweep` (Parquet, resumable, in process or on
-a Dask cluster).
+a Dask cluster); and tracking sweeps over the object's material and the control gains
+(:class:`TrackSweep`).
 """
 from __future__ import annotations
 
@@ -15,12 +16,14 @@ from typing import Sequence
 import numpy as np
 
 from ..control.sweep import sweep
+from ..control.tracking import TrackStatus, track
 from ..model.model import Model
 from ..mechanics.materials import Fung
 from ..solvers.results import Status
-from .data import INCLUSIONS, INCLUSIONS_3D
+from .data import CP_2D, INCLUSIONS, INCLUSIONS_3D, PATHS
 from .needle import Phantom, controllability, inclusion_field, insert
 from .phantom3d import MATERIAL_VALUES, Phantom3D
+from .scenarios import planar_square
 
 PHANTOM_OPTIONS = ("spacing", "immobile", "needle_x", "needle_particles", "insertion", "support", "integration")
 PHANTOM_3D_OPTIONS = ("spacing", "material_law", "integration", "order", "insertion", "support", "patch_radius",
@@ -264,6 +267,81 @@ class NeedleSweep3D(_InsertionSweep):
                                                     for k, v in base.items()}})
                           for p in range(1, len(self.phantom.paddles) + 1)]
         return self._like
+
+
+class TrackSweep:
+    """The evaluator of a tracking sweep over the object's material (chapter 5, Algorithm 3 on
+    the 9x9 Fung square): how well the controller's model, the thesis' ``model_alpha``,
+    ``model_beta`` (1, 1), drives an object whose material differs. A row is the object's
+    (the plant's) Fung ``alpha`` and ``beta`` and, optionally, the control ``gain`` and
+    ``clamp`` (the thesis' 0.05 and 0.01 where absent); each row tracks ``path`` (a name of
+    the thesis' paths) with the controller's Jacobian moving the plant's paddle
+    (``jaxrkpm.track(..., plant=)``), one row after another (a tracking run is one compiled
+    loop; the rows share it).
+
+    Result columns: ``waypoints_reached`` and ``waypoints`` (of the path), ``max_waypoint_error``
+    (NaN where none was reached), ``final_error`` (|e| at the last iteration), ``iterations``,
+    ``final_cp`` (d,) the control point's displacement at the end, ``status`` (the
+    ``TrackStatus`` name, ``DONE`` where every waypoint was reached) and ``reason``; a row
+    with a non-positive or non-finite value is ``INVALID``."""
+
+    requires = {"alpha": "float", "beta": "float"}
+
+    def __init__(self, path: str = "box", *, n: int = 9, integration: str = "gauss", model_alpha: float = 1.0,
+                 model_beta: float = 1.0, tol: float = 1e-4, max_iter: int = 2000, max_steps: int = 20000):
+        if path not in PATHS:
+            raise ValueError(f"unknown path {path!r}: choose {list(PATHS)}")
+        for name, v in (("model_alpha", model_alpha), ("model_beta", model_beta), ("tol", tol)):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive number, got {v!r}")
+        self.path, self.n, self.integration = path, n, integration
+        self.model_alpha, self.model_beta, self.tol = float(model_alpha), float(model_beta), float(tol)
+        self.max_iter, self.max_steps = max_iter, max_steps
+        self._controller = None
+        planar_square(n, integration)          # checks n and the integration now
+
+    @property
+    def sweep_key(self) -> str:
+        return "jaxrkpm.thesis.sweeps.TrackSweep:" + json.dumps(
+            {k: v for k, v in self.__dict__.items() if not k.startswith("_")}, sort_keys=True)
+
+    def __getstate__(self):
+        return {**self.__dict__, "_controller": None}
+
+    def plant(self, alpha: float, beta: float) -> Model:
+        return planar_square(self.n, self.integration, Fung(alpha=alpha, beta=beta), paddle="three")
+
+    @property
+    def controller(self) -> Model:
+        if self._controller is None:
+            self._controller = self.plant(self.model_alpha, self.model_beta)
+        return self._controller
+
+    def __call__(self, chunk: dict) -> dict:
+        B = len(chunk["alpha"])
+        alpha, beta = np.asarray(chunk["alpha"], float), np.asarray(chunk["beta"], float)
+        gain = np.asarray(chunk.get("gain", np.full(B, 0.05)), float)
+        clamp = np.asarray(chunk.get("clamp", np.full(B, 0.01)), float)
+        path = np.asarray(PATHS[self.path], float)
+        out = {"waypoints_reached": np.full(B, -1, np.int64), "waypoints": np.full(B, len(path), np.int64),
+               "max_waypoint_error": np.full(B, np.nan), "final_error": np.full(B, np.nan),
+               "iterations": np.full(B, -1, np.int64), "final_cp": np.full((B, 2), np.nan),
+               "status": np.full(B, "", object), "reason": np.full(B, "", object)}
+        for i in range(B):
+            bad = [f"{name} must be positive and finite, got {v[i]}" for name, v in
+                   (("alpha", alpha), ("beta", beta), ("gain", gain), ("clamp", clamp)) if not (np.isfinite(v[i]) and v[i] > 0)]
+            if bad:
+                out["status"][i], out["reason"][i] = INVALID, bad[0]
+                continue
+            res = track(self.controller, path, "paddle", CP_2D, plant=self.plant(alpha[i], beta[i]), gain=gain[i],
+                        clamp=clamp[i], tol=self.tol, max_iter=self.max_iter, max_steps=self.max_steps)
+            out["waypoints_reached"][i] = int(np.sum(res.reached >= 0))
+            out["max_waypoint_error"][i] = res.max_waypoint_error
+            out["final_error"][i] = float(res.error[-1])
+            out["iterations"][i] = len(res.error) - 1
+            out["final_cp"][i] = res.cp[-1]
+            out["status"][i], out["reason"][i] = res.status.name, "" if res.status == TrackStatus.DONE else res.message
+        return out
 
 
 def paddle_configurations(paddles: Sequence[int] | None = None, ratios: Sequence[float] = (100.0,),

@@ -174,3 +174,30 @@ def test_3d_sweep_rows_are_the_batched_insertion(sweep3d, tmp_path):
     got = np.asarray(rows.column("target_u").to_pylist())
     np.testing.assert_allclose(got, np.asarray(ref.target_u)[:, -1], rtol=0, atol=1e-10)
     assert rows.column("iterations").to_pylist() == list(np.asarray(ref.iterations).sum(axis=1))
+
+
+# ------------------------------------------------------------------ tracking over materials
+def test_track_sweep_over_the_objects_material(tmp_path):
+    """Rows track the set point with the nominal model's Jacobian moving a plant of the row's
+    material: a plant with both Fung constants scaled tracks exactly as the nominal one (a
+    displacement-driven paddle does not see a uniform stiffness scale); another ratio of the
+    constants is another object, tracked as ``jaxrkpm.track`` tracks it; a bad value is an
+    INVALID row."""
+    import jaxrkpm as jr
+    from jaxrkpm.thesis.data import CP_2D, PATHS
+    ev = sweeps.TrackSweep("setpoint")
+    table = {"alpha": [1.0, 3.0, 1.0, -1.0], "beta": [1.0, 3.0, 4.0, 1.0]}
+    jr.sweep(table, ev, tmp_path / "track", chunk_size=2, progress=False)
+    rows = read_sweep(tmp_path / "track").to_pylist()
+    assert [r["status"] for r in rows] == ["DONE", "DONE", "DONE", "INVALID"]
+    assert "alpha must be positive" in rows[3]["reason"]
+    same, scaled, other = rows[:3]
+    assert scaled["iterations"] == same["iterations"] and scaled["waypoints_reached"] == same["waypoints"] == 2
+    np.testing.assert_allclose(scaled["final_cp"], same["final_cp"], rtol=0, atol=1e-9)
+    direct = jr.track(ev.controller, PATHS["setpoint"], "paddle", CP_2D, plant=ev.plant(1.0, 4.0))
+    assert other["iterations"] == len(direct.error) - 1
+    np.testing.assert_allclose(other["final_cp"], direct.cp[-1], rtol=0, atol=1e-12)
+    assert np.abs(np.subtract(other["final_cp"], same["final_cp"])).max() > 1e-8     # another object
+    assert other["max_waypoint_error"] == pytest.approx(direct.max_waypoint_error, rel=1e-12)
+    with pytest.raises(ValueError, match="unknown path 'circle'"):
+        sweeps.TrackSweep("circle")
