@@ -333,8 +333,10 @@ class TrackSweep:
             if bad:
                 out["status"][i], out["reason"][i] = INVALID, bad[0]
                 continue
-            res = track(self.controller, path, "paddle", CP_2D, plant=self.plant(alpha[i], beta[i]), gain=gain[i],
-                        clamp=clamp[i], tol=self.tol, max_iter=self.max_iter, max_steps=self.max_steps)
+            # Python floats: the settings of a direct ``track`` call, so the rows share its program
+            res = track(self.controller, path, "paddle", CP_2D, plant=self.plant(float(alpha[i]), float(beta[i])),
+                        gain=float(gain[i]), clamp=float(clamp[i]), tol=self.tol, max_iter=self.max_iter,
+                        max_steps=self.max_steps)
             out["waypoints_reached"][i] = int(np.sum(res.reached >= 0))
             out["max_waypoint_error"][i] = res.max_waypoint_error
             out["final_error"][i] = float(res.error[-1])

@@ -185,7 +185,7 @@ def test_track_sweep_over_the_objects_material(tmp_path):
     INVALID row."""
     import jaxrkpm as jr
     from jaxrkpm.thesis.data import CP_2D, PATHS
-    ev = sweeps.TrackSweep("setpoint")
+    ev = sweeps.TrackSweep("setpoint", n=5)
     table = {"alpha": [1.0, 3.0, 1.0, -1.0], "beta": [1.0, 3.0, 4.0, 1.0]}
     jr.sweep(table, ev, tmp_path / "track", chunk_size=2, progress=False)
     rows = read_sweep(tmp_path / "track").to_pylist()
