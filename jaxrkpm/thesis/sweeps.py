@@ -111,7 +111,8 @@ class _InsertionSweep:
         if inclusion not in self.INCLUSIONS:
             return f"unknown inclusion {inclusion!r}: choose {list(self.INCLUSIONS)}"
         if unused:
-            return f"column(s) {list(unused)} are not constants of this phantom's material (it takes {list(self.values)})"
+            return (f"column(s) {list(unused)} are not constants of this phantom's material "
+                    f"(it takes {list(self.values)})")
         for name, v in values.items():
             if not (np.isfinite(v) and v > 0):
                 return f"{name} must be positive and finite, got {v}"
@@ -328,8 +329,9 @@ class TrackSweep:
                "iterations": np.full(B, -1, np.int64), "final_cp": np.full((B, 2), np.nan),
                "status": np.full(B, "", object), "reason": np.full(B, "", object)}
         for i in range(B):
-            bad = [f"{name} must be positive and finite, got {v[i]}" for name, v in
-                   (("alpha", alpha), ("beta", beta), ("gain", gain), ("clamp", clamp)) if not (np.isfinite(v[i]) and v[i] > 0)]
+            bad = [f"{name} must be positive and finite, got {v[i]}"
+                   for name, v in (("alpha", alpha), ("beta", beta), ("gain", gain), ("clamp", clamp))
+                   if not (np.isfinite(v[i]) and v[i] > 0)]
             if bad:
                 out["status"][i], out["reason"][i] = INVALID, bad[0]
                 continue
