@@ -591,9 +591,9 @@ def choose_chunk_size(configurations, evaluate, *, executor=None, start: int = 4
     throughput stops growing, and a small sweep does not spend its time measuring), or the
     next chunk would take over ``max_chunk_s`` seconds (the work an interruption may lose), or
     the whole table (or ``MAX_CHUNK``) is one chunk. Chosen: the smallest size whose
-    throughput is within ``tolerance`` (a fraction) of the best measured. A batched solver's throughput grows
-    with its batch until the device is busy (a GPU: thousands; a CPU: a few), which is why
-    the size is measured, not fixed (``experiments/bench_sweep.py``).
+    throughput is within ``tolerance`` (a fraction) of the best measured. A batched solver's
+    throughput grows with its batch until the device is busy (a GPU: thousands; a CPU: a
+    few), which is why the size is measured, not fixed (``experiments/bench_chunk_size.py``).
 
     With an ``executor`` (a ``distributed.Client`` or a scheduler address) the measuring runs
     on one of its workers, where the chunks will. The results computed while measuring are
@@ -635,12 +635,11 @@ def _chunk_size_of(out, configurations, evaluate, chunk_size=AUTO, **measure) ->
     """The chunk size a sweep into ``out`` uses: ``chunk_size`` where given as a number; for
     ``"auto"`` the folder's (a rerun resumes with the size it started with), else one
     measured by :func:`choose_chunk_size` (``measure``: its options), with what it measured."""
-    if isinstance(chunk_size, str) and chunk_size != AUTO or not isinstance(chunk_size, str) and (
-            isinstance(chunk_size, (bool, np.bool_)) or not isinstance(chunk_size, (int, np.integer))
-            or not 1 <= chunk_size <= MAX_CHUNK):
-        raise ValueError(f"chunk_size must be a whole number of configurations in 1..{MAX_CHUNK} or "
-                         f"{AUTO!r}, got {chunk_size!r}")
-    if chunk_size != AUTO:
+    if not (isinstance(chunk_size, str) and chunk_size == AUTO):
+        if isinstance(chunk_size, (bool, np.bool_)) or not isinstance(chunk_size, (int, np.integer)) \
+                or not 1 <= chunk_size <= MAX_CHUNK:
+            raise ValueError(f"chunk_size must be a whole number of configurations in 1..{MAX_CHUNK} or "
+                             f"{AUTO!r}, got {chunk_size!r}")
         return int(chunk_size), None
     try:
         return int(json.loads((Path(out) / SWEEP_FILE).read_text())["chunk_size"]), None
