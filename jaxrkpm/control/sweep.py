@@ -641,11 +641,19 @@ def _chunk_size_of(out, configurations, evaluate, chunk_size=AUTO, **measure) ->
             raise ValueError(f"chunk_size must be a whole number of configurations in 1..{MAX_CHUNK} or "
                              f"{AUTO!r}, got {chunk_size!r}")
         return int(chunk_size), None
+    earlier = _folder_chunk_size(out)
+    if earlier:
+        return earlier, None
+    choice = choose_chunk_size(configurations, evaluate, **measure)
+    return choice.chosen, choice
+
+
+def _folder_chunk_size(out) -> int | None:
+    """The chunk size of the sweep whose manifest ``out`` holds, or None."""
     try:
-        return int(json.loads((Path(out) / SWEEP_FILE).read_text())["chunk_size"]), None
+        return int(json.loads((Path(out) / SWEEP_FILE).read_text())["chunk_size"])
     except (OSError, ValueError, KeyError, TypeError):
-        choice = choose_chunk_size(configurations, evaluate, **measure)
-        return choice.chosen, choice
+        return None
 
 
 # ------------------------------------------------------------------ the sweep
@@ -673,10 +681,7 @@ def sweep(configurations, evaluate: Callable[[dict], Mapping], out, *, chunk_siz
     if chunk_size is None:
         chunk_size = getattr(evaluate, "chunk_size", None)
     if chunk_size is None:
-        try:
-            chunk_size = int(json.loads((out / SWEEP_FILE).read_text())["chunk_size"])
-        except (OSError, ValueError, KeyError, TypeError):
-            chunk_size = DEFAULT_CHUNK
+        chunk_size = _folder_chunk_size(out) or DEFAULT_CHUNK
     chunk_size, choice = _chunk_size_of(out, table, evaluate, chunk_size, executor=executor, progress=progress,
                                           requires=requires, settings=settings, max_configurations=max_configurations)
     if hasattr(evaluate, "for_chunk_size"):    # it pads every batch to the chunk size: one program for all

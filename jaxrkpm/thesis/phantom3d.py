@@ -384,13 +384,14 @@ class Phantom3D(NeedleTrack):
         """The phantom's model with the inclusion and the paddle patch (1-based; None: no
         paddle); ``as_field``, ``values``: its material's (see ``material``), a model built
         anew (the phantom keeps its own models only)."""
-        if as_field or values:
+        def build():
             return Model(self.body, self.material(inclusion, as_field=as_field, **values), self.integration,
                          essential=self.sets(paddle), support=self.support, order=self.order)
+        if as_field or values:
+            return build()
         key = ("model", inclusion, paddle)
         if key not in self._cache:
-            self._cache[key] = Model(self.body, self.material(inclusion), self.integration,
-                                     essential=self.sets(paddle), support=self.support, order=self.order)
+            self._cache[key] = build()
         return self._cache[key]
 
     # ------------------------------------------------- continuous paddle (the optimiser's)
