@@ -75,7 +75,7 @@ between its face and edge regions (a box's rounded edges).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Callable, Mapping, NamedTuple
+from typing import Callable, ClassVar, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -236,6 +236,8 @@ class ContactTerm(Term):
     shape                the tool's shape (static)
     floor, slip          g_min / ghat and the friction's slip tolerance eps (static)
     """
+
+    modified_newton: ClassVar[bool] = False   # the barrier's stiffness grows as a gap closes
 
     idx: jax.Array
     psi: jax.Array

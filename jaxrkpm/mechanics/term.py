@@ -143,6 +143,10 @@ class Term:
     # True: the energy is linear in d by construction (a dead load): it has no tangent blocks
     # and the build does not check that (a class attribute, not a field)
     linear: ClassVar[bool] = False
+    # False: the tangent changes by orders of magnitude within a load step (a contact barrier),
+    # so a kept factorisation contracts slowly and eager solves take full Newton steps instead
+    # of modified Newton (``experiments/bench_contact.py`` counts the iterations)
+    modified_newton: ClassVar[bool] = True
 
     # ------------------------------------------------------------------ inside jit
     def energy(self, d, load, aux=None):

@@ -75,8 +75,9 @@ class Increment(NamedTuple):
 
     g0: jax.Array         # (Nb, d) prescribed values at the start (the predictor's tangent)
     g1: jax.Array         # (Nb, d) prescribed values at the end
+    l0: jax.Array         # () load scale at the start (the predictor's tangent)
     l1: jax.Array         # () load scale at the end
-    rhs0: jax.Array       # (Nf, d) the predictor's right-hand side r(u, g0, l1) + K_fg (g1 - g0)
+    rhs0: jax.Array       # (Nf, d) the predictor's right-hand side r(u, g0, l0) + dr/d(g, l) (g1 - g0, l1 - l0)
     r_ref: jax.Array      # () |rhs0|: the out-of-balance force the increment puts on
     max_iter: jax.Array   # () iteration cap
     floor: Any            # () round-off floor given by the caller, or None (computed once)
@@ -182,14 +183,17 @@ class Newton:
     def increment(self, problem, u, g0, g1, l0, l1, max_iter, floor=None) -> Increment:
         """The loop's constants for a solve from u (an equilibrium at g0, or with g0 None an
         iterate at g1)."""
-        del l0   # the predictor linearises at the end load: r(u, g0, l1) + K_fg (g1 - g0)
         if g0 is None:   # no increment: the residual at (u, g1), not a linearisation along zero
-            g0, rhs0 = g1, problem.residual(u, g1, l1)
+            g0, l0, rhs0 = g1, l1, problem.residual(u, g1, l1)
         else:
-            r_pred, kfg_dg = jax.jvp(lambda g: problem.residual(u, g, l1), (g0,), (g1 - g0,))
-            rhs0 = r_pred + kfg_dg
+            # the predictor linearises the residual in the prescribed values and in the load
+            # scale at the start: a term whose load is not linear in the scale (a tool that the
+            # scale moves) then contributes the motion of what touches it, where its residual at
+            # the end load would carry the forces of a tool already pushed through the body
+            r0, dr = jax.jvp(lambda g, l: problem.residual(u, g, l), (g0, l0), (g1 - g0, l1 - l0))
+            rhs0 = r0 + dr
         given = None if floor is None else jnp.asarray(floor, u.dtype)
-        return Increment(g0, g1, l1, rhs0, jnp.linalg.norm(rhs0), max_iter, given)
+        return Increment(g0, g1, l0, l1, rhs0, jnp.linalg.norm(rhs0), max_iter, given)
 
     def init(self, problem, inc: Increment, u, linear) -> NewtonState:
         if self.chord:
@@ -288,7 +292,7 @@ class Newton:
     # -------------------------------------------------------------------------- parts
     def _assemble_and_solve(self, problem, inc: Increment, u, first, rhs, state):
         """A Newton step with the tangent at u (at g0 for the predictor): (dx, state, stability)."""
-        blocks = problem.tangent_blocks(u, jnp.where(first, inc.g0, inc.g1), inc.l1)
+        blocks = problem.tangent_blocks(u, jnp.where(first, inc.g0, inc.g1), jnp.where(first, inc.l0, inc.l1))
         # inexact Newton (iterative linear solvers): far from equilibrium the linear solve
         # need only be as accurate as the step is good (a forcing term proportional to the
         # residual keeps the convergence quadratic), near it solves are tight. With the
