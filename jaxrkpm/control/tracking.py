@@ -40,8 +40,6 @@ from ..mechanics.problem import Problem
 from ..model.model import Model
 from ..solvers.implicit import parameter_response, point_jacobian, response
 from ..solvers.iterate import iterate, when
-from ..solvers.linalg.dense import DenseSolver
-from ..solvers.linalg.quasi_newton import QuasiNewton
 from ..solvers.newton import Chord, Newton, _count, _flag
 from ..solvers.path import LoadPath
 from ..solvers.results import Limits, Solution, Status, reached_equilibrium
@@ -139,8 +137,8 @@ class ControlledModel:
                              "control step); give params={name: {'mu': 0.0}} or a tool with mu=0")
         sf = model.shape_functions(np.atleast_2d(np.asarray(control_points, float)), gradients=False)
         linear = model.linear
-        if reuse and isinstance(linear, DenseSolver):
-            linear = QuasiNewton(DenseSolver(inverse=True), memory)
+        if reuse and linear.modified_newton:
+            linear = linear.secant(memory)
         newton = Newton(linear, reuse=reuse)
         return ControlledModel(problem, G, jnp.asarray(sf.idx), jnp.asarray(sf.psi), LoadPath(newton),
                                Chord(linear, reuse=reuse), tool=tool)
@@ -623,7 +621,7 @@ def _kept(model: Model, reuse: float | None) -> float:
     path, whose chord corrections are refined host solves with no secant update."""
     if reuse is not None:
         return reuse
-    return 0.5 if isinstance(model.linear, DenseSolver) else 0.0
+    return 0.5 if model.linear.modified_newton else 0.0
 
 
 def track(model: Model, path, driven: str, control_points, *, plant: Model | None = None,

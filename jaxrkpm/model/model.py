@@ -23,6 +23,7 @@ from ..mechanics.strain import deformation_gradients, strain_energy
 from ..mechanics.term import Context, TermSpec, on_pattern
 from ..solvers.branch import BranchSwitch, StableDescent
 from ..solvers.implicit import implicit_jacobian, solve_path_jit
+from ..solvers.linalg.base import LinearSolver
 from ..solvers.linalg.dense import DenseSolver
 from ..solvers.linalg.factorisations import SaddlePointSystem, factoriser
 from ..solvers.linalg.krylov import KrylovSolver
@@ -155,7 +156,9 @@ class Model:
     solver      "auto" (dense up to ``choice.dense_limit(dim)`` free DOFs on a CPU, as many as
                 the device memory holds on a GPU; else sparse) | "dense" | "sparse"
                 | "krylov" (CG preconditioned by algebraic multigrid, no factorisation: large 3D
-                models; see jaxrkpm.solvers.linalg.multigrid)
+                models; see jaxrkpm.solvers.linalg.multigrid) | a ``LinearSolver`` instance,
+                used as given (``jaxrkpm.internal.DenseSolver(mixed=True)``, or one written
+                outside the package to the contract of ``jaxrkpm.internal.LinearSolver``)
     factorisation  of the sparse path: "auto" (PARDISO where Intel MKL is installed, else
                 SuperLU) | "pardiso" | "superlu"; see jaxrkpm.solvers.linalg.factorisations
     precision   of the factorisation: "auto" (dense: mixed from ``choice.mixed_min`` free
@@ -192,8 +195,9 @@ class Model:
         if integration not in ("gauss", *scni.SCHEMES):
             raise ValueError(f"unknown integration {integration!r}: choose 'gauss', "
                              + ", ".join(repr(k) for k in scni.SCHEMES))
-        if solver not in SOLVERS:
-            raise ValueError(f"unknown solver {solver!r}: choose " + ", ".join(repr(k) for k in SOLVERS))
+        if not isinstance(solver, LinearSolver) and solver not in SOLVERS:
+            raise ValueError(f"unknown solver {solver!r}: choose " + ", ".join(repr(k) for k in SOLVERS)
+                             + ", or pass a jaxrkpm.internal.LinearSolver instance")
         factoriser(factorisation)   # a clear error now, even where the dense path is chosen
         if precision not in PRECISIONS:
             raise ValueError(f"unknown precision {precision!r}: choose "
@@ -231,7 +235,9 @@ class Model:
             raise ValueError(f"choice must be a SolverChoice, got {type(choice).__name__}")
         self.choice = choice
         use_dense = solver == "dense" or (solver == "auto" and n_free <= choice.dense_limit(d))
-        if use_dense:
+        if isinstance(solver, LinearSolver):   # the user's own, used as given
+            self.linear = solver
+        elif use_dense:
             self.linear = DenseSolver(mixed=precision == "mixed" or (precision == "auto" and n_free >= choice.mixed_min))
         elif solver == "krylov":
             self.linear = KrylovSolver(KrylovSystem(body.X, pair_i, pair_j, self._constraints(trans),
@@ -567,8 +573,10 @@ class Model:
     def newton_reuse(self) -> float:
         """The Newton ``reuse`` of an eager ``solve`` where none is given: the choice's
         ``newton_reuse`` (modified Newton) on the dense path; 0 (full Newton) on the sparse and
-        Krylov paths, which already keep their factorisation or hierarchy as a preconditioner."""
-        return self.choice.newton_reuse if isinstance(self.linear, DenseSolver) else 0.0
+        Krylov paths, which already keep their factorisation or hierarchy as a preconditioner,
+        and where a term's tangent changes too fast for a kept one (``Term.modified_newton``)."""
+        smooth = all(t.modified_newton for t in self._problem.terms)
+        return self.choice.newton_reuse if self.linear.modified_newton and smooth else 0.0
 
     def directions(self, name: str, rigid: bool = True):
         """Unit prescribed-value directions (m, Nb, d) that drive set ``name``: d rigid

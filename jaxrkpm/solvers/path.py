@@ -11,7 +11,6 @@ import jax.numpy as jnp
 
 from .branch import BranchSwitch
 from .iterate import iterate, when
-from .linalg.dense import DenseSolver
 from .newton import Newton, _count, _flag, _positive
 from .results import CRITICAL_EIGS, Critical, Limits, Solution, Status
 
@@ -120,7 +119,7 @@ class LoadPath:
         stability check and the dense tangent (its eigenpairs); other paths stop with
         UNSTABLE_TANGENT."""
         return bool(self.branch is not None and self.newton.check_stability
-                    and isinstance(self.newton.linear, DenseSolver))
+                    and self.newton.linear.branch_switching)
 
     def path(self, lim: Limits, g0, g1, l0, l1) -> Path:
         dt0 = 1.0 / lim.steps

@@ -2,6 +2,8 @@
 validated fields (a test builds an object with another value instead of patching a global),
 the declared linear-solver interface, and the options of Model.solve checked where they
 become those objects."""
+from dataclasses import dataclass
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -61,6 +63,10 @@ def test_every_linear_solver_declares_the_interface():
     assert DenseSolver().modified_newton and not QuasiNewton().modified_newton
     assert not SparseSolver.modified_newton and not KrylovSolver.modified_newton
     assert DenseSolver().update("state", 1, 2) == "state"       # the default: nothing learnt
+    # capabilities, not types: only the dense solver switches branches and learns secants
+    assert DenseSolver.branch_switching and not SparseSolver.branch_switching
+    assert isinstance(DenseSolver().secant(4), QuasiNewton) and DenseSolver().secant(4).memory == 4
+    assert SparseSolver.secant is LinearSolver.secant is KrylovSolver.secant   # themselves
 
 
 def test_newton_and_chord_differ_by_one_flag(square):
@@ -110,3 +116,54 @@ def test_another_tolerance_is_another_object(square):
         BranchSwitch(descent=Newton())
     with pytest.raises(ValueError, match="collapse_det must be a positive number"):
         StableDescent(collapse_det=0.0)
+
+
+@dataclass(frozen=True)
+class EigenSolver(LinearSolver):
+    """A linear solver written outside the package: K_ff by its symmetric eigendecomposition
+    (slow, but its inertia is exact), implementing only the declared interface."""
+
+    name = "eigen"
+
+    def empty(self, problem, dtype):
+        n = problem.n_free * problem.dim
+        return jnp.zeros((n,), dtype), jnp.eye(n, dtype=dtype)
+
+    def init(self, problem, blocks):
+        return tuple(jnp.linalg.eigh(problem.dense_tangent(blocks)))
+
+    def solve(self, state, rhs):
+        lam, V = state
+        flat = rhs.reshape(lam.shape[0], -1)
+        return (V @ ((V.T @ flat) / lam[:, None])).reshape(rhs.shape)
+
+    def stability(self, state):
+        return jnp.where(jnp.min(state[0]) > 0, jr.Stability.STABLE, jr.Stability.UNSTABLE)
+
+    def negative_eigenvalues(self, state):
+        return jnp.sum(state[0] < 0)
+
+    def newton_solve(self, state, problem, blocks, rhs, rtol=None):
+        state = self.init(problem, blocks)
+        return self.solve(state, rhs), state, self.stability(state)
+
+
+def test_a_solver_written_outside_the_package_serves_the_model(square):
+    """``Model(solver=instance)`` takes any LinearSolver: the solve, the load path run by
+    ``iterate`` and the implicit Jacobian equal the dense path's; nothing tests its type."""
+    body, sets = square.body, {k: square.set_indices(k) for k in square.set_names}
+    own = jr.Model(body, square.material, essential=sets, solver=EigenSolver())
+    assert isinstance(own.linear, EigenSolver) and own.newton_reuse == 0.0
+    move = {"right": [0.05, 0.02]}
+    ref, sol = square.solve(move, reuse=0), own.solve(move)
+    assert jr.Status.of(sol.status) == jr.Status.CONVERGED
+    assert np.abs(np.asarray(sol.u - ref.u)).max() < 1e-10
+    centre = [[0.5, 0.5]]
+    assert np.abs(np.asarray(own.jacobian(sol, "right", centre) - square.jacobian(ref, "right", centre))).max() < 1e-9
+    newton = Newton(EigenSolver())
+    prob, start = own.problem(), own.initial()
+    res = jax.jit(lambda p: newton.solve(p, start.u, start.g, own.prescribed(move), 1.0, 1.0))(prob)
+    assert jr.Status.of(res.status) == jr.Status.CONVERGED
+    assert np.abs(np.asarray(res.u - ref.u)).max() < 1e-10
+    with pytest.raises(ValueError, match="pass a jaxrkpm.internal.LinearSolver instance"):
+        jr.Model(body, square.material, essential=sets, solver=object())

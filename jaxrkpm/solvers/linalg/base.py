@@ -36,17 +36,33 @@ class Stability(Outcome):
 
 
 class LinearSolver:
-    """The interface every linear solver implements (subclasses are frozen dataclasses).
+    """The interface every linear solver implements (subclasses are frozen dataclasses): a
+    solver written outside the package that implements ``empty``, ``init``, ``solve``,
+    ``stability``, ``negative_eigenvalues`` and ``newton_solve`` serves ``Model(solver=...)``,
+    the load path, the implicit Jacobians and tracking like the built-in ones. The model,
+    path and tracking code never test a solver's type: what they may do with one is said by
+    these capabilities (class attributes).
 
     ``name``: for messages and records. ``tight_rtol``: the relative residual of an iterative
     solver's accurate solves (None: direct solves, exact). ``modified_newton``: a factorisation
     of this solver may serve later Newton iterations as it is (modified Newton keeps it while
-    the iteration contracts); the sparse and Krylov solvers reuse theirs as a preconditioner
-    inside ``newton_solve`` instead."""
+    the iteration contracts, and a control loop keeps it across steps); the sparse and Krylov
+    solvers reuse theirs as a preconditioner inside ``newton_solve`` instead.
+    ``branch_switching``: its stability report is exact and the dense tangent's eigenpairs
+    are affordable at the sizes it serves, so solves may go on past a critical point
+    (``jaxrkpm.solvers.branch``)."""
 
     name: str = "linear"
     tight_rtol: float | None = None
     modified_newton: bool = False
+    branch_switching: bool = False
+
+    def secant(self, memory: int) -> "LinearSolver":
+        """The solver whose kept factorisation learns from the secant pairs of later
+        corrections (quasi-Newton chord corrections of a control loop): itself where it
+        cannot."""
+        del memory
+        return self
 
     def empty(self, problem, dtype) -> Any:
         """A state of the right shapes that factorises nothing (a loop's initial carry)."""
