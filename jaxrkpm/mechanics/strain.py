@@ -197,7 +197,63 @@ class StrainEnergy(Term):
     # ------------------------------------------------------------------ tangent
     def blocks(self, d, load, pairs: Pairs):
         """Tangent in the full coefficients as (P, d, d) blocks over the particle pairs:
-        K_IJ = sum_q w_q grad Psi_I . dP/dF . grad Psi_J (dP/dF by autodiff of W).
+        K_IJ = sum_q w_q grad Psi_I . dP/dF . grad Psi_J (dP/dF by autodiff of W); with
+        ``patches``, the Hessian of the F-bar energy (``_patch_tangent``)."""
+        if self.patches:
+            C, rank = self._patch_tangent(d)
+            return self._assembled(self.dpsi, C, pairs, rank)
+        F = deformation_gradients(self.idx, self.dpsi, d)
+        p, axes = self._merged()
+        return self._assembled(self.dpsi * self.w[:, None, None], material_tangent(self.W, F, p, axes), pairs)
+
+    def _patch_tangent(self, d):
+        """The F-bar energy's Hessian in the points' F, as a per-point tangent and a rank-3
+        patch term: E(F) = Ẽ(F, J̄(F)) with Ẽ = sum_s w_s W(F̄_s(F_s, J̄)) and J̄ = sum_s w_s J_s /
+        sum_s w_s couples the points of a patch only through the scalar J̄, so
+
+            d2E/dF_s dF_t = δ_st (Ẽ_FsFs + Ẽ_J̄ d2J̄/dF_s2) + a_s ⊗ b_t + b_s ⊗ a_t + c b_s ⊗ b_t
+
+        with a_s = Ẽ_FsJ̄, b_s = dJ̄/dF_s, c = Ẽ_J̄J̄: the per-point part assembles as the plain
+        tangent does and the coupling as three outer products of (K, d) vectors per patch, the
+        cost of a plain assembly (``experiments/bench_anti_locking.py``), where the patch's full
+        Hessian (S d^2)^2 by autodiff cost S d^2 passes. Returns the per-point tangent (Q, d, d, d, d)
+        (weights included) and (a (Q, d, d), b (Q, d, d), c (G,))."""
+        F = self.group_gradients(d)
+        p, axes = self._group_params()
+        w = self.by_group(self.w)
+        dim = F.shape[-1]
+        psi = _point_energy(self.W)
+        grads = jax.grad(lambda Fs, Jb, ps: psi((Jb / det(Fs)) ** (1.0 / dim) * Fs, ps), argnums=(0, 1))
+        unit = jnp.eye(dim * dim, dtype=F.dtype).reshape(dim * dim, dim, dim)
+
+        def point(Fs, Jb, ps):
+            # one linearisation of (dW/dF, dW/dJ̄) at fixed J̄ along the d^2 unit directions of F and
+            # along J̄; one of dJ/dF for its curvature
+            (_, e), lin = jax.linearize(lambda G, j: grads(G, j, ps), Fs, Jb)
+            A = jnp.stack([lin(u, jnp.zeros_like(Jb))[0] for u in unit], -1).reshape((dim,) * 4)
+            a, f = lin(jnp.zeros_like(Fs), jnp.ones_like(Jb))
+            cof, lin_det = jax.linearize(jax.grad(det), Fs)
+            HJ = jnp.stack([lin_det(u) for u in unit], -1).reshape((dim,) * 4)
+            return A, a, e, f, cof, HJ
+
+        sw = jnp.sum(w, 1)
+        Jb = jnp.broadcast_to((jnp.sum(w * det(F), 1) / sw)[:, None], w.shape)
+        A, a, e, f, cof, HJ = jax.vmap(jax.vmap(point, in_axes=(0, 0, axes)), in_axes=(0, 0, axes))(F, Jb, p)
+        gJ = jnp.sum(w * e, 1)                                         # Ẽ_J̄ (G,)
+        share = w / sw[:, None]                                        # dJ̄/dJ_s
+        tangent = w[..., None, None, None, None] * A + (gJ[:, None] * share)[..., None, None, None, None] * HJ
+        return self._points(tangent), (self._points(w[..., None, None] * a),
+                                       self._points(share[..., None, None] * cof), jnp.sum(w * f, 1))
+
+    def _points(self, x):
+        """Per-group values x (G, S, ...) as per-point values (Q, ...) (the padding dropped)."""
+        Q = self.w.shape[0]
+        return jnp.zeros((Q + 1,) + x.shape[2:], x.dtype).at[self.groups].set(x)[:Q]
+
+    def _assembled(self, wdpsi, C, pairs: Pairs, rank=None):
+        """The pair sums of sum_q wdpsi_q . C_q . dpsi_q, and with ``rank`` = (a, b, c) the
+        patch terms alpha (x) beta + beta (x) alpha + c beta (x) beta (alpha = sum_s dpsi_s . a_s,
+        beta = sum_s dpsi_s . b_s over each group: ``_patch_tangent``).
 
         Integration points with the same neighbour list (the Gauss points of one background
         cell) are summed together as one batched matrix product before the scatter into the
@@ -205,12 +261,8 @@ class StrainEnergy(Term):
         swept in windows of groups (a loop that accumulates the pair sums) so the (G, K, K, d, d)
         local blocks never exist all at once. Long lists (K >= 2 half_part) form one triangle
         of each group's blocks: the pair sums U then hold each pair's blocks in one of its two
-        orders, and K_IJ = U_IJ + U_JI^T (I != J)."""
-        if self.patches:
-            return self._patch_blocks(d, pairs)
-        F = deformation_gradients(self.idx, self.dpsi, d)
-        p, axes = self._merged()
-        C = material_tangent(self.W, F, p, axes)   # (Q, d, d, d, d)
+        orders, and K_IJ = U_IJ + U_JI^T (I != J); the patch terms are symmetric in the same
+        way, so they join the triangle."""
         Q, K, dim = self.dpsi.shape
         n_pairs = pairs.count
         G = self.groups.shape[0]
@@ -225,21 +277,32 @@ class StrainEnergy(Term):
         def ext(x):  # index Q is the padding of the groups: a zero row
             return jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)])
 
-        wdpsi, C, dpsi = ext(self.dpsi * self.w[:, None, None]), ext(C), ext(self.dpsi)
+        wdpsi, C, dpsi = ext(wdpsi), ext(C), ext(self.dpsi)
+        if rank is not None:
+            a_pt, b_pt, c_grp = ext(rank[0]), ext(rank[1]), rank[2]
 
-        def chunk_sum(acc, grp, pid):
+        def chunk_sum(acc, grp, pid, c_chunk):
             # K_km[a, b] = sum_(s, l) Y[(s, l), (k, a, b)] dpsi[s, m, l] with Y = w dpsi . C: one
             # batched GEMM per group and pair of parts, laid out (group, m, (k, a, b)) so that
             # its output rows are already the (d, d) blocks of the pairs (k, m) (pid transposed
             # to match); summed into acc in place (a scatter-add into the carried sums)
             c, s = grp.shape
+            D = dpsi[grp]
             Y = jnp.einsum("cskj,csajbl->cslkab", wdpsi[grp], C[grp]).reshape(c, s * dim, K, dim * dim)
-            B = dpsi[grp].transpose(0, 1, 3, 2).reshape(c, s * dim, K)
+            B = D.transpose(0, 1, 3, 2).reshape(c, s * dim, K)
+            if rank is not None:   # (group, m, k, a, b) like the GEMM's output
+                al = jnp.einsum("cskj,csaj->cka", D, a_pt[grp])
+                be = jnp.einsum("cskj,csaj->cka", D, b_pt[grp])
+                R = (jnp.einsum("cka,cmb->cmkab", al, be) + jnp.einsum("cka,cmb->cmkab", be, al)
+                     + c_chunk[:, None, None, None, None] * jnp.einsum("cka,cmb->cmkab", be, be))
             pid = pid.transpose(0, 2, 1)
             blocks, ids = [], []
             for a, rows in enumerate(parts):
                 for cols in parts[a:]:
-                    blocks.append(jnp.einsum("cxm,cxn->cmn", B[:, :, rows], Y[:, :, cols].reshape(c, s * dim, -1)))
+                    blk = jnp.einsum("cxm,cxn->cmn", B[:, :, rows], Y[:, :, cols].reshape(c, s * dim, -1))
+                    if rank is not None:
+                        blk = blk + R[:, rows, cols].reshape(blk.shape)
+                    blocks.append(blk)
                     ij = pid[:, rows, cols]
                     if half and rows == cols:
                         ij = jnp.where(below[rows, cols], n_pairs, ij)
@@ -247,59 +310,29 @@ class StrainEnergy(Term):
             blocks = jnp.concatenate([b.reshape(-1, dim, dim) for b in blocks])
             return acc + jax.ops.segment_sum(blocks, jnp.concatenate(ids), num_segments=n_pairs)
 
-        zero = jnp.zeros((n_pairs, dim, dim), d.dtype)
+        zero = jnp.zeros((n_pairs, dim, dim), C.dtype)
         # windows of equal size: the last one, shifted back to end at G, recomputes up to a
         # whole window of groups already summed (their padding row Q adds nothing)
-        windows, chunk = window_plan(G, K * K * dim * dim, self.block_budget)
+        windows, chunk = window_plan(G, K * K * dim * dim * (1 if rank is None else 2), self.block_budget)
         if windows == 1:
-            U = chunk_sum(zero, self.groups, self.pair_id)
+            U = chunk_sum(zero, self.groups, self.pair_id, None if rank is None else c_grp)
         else:
             def body(i, acc):
                 # a window of ``chunk`` groups sliced in place (padding the (G, K, K) pair-id
                 # table to whole chunks would copy it, the largest table of a 3D body); the last
                 # window is shifted back to end at G, and its groups already summed point at
-                # the zero padding row Q instead
+                # the zero padding row Q instead (so their patch vectors are zero too)
                 start = jnp.minimum(i * chunk, G - chunk)
                 grp = jax.lax.dynamic_slice_in_dim(self.groups, start, chunk)
-                seen = (start + jnp.arange(chunk) < i * chunk)[:, None]
+                seen = (start + jnp.arange(chunk) < i * chunk)
                 pid = jax.lax.dynamic_slice_in_dim(self.pair_id, start, chunk)
-                return chunk_sum(acc, jnp.where(seen, Q, grp), pid)
+                c_chunk = None if rank is None else jax.lax.dynamic_slice_in_dim(c_grp, start, chunk)
+                return chunk_sum(acc, jnp.where(seen[:, None], Q, grp), pid, c_chunk)
 
             U = jax.lax.fori_loop(0, windows, body, zero)
         if half:
             U = U + jnp.where((pairs.i == pairs.j)[:, None, None], 0.0, jnp.swapaxes(U[pairs.t], -1, -2))
         return U
-
-    def _patch_blocks(self, d, pairs: Pairs):
-        """Tangent blocks of the F-bar energy: per patch, K_km = sum_(s, t) grad Psi_k(s) .
-        d2E/dF_s dF_t . grad Psi_m(t), the patch energy's Hessian in its points' F by autodiff
-        (F-bar couples the points of a patch), swept in windows of patches."""
-        p, axes = self._group_params()
-        F, w, D = self.group_gradients(d), self.by_group(self.w), self.by_group(self.dpsi)
-        G, S = self.groups.shape
-        K, dim = D.shape[2], D.shape[3]
-        hessian = jax.vmap(jax.hessian(self._patch_energy(axes)), in_axes=(0, 0, axes))
-
-        def chunk_sum(acc, start, size, fresh):
-            cut = lambda x: jax.lax.dynamic_slice_in_dim(x, start, size)
-            H = hessian(cut(F), cut(w), {k: cut(v) if axes[k] == 0 else v for k, v in p.items()})
-            Dc = cut(D)
-            T = jnp.einsum("cskj,csajtbl->ckatbl", Dc, H)
-            blocks = jnp.einsum("ckatbl,ctml->ckmab", T, Dc) * fresh[:, None, None, None, None]
-            return acc + jax.ops.segment_sum(blocks.reshape(-1, dim, dim), cut(self.pair_id).reshape(-1),
-                                             num_segments=pairs.count)
-
-        zero = jnp.zeros((pairs.count, dim, dim), d.dtype)
-        windows, chunk = window_plan(G, K * K * dim * dim + K * S * dim**4 + S * S * dim**4, self.block_budget)
-        if windows == 1:
-            return chunk_sum(zero, 0, G, jnp.ones(G, d.dtype))
-
-        def body(i, acc):
-            # the last window is shifted back to end at G: its patches already summed count zero
-            start = jnp.minimum(i * chunk, G - chunk)
-            return chunk_sum(acc, start, chunk, (start + jnp.arange(chunk) >= i * chunk).astype(d.dtype))
-
-        return jax.lax.fori_loop(0, windows, body, zero)
 
     # -------------------------------------------------------------- parameters
     @property
