@@ -23,10 +23,11 @@ device is busy, which on a GPU is thousands of configurations and on a CPU a few
 (a column of a million rows reads without the others), typed (floats stay float64, lists
 stay lists), compressed, and a folder of Parquet files *is* a table: results are appended by
 adding files, never by rewriting one, and pandas, polars, DuckDB or Spark read the folder
-without jaxrkpm (``pandas.read_parquet(out)``). Zarr/xarray suit dense N-dimensional grids;
+without jaxrkpm (``pandas.read_parquet(out)``, ``pyarrow.dataset.dataset(out)``: the
+manifest's name begins with ``_``, which Parquet readers skip). Zarr/xarray suit dense N-dimensional grids;
 a sweep's results are rows with mixed types and ragged failures, which is a table.
 
-**Resume.** The folder holds ``sweep.json`` (the manifest: a fingerprint of the configuration
+**Resume.** The folder holds ``_sweep.json`` (the manifest: a fingerprint of the configuration
 table, the chunk size and the evaluator's key) and ``chunk-NNNNNNN.parquet``, named by chunk
 number. A chunk file is written to a temporary name and renamed into place (atomic on one
 file system), so a chunk file exists only whole; a rerun skips the chunks whose files exist
@@ -66,7 +67,11 @@ from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
-SWEEP_FILE = "sweep.json"
+# the manifest's name begins with "_": Parquet readers (pyarrow, pandas, polars) skip such
+# names, so the folder is a dataset any of them opens; folders of earlier versions hold
+# LEGACY_SWEEP_FILE, read as before and renamed when the sweep resumes
+SWEEP_FILE = "_sweep.json"
+LEGACY_SWEEP_FILE = "sweep.json"
 FORMAT = "jaxrkpm-sweep"
 VERSION = 1
 ID, STATUS, REASON = "id", "status", "reason"
@@ -414,7 +419,7 @@ def _write_chunk(out: Path, k: int, table) -> None:
 
 def _claim(out: Path, manifest: dict) -> None:
     """Write the manifest into ``out``, or check that the one there is this sweep's."""
-    path = out / SWEEP_FILE
+    path = manifest_path(out)
     if path.exists():
         try:
             earlier = json.loads(path.read_text())
@@ -427,6 +432,8 @@ def _claim(out: Path, manifest: dict) -> None:
             raise SweepFolderError(f"{out}/ holds the results of another sweep ({what}; its manifest: "
                                    f"{earlier.get('configurations')} configurations, evaluator "
                                    f"{earlier.get('evaluator')!r}): choose another folder, or delete it to start over")
+        if path.name == LEGACY_SWEEP_FILE:     # an earlier version's folder: readable by any Parquet reader now
+            os.replace(path, out / SWEEP_FILE)
         return
     strays = [p.name for p in out.iterdir() if not p.name.startswith(".")]
     if strays:
@@ -648,10 +655,19 @@ def _chunk_size_of(out, configurations, evaluate, chunk_size=AUTO, **measure) ->
     return choice.chosen, choice
 
 
+def manifest_path(out) -> Path:
+    """The manifest of the sweep in ``out``: ``_sweep.json``, or an earlier version's
+    ``sweep.json`` where only that exists."""
+    out = Path(out)
+    if not (out / SWEEP_FILE).exists() and (out / LEGACY_SWEEP_FILE).exists():
+        return out / LEGACY_SWEEP_FILE
+    return out / SWEEP_FILE
+
+
 def _folder_chunk_size(out) -> int | None:
     """The chunk size of the sweep whose manifest ``out`` holds, or None."""
     try:
-        return int(json.loads((Path(out) / SWEEP_FILE).read_text())["chunk_size"])
+        return int(json.loads(manifest_path(out).read_text())["chunk_size"])
     except (OSError, ValueError, KeyError, TypeError):
         return None
 
@@ -736,9 +752,10 @@ def sweep(configurations, evaluate: Callable[[dict], Mapping], out, *, chunk_siz
 # ------------------------------------------------------------------ reading back
 def _files(out: Path) -> list:
     out = Path(out)
-    if not (out / SWEEP_FILE).exists():
+    if not manifest_path(out).exists():
         # a run's output folder often holds its sweep one level down (the CLI's DIR/table/)
-        below = sorted(p.parent.name for p in out.glob(f"*/{SWEEP_FILE}")) if out.is_dir() else []
+        below = sorted({p.parent.name for name in (SWEEP_FILE, LEGACY_SWEEP_FILE)
+                        for p in out.glob(f"*/{name}")}) if out.is_dir() else []
         hint = f": the sweep is in {out / below[0]}/" if len(below) == 1 else \
             (f": sweeps are in its subfolders {below}" if below else ": give the folder a sweep wrote")
         raise FileNotFoundError(f"{out}/ holds no sweep (no {SWEEP_FILE}){hint}")

@@ -288,3 +288,26 @@ def test_a_killed_workers_chunk_is_redone(reference, client, tmp_path):
 def test_the_chunk_size_is_measured_on_a_worker(client):
     choice = sw.choose_chunk_size(table_of(1000), Knee(), executor=client, start=8, progress=False)
     assert choice.sizes == (8, 16, 32, 64) and choice.chosen == Knee.KNEE
+
+
+# ------------------------------------------------------------------ the folder is a Parquet dataset
+def test_any_parquet_reader_opens_the_folder(reference, tmp_path):
+    import pyarrow.dataset as ds
+    import pyarrow.parquet as pq
+    out, _, table = reference
+    assert (out / sw.SWEEP_FILE).exists() and sw.SWEEP_FILE.startswith("_")
+    for read in (lambda d: pq.read_table(d), lambda d: ds.dataset(d, format="parquet").to_table()):
+        got = read(out).sort_by("id")
+        assert got.num_rows == N
+        np.testing.assert_array_equal(got.column("y").to_numpy(), table.column("y").to_numpy())
+    pd = pytest.importorskip("pandas")
+    frame = pd.read_parquet(out).sort_values("id")
+    np.testing.assert_allclose(frame["y"].to_numpy(), table.column("y").to_numpy())
+    # a folder of an earlier version (its manifest named sweep.json) still reads and resumes,
+    # and is renamed so that other readers open it too
+    old = tmp_path / "old"
+    shutil.copytree(out, old)
+    os.replace(old / sw.SWEEP_FILE, old / sw.LEGACY_SWEEP_FILE)
+    assert sw.read_sweep(old).num_rows == N
+    again = sw.sweep(configurations(), Square(), old, chunk_size=CHUNK, progress=False)
+    assert again.evaluated == 0 and (old / sw.SWEEP_FILE).exists() and not (old / sw.LEGACY_SWEEP_FILE).exists()
