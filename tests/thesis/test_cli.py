@@ -335,6 +335,25 @@ def test_contact_summary_words():
     assert not ok and "a contact force left the cone" in words
 
 
+def test_studies_that_fail_say_so():
+    """A contact paddle sweep whose best paddle leaves the deviation as it was misses its goal;
+    a sweep whose rows failed counts them by status and misses its goal (exit code 1)."""
+    from jaxrkpm.thesis.studies import needle, sweep
+    s = {"mode": "static", "paddle_model": "contact", "friction": 0.5, "inclusion": "right", "table": [],
+         "deviation": [0.0688, 0.0690, np.nan], "no_paddle_deviation": 0.0688, "glued_only": [1, 2],
+         "contact_ok": True}
+    ok, words = needle.result(s)
+    assert not ok and "deviation 0.0688 -> 0.0688" in words and "no contact paddle reduced the deviation" in words
+    ok, words = needle.result({**s, "deviation": [0.03, 0.069, np.nan]})
+    assert ok and "no contact paddle" not in words
+    summary = {"configurations": 30, "chunks": 2, "skipped_chunks": 0, "evaluated_chunks": 2,
+               "statuses": {"CONVERGED": 13, "INVERTED": 16, "MAX_ITERATIONS": 1}}
+    ok, words = sweep.result(summary)
+    assert not ok and words.endswith("; 17 of 30 rows failed (16 INVERTED, 1 MAX_ITERATIONS; their reasons are "
+                                     "in table/'s reason column)")
+    assert sweep.result({**summary, "statuses": {"CONVERGED": 30}})[0]
+
+
 def test_every_option_shows_its_default():
     for command, make in interface.PARSERS.items():
         p = make()

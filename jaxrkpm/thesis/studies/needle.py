@@ -504,6 +504,9 @@ def contact_figure(path: Path, phantom, inclusion, spec, state, curves) -> str:
     return path.name
 
 
+REDUCTION_MIN = 0.01      # the least relative reduction of |deviation| a contact paddle's goal asks for
+
+
 def contact_result(s: dict, what: str = "needle") -> tuple[bool, str]:
     """(goal reached, words) of a contact-paddle summary: every contact force compressive and
     in the friction cone (and, static, the insertion at full depth; dynamic, the target held;
@@ -515,7 +518,12 @@ def contact_result(s: dict, what: str = "needle") -> tuple[bool, str]:
         words = head + (f"best contact paddle {best}: deviation {abs(s['no_paddle_deviation']):.4f} -> "
                         f"{abs(fin[best - 1]):.4f}" if best else "every contact insertion failed")
         words += f"; glued only: {s['glued_only'] or 'none'}"
-        return bool(s["contact_ok"] and best), words + ("" if s["contact_ok"] else "; a contact force left the cone")
+        # a paddle that never bears on the phantom leaves the deviation as it was: no result
+        reduced = bool(best) and abs(fin[best - 1]) < (1 - REDUCTION_MIN) * abs(s["no_paddle_deviation"])
+        if best and not reduced:
+            words += (f"; no contact paddle reduced the deviation by {REDUCTION_MIN:.0%} or more "
+                      "(pressed too little to bear on the phantom? --indentation)")
+        return bool(s["contact_ok"] and reduced), words + ("" if s["contact_ok"] else "; a contact force left the cone")
     final = "none (no increment converged)" if s["final"] is None else f"{abs(s['final']):.2e}"
     said = f": {s['message']}" if s["message"] and s["message"] != s["status"] else ""
     words = head + f"paddle {s['paddle']}: final deviation {final}; {s['status']}{said}"

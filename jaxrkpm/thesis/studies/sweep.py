@@ -79,15 +79,25 @@ def main(argv=None) -> dict:
     return summary
 
 
+GOOD = ("CONVERGED", "OK", "DONE")      # the statuses of rows that reached their result
+
+
 def result(summary: dict) -> tuple[bool, str]:
-    """Goal: a row for every configuration and none an ERROR (a solve that fails is a result)."""
+    """Goal: a row for every configuration and each of them good (a solve that converged):
+    the line counts the rows that failed and their statuses, and a sweep with any misses
+    its goal (exit code 1), as a study whose solve failed does."""
     statuses = summary.get("statuses", {})
     rows = sum(statuses.values())
+    bad = {s: n for s, n in statuses.items() if s not in GOOD}
     words = (f"{rows}/{summary['configurations']} configurations in table/ ({summary['skipped_chunks']} of "
              f"{summary['chunks']} chunks already there): "
              + ", ".join(f"{n} {s}" for s, n in sorted(statuses.items())))
+    if bad:
+        words += (f"; {sum(bad.values())} of {rows} rows failed ("
+                  + ", ".join(f"{n} {s}" for s, n in sorted(bad.items(), key=lambda kv: -kv[1]))
+                  + "; their reasons are in table/'s reason column)")
     if "best" in summary:
         b = summary["best"]
         words += (f"; smallest |final deviation| {abs(b['final_deviation']):.2e} at paddle {b['paddle']}, "
                   f"{b['inclusion']} x {b['stiffness_ratio']:g}")
-    return rows == summary["configurations"] and "ERROR" not in statuses, words
+    return rows == summary["configurations"] and not bad, words
