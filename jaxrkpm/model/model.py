@@ -189,6 +189,10 @@ class Model:
                              f"exceeds {MAX_SUPPORT_DIAMETERS:g} x the body's diameter {diameter:.3g}: "
                              "every shape function would cover the whole body; use a support of a "
                              "few spacings (e.g. 2.01 .. 4)")
+        # checked before any rule is built from it (the boundary rule is built first)
+        if isinstance(order, (bool, np.bool_)) or not isinstance(order, (int, np.integer)) or not 1 <= order <= 20:
+            raise ValueError(f"order must be a whole number of integration points per direction in 1..20 "
+                             f"(2 is the default), got {order!r}")
         if integration not in ("gauss", *scni.SCHEMES):
             raise ValueError(f"unknown integration {integration!r}: choose 'gauss', "
                              + ", ".join(repr(k) for k in scni.SCHEMES))

@@ -258,6 +258,34 @@ def test_bad_input_is_named():
         jr.Contact(jr.Sphere(0.3), position=(0, 2), gap=0.0)
 
 
+@pytest.mark.parametrize("make, match", [
+    (lambda: jr.Sphere(-0.5), r"Sphere.radius must be a finite number > 0, got -0.5"),
+    (lambda: jr.Sphere(float("nan")), r"Sphere.radius must be a finite number > 0, got nan"),
+    (lambda: jr.Box((0.2, -0.05)), r"Box.half must be finite half extents >= 0"),
+    (lambda: jr.Box((0.2, 0.0)), r"a half extent of 0 needs radius > 0"),
+    (lambda: jr.Box((0.2, 0.1), -0.1), r"Box.radius must be a finite number >= 0"),
+    (lambda: jr.Capsule(-0.1, 0.2), r"Capsule.half_length must be a finite number >= 0"),
+    (lambda: jr.Capsule(0.1, 0.0), r"Capsule.radius must be a finite number > 0"),
+    (lambda: jr.HalfSpace((0.0, 0.0)), r"HalfSpace.normal must be a finite, non-zero vector"),
+    (lambda: jr.HalfSpace((float("nan"), 1.0)), r"HalfSpace.normal must be a finite, non-zero vector"),
+])
+def test_tools_of_no_size_are_refused_when_built(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_a_nan_rotation_or_a_float_predicate_is_named():
+    body = jr.Body.grid((3, 3), 0.5)
+    with pytest.raises(ValueError, match="contact 'disc': rotation must be a finite angle"):
+        jr.Model(body, MAT, essential={"b": [0]},
+                 terms=[jr.Contact(jr.Sphere(0.3), position=(0.5, 1.5), rotation=float("nan"), name="disc")])
+    with pytest.raises(ValueError, match="contact 'disc': where must return booleans, got float64"):
+        jr.Model(body, MAT, essential={"b": [0]},
+                 terms=[jr.Contact(jr.Sphere(0.3), position=(0.5, 1.5), where=lambda X: X[:, 1] * 1.0, name="disc")])
+    with pytest.raises(ValueError, match="pressure 'p': where must return booleans, got float64"):
+        jr.Model(body, MAT, essential={"b": [0]}, terms=[jr.Pressure(lambda X: X[:, 1] - 0.5, name="p")])
+
+
 # ------------------------------------------------------------- friction vs glued
 @pytest.fixture(scope="module")
 def clamped_block():
