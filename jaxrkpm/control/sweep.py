@@ -93,6 +93,10 @@ class SweepFolderError(ValueError):
     """The output folder holds another sweep's results, or is in use by a running sweep."""
 
 
+class SweepInUseError(SweepFolderError):
+    """Another sweep is writing into the output folder (its lock is held)."""
+
+
 class SweepSummary(NamedTuple):
     """What :func:`sweep` did: ``out`` the folder, ``configurations`` and ``chunks`` in the
     sweep, ``skipped`` chunks already on disk, ``evaluated`` chunks this call wrote,
@@ -521,7 +525,7 @@ def _lock(out: Path):
     try:
         lock.acquire(timeout=0)
     except Timeout:
-        raise SweepFolderError(f"another sweep is writing into {out}/ (its lock {out / '.sweep.lock'} is "
+        raise SweepInUseError(f"another sweep is writing into {out}/ (its lock {out / '.sweep.lock'} is "
                                "held): wait for it, or choose another folder") from None
     return lock
 

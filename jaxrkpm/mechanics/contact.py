@@ -439,6 +439,17 @@ class ContactResult(NamedTuple):
     lag: dict
 
 
+class ContactPenetrationWarning(UserWarning):
+    """A solve converged with contact points inside a tool (``min_gap < 0``): the barrier's
+    pressure (``Contact.pressure``) is too low for the load, or the step too long."""
+
+
+def penetration(term: "ContactTerm", d, load) -> float:
+    """The smallest gap of the contact ``term``'s points at coefficients ``d`` (N, d) and load
+    scale ``load`` (negative: a point inside the tool)."""
+    return float(jnp.min(term.gaps(term.points(d), load)))
+
+
 def contact_forces(model, sol, name: str, params=None) -> ContactResult:
     """The contact of the tool ``name`` (a ``Contact`` term of ``model``) at the solution
     ``sol`` (solved with ``params``): forces (normal and tangential), pressure, gaps, active

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from dataclasses import dataclass
 from typing import Mapping
 
@@ -16,6 +17,7 @@ from ..discretise import scni
 from ..discretise.body import Body
 from ..discretise.constraints import EssentialSets, Transformation
 from ..mechanics.constraint import Essential, essential as essential_constraint
+from ..mechanics.contact import ContactPenetrationWarning, ContactTerm, penetration
 from ..mechanics.loads import SpringTerm, Springs, dead_load, spring_psi, spring_term
 from ..mechanics.materials import Material, det, green_lagrange, pk2
 from ..mechanics.problem import Problem
@@ -547,7 +549,23 @@ class Model:
         if throw and status is not None and not Status.of(status).equilibrium:
             # under jax.jacfwd / jax.grad the fields are tracers: the error carries their values
             raise SolveError(Solution(*jax.tree.map(_concrete, tuple(sol))))
+        if eager and status is not None and Status.of(status).equilibrium:
+            self._check_penetration(problem, sol)
         return sol
+
+    def _check_penetration(self, problem, sol) -> None:
+        """Warn where a converged solve left contact points inside a tool: its status says
+        CONVERGED, but the contact it describes is not what the tool allows."""
+        terms = [t for t in problem.terms if isinstance(t, ContactTerm)]
+        if not terms:
+            return
+        d = self.constraint.coefficients(sol.u, sol.g)
+        for t in terms:
+            gap = penetration(t, d, sol.load)
+            if gap < 0:
+                warnings.warn(f"the solve converged with points of contact {t.name!r} inside the tool (min gap "
+                              f"{gap:.3g} < 0): raise Contact.pressure, or take more load steps (steps=...), "
+                              "and check contact_forces(...).min_gap", ContactPenetrationWarning, stacklevel=4)
 
     def _driver(self, options, eager: bool) -> LoadPath:
         """``solver(**options)``, keeping the linear state in the Solution where ``eager``."""

@@ -286,6 +286,24 @@ def test_a_nan_rotation_or_a_float_predicate_is_named():
         jr.Model(body, MAT, essential={"b": [0]}, terms=[jr.Pressure(lambda X: X[:, 1] - 0.5, name="p")])
 
 
+def test_a_converged_solve_inside_the_tool_says_so():
+    """A barrier far too soft for the load lets the points pass into the tool: the solve
+    converges, and warns, naming the tool and the gap; a solve that stays clear says nothing."""
+    import warnings
+    gap = 1e-2
+    body = jr.Body.grid((3, 3), 0.5, origin=(-0.5, -0.5))
+    plate = jr.Contact(jr.HalfSpace((0.0, -1.0)), position=(0.0, 0.5 + gap), gap=gap, pressure=1e-6, name="plate",
+                       where=lambda X: X[:, 1] > 0.5 - 1e-9)
+    model = jr.Model(body, jr.NeoHookean(lam=1e3, mu=1e3), essential={"w": body.select(lambda X: X[:, 1] < -0.4)},
+                     terms=[plate])
+    with pytest.warns(jr.ContactPenetrationWarning, match=r"contact 'plate' inside the tool \(min gap -0.0\d+ < 0\)"):
+        sol = model.solve(params={"plate": {"position": jnp.array([0.0, 0.5 + gap - 0.1])}})
+    assert jr.Status.of(sol.status) == jr.Status.CONVERGED
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", jr.ContactPenetrationWarning)
+        model.solve(params={"plate": {"position": jnp.array([0.0, 0.5 + gap])}})
+
+
 # ------------------------------------------------------------- friction vs glued
 @pytest.fixture(scope="module")
 def clamped_block():

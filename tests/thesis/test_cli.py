@@ -444,6 +444,48 @@ def test_ctrl_c_is_one_line_that_says_what_was_kept(tmp_path, monkeypatch, capsy
                               f"{tmp_path / 'sw'}/table/")
 
 
+def test_sweep_checks_where_it_runs_before_writing(tmp_path, monkeypatch, capsys):
+    """A malformed or unreachable --executor, or --workers without Dask, ends at once with exit
+    2 and writes nothing; changing only where the chunks run is the same sweep."""
+    out = tmp_path / "sw"
+    one_line_usage(capsys, ["sweep", "--executor", "localhost:8786", "--out", str(out)],
+                   "--executor", "SCHEME://HOST:PORT", "got 'localhost:8786'")
+    one_line_usage(capsys, ["sweep", "--executor", "tcp://127.0.0.1:1", "--out", str(out)],
+                   "--executor: no Dask scheduler answers at tcp://127.0.0.1:1")
+    import importlib.util
+    find = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "distributed" else find(name, *a))
+    one_line_usage(capsys, ["sweep", "--workers", "2", "--out", str(out)],
+                   "--workers runs the chunks on Dask, which is not installed: pip install 'dask[distributed]'")
+    assert not out.exists()
+    monkeypatch.setattr(importlib.util, "find_spec", find)
+    from jaxrkpm.thesis import sweeps
+    from jaxrkpm.thesis.studies import sweep
+
+    def fake_sweep(table, cfg, **k):
+        (table / "chunk-0000000.parquet").parent.mkdir(parents=True, exist_ok=True)
+        (table / "chunk-0000000.parquet").write_text(str(len(cfg["paddle"])))
+        return SimpleNamespace(configurations=len(cfg["paddle"]), chunks=1, skipped=0, evaluated=1,
+                               statuses={"CONVERGED": len(cfg["paddle"])})
+    monkeypatch.setattr(sweeps, "needle_sweep", fake_sweep)
+    monkeypatch.setattr(sweep, "_cluster", lambda args: (None, lambda: None))
+    monkeypatch.setattr("jaxrkpm.control.sweep.read_sweep", lambda *a, **k: __import__("pyarrow").table(
+        {"id": [0], "paddle": [1], "inclusion": ["right"], "stiffness_ratio": [1.0], "final_deviation": [0.1],
+         "status": ["CONVERGED"]}))
+    monkeypatch.setattr(interface, "unreachable", lambda address: None)
+    assert cli.main(["sweep", "--paddles", "1", "2", "--workers", "2", "--out", str(out)]) == 0
+    assert cli.main(["sweep", "--paddles", "1", "2", "--out", str(out)]) == 0            # in process: the same run
+    assert cli.main(["sweep", "--paddles", "1", "2", "--executor", "tcp://h:1", "--out", str(out)]) == 0
+    assert cli.main(["sweep", "--paddles", "1", "--out", str(out)]) == interface.EXIT_OUTPUT
+    capsys.readouterr()
+    # --overwrite with other options: the other sweep's table goes, the new run is recorded
+    (out / "table" / "chunk-0000001.parquet").write_text("old")
+    assert cli.main(["sweep", "--paddles", "1", "--overwrite", "--out", str(out)]) == 0
+    assert sorted(p.name for p in (out / "table").iterdir()) == ["chunk-0000000.parquet"]
+    assert json.loads((out / "run.json").read_text())["options"]["paddles"] == [1]
+    assert cli.main(["sweep", "--paddles", "1", "--out", str(out)]) == 0                 # and it resumes
+
+
 def test_needle_modes_write_their_own_folders(tmp_path, monkeypatch, capsys):
     from jaxrkpm.thesis.studies import needle
     static = {"mode": "static", "inclusion": "none", "best": 3, "deviation": [0.02, 0.01, 0.001, 0.004, 0.006],
