@@ -66,6 +66,14 @@ class Body:
     cells: np.ndarray | None = None
     tags: dict = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        # a summary, not the arrays: printing a body of thousands of particles stays one line
+        box = " x ".join(f"[{lo:.4g}, {hi:.4g}]" for lo, hi in zip(np.ravel(self.lower), np.ravel(self.upper)))
+        kind = "mesh" if self.cells is not None else ("box" if self.is_box else "polygon")
+        cells = "" if self.cells is None else f", {len(self.cells)} cells"
+        tags = f", tags {sorted(self.tags)}" if self.tags else ""
+        return f"Body({self.dim}D {kind}, {self.n} particles{cells}, spacing {self.spacing:.4g}, {box}{tags})"
+
     @property
     def dim(self) -> int:
         return self.X.shape[1]

@@ -472,6 +472,13 @@ class Model:
         return Solution(u, jnp.zeros((len(self.sets.bnd), self.dim)), f, z, f + 1.0, z, z, z, f, z,
                         Critical.empty(u))
 
+    def __repr__(self) -> str:
+        sets = {name: len(self.sets.bnd[sl]) for name, sl in self.sets.slices.items()}
+        terms = [t.name for t in self._problem.terms if t.name not in ("strain", "springs", "dead_load")]
+        return (f"Model({self.body.dim}D, {self.body.n} particles, {self.material.name}, {self.integration}, "
+                f"support {self.support:g}, essential {sets or 'none'}"
+                + (f", terms {terms}" if terms else "") + f", {type(self.linear).__name__})")
+
     def solve(self, prescribed: Mapping | None = None, *, loads: float = 1.0, params=None,
               steps: int = 1, initial: Solution | None = None, throw: bool = True,
               max_iter: int = 25, **options) -> Solution:

@@ -125,8 +125,9 @@ def test_contact_in_the_vtu_and_the_figure(pressed_block, tmp_path):
     assert f["contact_top_min_gap"][0] == pytest.approx(float(res.min_gap))
     assert abs(f["contact_top_tangential"]).max() < 1e-10 * abs(f["contact_top_normal"]).max()
     fig, ax = plot.plt.subplots()
-    plot.deformed_particles(ax, model.body.X, model.particle_displacements(sol))
+    plot.deformed_particles(ax, model.body.X, model.particle_displacements(sol), colorbar=False)
     sc = jr.contact_pressures(ax, model, sol, params)
+    assert [a.get_ylabel() for a in fig.axes[1:]] == ["contact pressure"]          # its colour bar
     assert sc.get_offsets().shape == (len(res.gap), 2) and np.allclose(sc.get_array(), np.asarray(res.pressure))
     plot.save(fig, tmp_path / "pressed.png")
     assert (tmp_path / "pressed.png").stat().st_size > 10_000
@@ -222,6 +223,24 @@ def ball_3d():
     params = {"ball": {**model.params["ball"],
                        "position": model.params["ball"]["position"] + jnp.array([0.0, 0.0, -0.05])}}
     return model, model.solve(params=params, steps=4, rtol=1e-12), params
+
+
+def test_3d_figures_show_the_contact_and_say_what_the_colours_mean(ball_3d):
+    """On 3D axes the contact points are drawn inside the view, over the body, with colour
+    bars for the pressure and (deformed_surface) the stress."""
+    from jaxrkpm.io import plot
+    model, sol, params = ball_3d
+    fig = plot.plt.figure()
+    ax = fig.add_subplot(projection="3d")
+    jr.deformed_surface(ax, model, sol)
+    sc = jr.contact_pressures(ax, model, sol, params)
+    res = jr.contact_forces(model, sol, "ball", params)
+    pts = np.asarray(res.points)[np.asarray(res.active)]
+    assert len(pts) > 0 and np.asarray(sc.get_array()).shape == (len(pts),)
+    for lim, c in zip((ax.get_xlim(), ax.get_ylim(), ax.get_zlim()), pts.T):
+        assert lim[0] < c.min() and c.max() < lim[1]
+    assert [a.get_ylabel() for a in fig.axes[1:]] == ["von Mises (Cauchy) stress", "contact pressure"]
+    plot.plt.close(fig)
 
 
 def test_pose_jacobian_3d(ball_3d):

@@ -486,6 +486,26 @@ def test_sweep_checks_where_it_runs_before_writing(tmp_path, monkeypatch, capsys
     assert cli.main(["sweep", "--paddles", "1", "--out", str(out)]) == 0                 # and it resumes
 
 
+def test_help_names_no_internal_reference_and_bounds_the_gain(capsys):
+    """Every command's help speaks to a user (no "the issue's" bound); rig-sim's gain is a
+    fraction of the error (a gain of 100 ran long and reached almost nothing)."""
+    import re
+    for command in interface.PARSERS:
+        text = interface.PARSERS[command]().format_help()
+        assert not re.search(r"\bissue", text, re.I), (command, text)
+    one_line_usage(capsys, ["rig-sim", "--gain", "100"], "--gain", "(0, 1]", "got 100")
+    assert interface.parse("rig-sim", ["--gain", "1"]).gain == 1.0
+
+
+def test_the_demo_line_counts_the_whole_run():
+    from jaxrkpm.thesis.studies import track
+    s = {"path": "box", "integration": "gauss", "particles": [9, 9], "dim": 2, "waypoints_reached": 4,
+         "waypoints_total": 4, "max_waypoint_error": 9e-5, "tol": 1e-4, "iterations": 100, "wall_s": 1.0,
+         "compile_s": 2.0, "total_s": 7.5, "status": "DONE"}
+    ok, words = track.result(s)
+    assert ok and "1.0 s warm + 2.0 s compile, 7.5 s in all with the model, figures and files" in words
+
+
 def test_needle_modes_write_their_own_folders(tmp_path, monkeypatch, capsys):
     from jaxrkpm.thesis.studies import needle
     static = {"mode": "static", "inclusion": "none", "best": 3, "deviation": [0.02, 0.01, 0.001, 0.004, 0.006],

@@ -375,7 +375,9 @@ def rig_sim_parser():
                    help="particles per side of the physical object (bounded by the memory available)")
     p.add_argument("--noise", type=number(float, 0, 255), default=2.0, help="pixel noise std (grey levels, 0..255)")
     p.add_argument("--seed", type=number(int, 0, SEED_MAX), default=0, help="noise seed, 0..2^32-1")
-    p.add_argument("--gain", type=POSITIVE, default=0.7)
+    p.add_argument("--gain", type=number(float, 0, 1, low_open=True), default=0.7,
+                   help="the fraction of the camera error each iteration corrects, in (0, 1] (above 1 every "
+                        "step overshoots its waypoint and the loop oscillates)")
     p.add_argument("--tol-mm", type=POSITIVE, default=0.3, help="camera tolerance per waypoint (mm)")
     p.add_argument("--max-iter", type=number(int, 1, 10_000), default=30,
                    help="iterations per waypoint (tracking), 1..10000")

@@ -65,7 +65,7 @@ def draw_phantom(ax, phantom: nd.Phantom, model, sol, inclusion, paddle=None, pa
     caller's (outside the axes: see :func:`legend_below`)."""
     X = model.body.X
     u = np.asarray(model.particle_displacements(sol))
-    sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=22)
+    sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=22, colorbar=False)
     x = X + u
     V = np.vstack([phantom.vertices, phantom.vertices[0]])
     ax.plot(V[:, 0], V[:, 1], color="0.6", lw=0.8, label="reference outline")
@@ -485,7 +485,7 @@ def contact_figure(path: Path, phantom, inclusion, spec, state, curves) -> str:
                                       gridspec_kw={"width_ratios": [1.15, 1]})
     x = model.body.X + np.asarray(model.particle_displacements(sol))
     sc = draw_phantom(a1, phantom, model, sol, inclusion, title=state["title"])
-    pc = plot.contact_pressures(a1, model, sol, params)
+    pc = plot.contact_pressures(a1, model, sol, params, colorbar=False)
     (x0, x1), (y0, y1) = extent(phantom.vertices, x, tool_outline(model, params), margin=0.05)
     a1.set_xlim(x0, x1)
     a1.set_ylim(y0, y1)
