@@ -69,6 +69,8 @@ from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
+from ..base.progress import progress_bar
+
 # the manifest's name begins with "_": Parquet readers (pyarrow, pandas, polars) skip such
 # names, so the folder is a dataset any of them opens; folders of earlier versions hold
 # LEGACY_SWEEP_FILE, read as before and renamed when the sweep resumes
@@ -693,8 +695,10 @@ def choose_chunk_size(configurations, evaluate, *, executor=None, start: int = 4
         raise ValueError(f"max_chunk_s must be a positive number of seconds, got {max_chunk_s!r}")
     settings = worker_settings() if settings is None else settings
     if executor is None:
+        import sys
         from tqdm import tqdm
-        report = tqdm.write if progress else (lambda line: None)
+        # what is measured goes where the bars go (stderr, on a terminal), not into stdout
+        report = (lambda line: tqdm.write(line, file=sys.stderr)) if progress and _terminal() else _quiet
         return _measure_chunk_sizes(evaluate, table, start, tolerance, max_chunk_s, settings, report)
     client, owned = _dask(executor)
     try:
@@ -704,6 +708,11 @@ def choose_chunk_size(configurations, evaluate, *, executor=None, start: int = 4
     finally:
         if owned:
             client.close()
+
+
+def _terminal() -> bool:
+    import sys
+    return bool(getattr(sys.stderr, "isatty", lambda: False)())
 
 
 def _quiet(line) -> None:
@@ -803,9 +812,9 @@ def sweep(configurations, evaluate: Callable[[dict], Mapping], out, *, chunk_siz
         def chunks(k):
             return table.slice(k * chunk_size, chunk_size)
 
-        from tqdm import tqdm
-        bar = tqdm(total=n, initial=sum(chunks(k).num_rows for k in finished if k < n_chunks),
-                   unit="config", desc="sweep", disable=not progress, dynamic_ncols=True)
+        # on a terminal only, drawn in place and left once at the end
+        bar = progress_bar(n, initial=sum(chunks(k).num_rows for k in finished if k < n_chunks),
+                           unit="config", desc="sweep", progress=progress, leave=True)
         failed = [0]
 
         def done(k, result):

@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..base.progress import progress_bar
 from ..mechanics.contact import Box, Contact, contact_forces
 from ..model.model import Model
 from ..solvers.results import Status
@@ -404,15 +405,23 @@ def glued_finals(phantom, inclusion: str, increments: int, paddles: Sequence[int
 
 
 def contact_sweep(phantom, inclusion: str = "none", increments: int = 15, control=None,
-                  spec: ContactPaddle = ContactPaddle(), paddles: Sequence[int] | None = None) -> ContactSweep:
+                  spec: ContactPaddle = ContactPaddle(), paddles: Sequence[int] | None = None,
+                  progress: bool = True) -> ContactSweep:
     """The static sweep with contact paddles: each paddle position's contact paddle pressed
     to ``control`` (default: indented by one particle spacing, no shift), then the needle
-    inserted; with the glued sweep and the no-paddle run to compare."""
+    inserted; with the glued sweep and the no-paddle run to compare. ``progress``: a bar of
+    the paddles on a terminal."""
     paddles = list(range(1, len(phantom.paddles) + 1)) if paddles is None else list(paddles)
     d = phantom.body.dim
     control = np.r_[phantom.spacing, np.zeros(d - 1)] if control is None else np.asarray(control, float)
-    runs = [contact_insertion(phantom, p, control, inclusion, increments, spec) for p in paddles]
-    glued, free = glued_finals(phantom, inclusion, increments, paddles)
+    runs = []
+    with progress_bar(len(paddles) + 1, desc=f"contact sweep ({inclusion})", unit="paddle", progress=progress) as bar:
+        for p in paddles:
+            runs.append(contact_insertion(phantom, p, control, inclusion, increments, spec))
+            bar.update()
+        bar.set_postfix_str("glued paddles and no paddle")
+        glued, free = glued_finals(phantom, inclusion, increments, paddles)
+        bar.update()
     return ContactSweep(inclusion, float(spec.mu), control, runs, glued, free)
 
 

@@ -373,3 +373,33 @@ def test_a_truncated_chunk_is_named_and_redone_once_deleted(reference, tmp_path)
     path.unlink()
     again = sw.sweep(configurations(), Square(), cut, chunk_size=CHUNK, progress=False)
     assert again.evaluated == 1 and sw.read_sweep(cut).equals(reference[2])
+
+
+# ------------------------------------------------------------------ progress
+class _Terminal:
+    """A stderr that says it is a terminal and keeps what is written."""
+
+    def __init__(self, tty=True):
+        self.text, self.tty = "", tty
+
+    def write(self, s):
+        self.text += s
+
+    def flush(self):
+        pass
+
+    def isatty(self):
+        return self.tty
+
+
+def test_the_bar_is_drawn_on_a_terminal_only_and_can_be_silenced(tmp_path, monkeypatch, capsys):
+    import sys
+    for tty, progress, shown in ((True, True, True), (False, True, False), (True, False, False)):
+        err = _Terminal(tty)
+        monkeypatch.setattr(sys, "stderr", err)
+        out = tmp_path / f"p{tty}{progress}"
+        sw.sweep(configurations(), Square(), out, chunk_size=CHUNK, progress=progress)
+        monkeypatch.undo()
+        assert ("sweep: 100%" in err.text and f"{N}/{N}" in err.text) == shown, (tty, progress, err.text)
+        assert err.text.count("\n") <= 1                   # drawn in place, left once
+        assert capsys.readouterr().out == ""
