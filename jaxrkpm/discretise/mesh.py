@@ -305,7 +305,7 @@ def _checked_cells(points, cells):
     flat = np.abs(vol) <= FLAT * np.abs(vol).mean()
     if flat.any():
         c = int(np.flatnonzero(flat)[0])
-        raise ValueError(f"{int(flat.sum())} of {len(cells)} {name} cells have zero volume, e.g. cell {c} with "
+        raise ValueError(f"{int(flat.sum())} of {len(cells)} {name} cells are zero-volume, e.g. cell {c} with "
                          f"vertices {cells[c].tolist()} (volume {vol[c]:.3g}): slivers, as scipy's Delaunay makes "
                          "of points on a lattice; Body.from_mesh(..., drop_degenerate=True) drops them (they add "
                          "no volume), or use a mesher that makes none")

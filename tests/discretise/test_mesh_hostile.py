@@ -206,7 +206,7 @@ def test_delaunay_slivers_are_named_and_dropped_on_request(caplog):
     lattice = meshio.Mesh(P, [("tetra", cells)])
     flat = int(np.sum(np.abs(signed_volumes(P, cells)) < 1e-12))
     assert flat > 0
-    with pytest.raises(ValueError, match=rf"{flat} of {len(cells)} tetra cells have zero volume.*"
+    with pytest.raises(ValueError, match=rf"{flat} of {len(cells)} tetra cells are zero-volume.*"
                                          r"drop_degenerate=True\) drops them"):
         jr.Body.from_mesh(lattice)
     with caplog.at_level(logging.INFO, logger=LOGGER):
