@@ -587,12 +587,13 @@ def final_deviation_and_gradient(phantom, paddle, control, inclusion, increments
 def optimize_contact_paddle(phantom, paddle: int, inclusion: str = "none", increments: int = 15,
                             spec: ContactPaddle = ContactPaddle(), start=None, iterations: int = 10,
                             learning_rate: float = 0.02, decay: float = 0.9, tol: float = 1e-6,
-                            step_tol: float = 1e-4) -> ContactOptimum:
+                            step_tol: float = 1e-4, progress: bool = True) -> ContactOptimum:
     """Adam on the pose (indentation, shift) within ``control_bounds`` for min deviation^2 at
     full insertion, from ``start`` (default: 1.5 spacings in, no shift: deep enough that the
     paddle still touches at full insertion, where a shallower one lets go and the gradient is
     zero). A pose whose insertion fails is undone and the steps halved; a step that lets go of
-    the tissue is kept in the history but not chosen (its deviation is the no-paddle one)."""
+    the tissue is kept in the history but not chosen (its deviation is the no-paddle one).
+    ``progress``: a bar of the iterations on a terminal."""
     import optax
     lo, hi = control_bounds(phantom, paddle)
     d = len(lo)
@@ -605,7 +606,10 @@ def optimize_contact_paddle(phantom, paddle: int, inclusion: str = "none", incre
                               OptimizeStatus.START_FAILED, f"the insertion fails at the start pose {c.tolist()}")
     hist, runs, scale = [[*c, dev, *(2 * dev * grad)]], [run], 1.0
     status, message = OptimizeStatus.MAX_ITERATIONS, f"{iterations} iterations"
+    bar = progress_bar(iterations, desc=f"optimize contact paddle {paddle}", unit="iteration", progress=progress)
     for _ in range(iterations):
+        bar.update()
+        bar.set_postfix(deviation=f"{dev:.2e}")
         if abs(dev) < tol:
             status, message = OptimizeStatus.CONVERGED, f"|deviation| < {tol:g}"
             break
@@ -621,6 +625,7 @@ def optimize_contact_paddle(phantom, paddle: int, inclusion: str = "none", incre
         c, dev, grad, state = c_new, dn, gn, new_state
         hist.append([*c, dev, *(2 * dev * grad)])
         runs.append(rn)
+    bar.close()
     hist = np.array(hist)
     best = int(np.argmin(np.abs(hist[:, d])))
     return ContactOptimum(paddle, inclusion, hist[best, :d], float(hist[best, d]), hist, runs[best], status, message)

@@ -650,14 +650,15 @@ def cancelling_move(Jp, lateral, e) -> np.ndarray:
 
 
 def dynamic_paddle(phantom: Phantom, paddle: int, inclusion: str = "none", increments: int = 15,
-                   tol: float = 1e-6, max_corrections: int = 10) -> DynamicRun:
+                   tol: float = 1e-6, max_corrections: int = 10, progress: bool = True) -> DynamicRun:
     """Move the paddle during insertion so the target stays on the needle line.
 
     Each increment: a feed-forward paddle move cancels the lateral target motion the implicit
     Jacobians predict for the needle increment (``cancelling_move``: minimum norm, from the
     lateral rows of d target/d paddle); then corrections with the Jacobian at the new
     equilibrium until |lateral deviation| < tol. A failed solve stops the loop with its
-    status; what was computed is kept. Any phantom with the ``NeedleTrack`` interface."""
+    status; what was computed is kept. Any phantom with the ``NeedleTrack`` interface.
+    ``progress``: a bar of the increments on a terminal."""
     model = phantom.model(inclusion, paddle)
     target = np.atleast_2d(phantom.target)
     depths = phantom.depths(increments)
@@ -675,7 +676,10 @@ def dynamic_paddle(phantom: Phantom, paddle: int, inclusion: str = "none", incre
     def lateral_error(s):
         return B @ np.asarray(model.displacement(s, target)[0])          # (L,)
 
+    bar = progress_bar(len(depths), desc=f"dynamic paddle {paddle} ({inclusion})", unit="increment",
+                       progress=progress)
     for depth in depths:
+        bar.update()
         Jp = np.asarray(model.jacobian(sol, "paddle", target))           # (d, d)
         Jn = np.asarray(model.jacobian(sol, "needle", target)) @ direction   # (d,)
         p = p + cancelling_move(Jp, B, B @ Jn * (depth - depth_prev))
@@ -703,6 +707,7 @@ def dynamic_paddle(phantom: Phantom, paddle: int, inclusion: str = "none", incre
             message = (f"|lateral deviation| {np.linalg.norm(e):.2e} >= {tol:g} after {k} corrections "
                        f"at depth {depth:.4f}")
             break
+    bar.close()
     n = len(dev)
     return DynamicRun(paddle, depths[:n], np.array(dev), np.array(pre[:n]),
                       np.array(pu).reshape(n, d), np.array(its, int), status, message, sol, solve_status)

@@ -210,10 +210,14 @@ def test_long_calls_show_progress_on_a_terminal(phantom, monkeypatch):
                         lambda model, ph, q, depths: (0.01 * (1 + float(np.sum(q))), np.ones(np.shape(q)), Status.CONVERGED))
     monkeypatch.setattr(cp, "contact_insertion", lambda *a, **k: None)
     monkeypatch.setattr(cp, "glued_finals", lambda *a, **k: (np.zeros(5), 0.0))
+    monkeypatch.setattr(cp, "final_deviation_and_gradient",
+                        lambda ph, paddle, c, *a: (0.01 * (1 + float(np.sum(c))), np.ones(np.shape(c)), None))
     P = len(phantom.paddles)
     calls = {"static sweep (none)": (lambda **k: nd.static_sweep(phantom, "none", 3, **k), f"/{P + 2} ["),
              "optimize paddle (none)": (lambda **k: nd.optimize_paddle(phantom, "none", iterations=4, **k), "/4 ["),
-             "contact sweep (none)": (lambda **k: cp.contact_sweep(phantom, "none", 3, **k), f"/{P + 1} [")}
+             "contact sweep (none)": (lambda **k: cp.contact_sweep(phantom, "none", 3, **k), f"/{P + 1} ["),
+             "optimize contact paddle 3": (lambda **k: cp.optimize_contact_paddle(phantom, 3, "none", 3,
+                                                                                   iterations=4, **k), "/4 [")}
     for desc, (call, count) in calls.items():
         for progress in (True, False):
             err = _Terminal()
