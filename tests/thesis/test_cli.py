@@ -65,7 +65,7 @@ def test_unknown_command_says_so(capsys):
     (["compress", "--max", "nan"], "--max", "a number in (0, 1)"),
     (["needle", "--increments", "-3"], "--increments", "an integer in [1, 1000]"),
     (["needle", "--paddle", "6"], "--paddle", "an integer in [1, 5]"),
-    (["rig-sim", "--gain", "inf"], "--gain", "a number > 0"),
+    (["rig-sim", "--gain", "inf"], "--gain", "a number in (0, 1]"),
     (["track", "--tol", "abc"], "--tol", "a number > 0"),
 ])
 def test_out_of_range_numbers_are_one_line_usage_errors(argv, option, wanted, capsys):
