@@ -46,6 +46,7 @@ from .mechanics.contact import (
     Box as Box,
     Capsule as Capsule,
     Contact as Contact,
+    ContactPenetrationWarning as ContactPenetrationWarning,
     ContactResult as ContactResult,
     HalfSpace as HalfSpace,
     Sphere as Sphere,

@@ -79,6 +79,17 @@ def test_outcomes_print_as_names_and_carry_messages():
             assert str(member) == member.name and member.message and kind.of(int(member)) is member
     with pytest.raises(ValueError, match="one code"):
         jr.Status.of(np.zeros(3))
+    # an arc-length path's status is its PathStatus (it was the bare code: printed 0)
+    path = jr.arc_length(model, 0.05, steps=2, load_max=0.01, prescribed={"l": np.array([0.01, 0.0])})
+    assert str(path.status) == path.status.name == "COMPLETED" and f"{path.status}" == "COMPLETED"
+
+
+def test_bodies_and_models_print_as_a_summary():
+    body = jr.Body.grid((40, 40), 1 / 39)
+    model = jr.Model(body, jr.Fung(), essential={"wall": body.select(lambda X: X[:, 0] < 1e-9)})
+    assert repr(body) == "Body(2D box, 1600 particles, spacing 0.02564, [0, 1] x [0, 1])"
+    assert str(model) == ("Model(2D, 1600 particles, Fung, gauss, support 2.01, essential {'wall': 40}, "
+                          f"{type(model.linear).__name__})")
 
 
 def test_unknown_inertia_is_reported_as_unknown(monkeypatch):

@@ -1,3 +1,3 @@
-"""What every layer may use: the outcome enumerations, BLAS/LAPACK threads, and the release
-of compiled programs. Imports nothing of jaxrkpm.
+"""What every layer may use: the outcome enumerations, BLAS/LAPACK threads, the release
+of compiled programs, and the progress bars of long calls. Imports nothing of jaxrkpm.
 """

@@ -23,12 +23,14 @@ device is busy, which on a GPU is thousands of configurations and on a CPU a few
 (a column of a million rows reads without the others), typed (floats stay float64, lists
 stay lists), compressed, and a folder of Parquet files *is* a table: results are appended by
 adding files, never by rewriting one, and pandas, polars, DuckDB or Spark read the folder
-without jaxrkpm (``pandas.read_parquet(out)``). Zarr/xarray suit dense N-dimensional grids;
+without jaxrkpm (``pandas.read_parquet(out)``, ``pyarrow.dataset.dataset(out)``: the
+manifest's name begins with ``_``, which Parquet readers skip). Zarr/xarray suit dense N-dimensional grids;
 a sweep's results are rows with mixed types and ragged failures, which is a table.
 
-**Resume.** The folder holds ``sweep.json`` (the manifest: a fingerprint of the configuration
-table, the chunk size and the evaluator's key) and ``chunk-NNNNNNN.parquet``, named by chunk
-number. A chunk file is written to a temporary name and renamed into place (atomic on one
+**Resume.** The folder holds ``_sweep.json`` (the manifest: a fingerprint of the configuration
+table, the chunk size, the evaluator's key and its code or declared ``sweep_version``) and
+``chunk-NNNNNNN.parquet``, named by chunk number, each carrying the fingerprint in its
+Parquet metadata (a chunk of another sweep, or one cut short, is refused by name). A chunk file is written to a temporary name and renamed into place (atomic on one
 file system), so a chunk file exists only whole; a rerun skips the chunks whose files exist
 and evaluates the others, so each configuration is written exactly once whatever stopped the
 sweep (Ctrl-C, a killed process, a full disk). A folder whose manifest describes another
@@ -57,6 +59,7 @@ environment variables such as thread limits, set before a worker first imports J
 from __future__ import annotations
 
 import hashlib
+import inspect
 import json
 import os
 import time
@@ -66,9 +69,16 @@ from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
-SWEEP_FILE = "sweep.json"
+from ..base.progress import progress_bar
+
+# the manifest's name begins with "_": Parquet readers (pyarrow, pandas, polars) skip such
+# names, so the folder is a dataset any of them opens; folders of earlier versions hold
+# LEGACY_SWEEP_FILE, read as before and renamed when the sweep resumes
+SWEEP_FILE = "_sweep.json"
+LEGACY_SWEEP_FILE = "sweep.json"
 FORMAT = "jaxrkpm-sweep"
-VERSION = 1
+VERSION = 2                         # 2: the fingerprint covers the evaluator's code; chunks carry it
+META_KEY = b"jaxrkpm.sweep"         # a chunk file's Parquet metadata: {"fingerprint", "chunk"}
 ID, STATUS, REASON = "id", "status", "reason"
 OK, ERROR = "OK", "ERROR"
 CHUNK_DIGITS = 7
@@ -83,6 +93,10 @@ FORWARDED_CONFIG = ("jax_enable_x64", "jax_disable_most_optimizations", "jax_def
 
 class SweepFolderError(ValueError):
     """The output folder holds another sweep's results, or is in use by a running sweep."""
+
+
+class SweepInUseError(SweepFolderError):
+    """Another sweep is writing into the output folder (its lock is held)."""
 
 
 class SweepSummary(NamedTuple):
@@ -235,6 +249,31 @@ def evaluator_key(evaluate) -> str:
         return str(key)
     f = getattr(evaluate, "func", evaluate)    # functools.partial
     return f"{getattr(f, '__module__', '?')}.{getattr(f, '__qualname__', type(f).__qualname__)}"
+
+
+def evaluator_code(evaluate) -> str:
+    """What the evaluator computes, for the fingerprint: the ``sweep_version`` it declares
+    (bump it when what it computes changes), else a hash of its source (a function's, or
+    its class's and base classes'; a ``functools.partial`` adds its arguments). Code that
+    it calls elsewhere is not covered: declare ``sweep_version`` for that."""
+    version = getattr(evaluate, "sweep_version", None)
+    if version is not None:
+        return f"version {version}"
+    f = getattr(evaluate, "func", evaluate)
+    h = hashlib.sha256()
+    if f is not evaluate:
+        h.update(repr((getattr(evaluate, "args", ()), sorted(getattr(evaluate, "keywords", {}).items()))).encode())
+    parts = [f] if inspect.isfunction(f) or inspect.ismethod(f) else \
+        [c for c in type(f).__mro__ if c is not object]
+    for part in parts:
+        try:
+            text = inspect.getsource(part)
+        except (OSError, TypeError):       # defined at a prompt, or built in: its compiled code or its name
+            code = getattr(part, "__code__", None)
+            text = repr((code.co_code, code.co_consts)) if code is not None else \
+                f"{getattr(part, '__module__', '?')}.{getattr(part, '__qualname__', '?')}"
+        h.update(text.encode())
+    return "code " + h.hexdigest()[:16]
 
 
 # ------------------------------------------------------------------ evaluating a chunk
@@ -407,32 +446,79 @@ def write_atomic(path: Path, write: Callable[[Path], None]) -> None:
     _fsync_dir(path.parent)
 
 
-def _write_chunk(out: Path, k: int, table) -> None:
+def _write_chunk(out: Path, k: int, table, fingerprint: str) -> None:
     import pyarrow.parquet as pq
+    # the sweep's fingerprint travels in the file: a chunk of another sweep is recognised
+    meta = {**(table.schema.metadata or {}), META_KEY: json.dumps({"fingerprint": fingerprint, "chunk": k}).encode()}
+    table = table.replace_schema_metadata(meta)
     write_atomic(chunk_path(out, k), lambda tmp: pq.write_table(table, tmp))
 
 
-def _claim(out: Path, manifest: dict) -> None:
-    """Write the manifest into ``out``, or check that the one there is this sweep's."""
-    path = out / SWEEP_FILE
+def _chunk_schemas(out: Path, files: dict, manifest: dict) -> list:
+    """The schemas of the chunk files ``files`` ({chunk number: path}), each checked: readable
+    and carrying the fingerprint of the sweep whose ``manifest`` the folder holds; raises a
+    :class:`SweepFolderError` naming the file otherwise."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    fp, legacy = manifest.get("fingerprint"), manifest.get("version", 1) < 2
+    schemas = []
+    for k, path in sorted(files.items()):
+        try:
+            schema = pq.read_schema(path)
+        except (pa.ArrowException, OSError) as e:
+            raise SweepFolderError(f"the chunk file {path} is unreadable ({type(e).__name__}: {e}), cut short or "
+                                   f"not Parquet: delete it and run the same sweep again to redo chunk {k}") from None
+        raw = (schema.metadata or {}).get(META_KEY)
+        if raw is None and legacy:        # written before chunks carried the fingerprint
+            schemas.append(schema)
+            continue
+        try:
+            meta = json.loads(raw)
+        except (TypeError, ValueError):
+            meta = {}
+        if not isinstance(meta, dict) or meta.get("fingerprint") != fp:
+            raise SweepFolderError(f"the chunk file {path} was not written by the sweep in {out}/ (its fingerprint "
+                                   f"{str(meta.get('fingerprint') if isinstance(meta, dict) else None)[:12]}, the "
+                                   f"sweep's {str(fp)[:12]}): a chunk of another sweep; delete it and run the "
+                                   f"sweep again to redo chunk {k}")
+        if meta.get("chunk") != k:
+            raise SweepFolderError(f"the chunk file {path} holds chunk {meta.get('chunk')} of this sweep, not chunk "
+                                   f"{k}: delete it and run the sweep again to redo chunk {k}")
+        schemas.append(schema.remove_metadata())
+    return schemas
+
+
+def _claim(out: Path, manifest: dict) -> dict:
+    """Write the manifest into ``out``, or check that the one there is this sweep's; returns
+    the manifest in force (an earlier version's, whose fingerprint does not cover the
+    evaluator's code, where the folder holds one of this sweep)."""
+    legacy = manifest.pop("legacy_fingerprint", None)
+    path = manifest_path(out)
     if path.exists():
         try:
             earlier = json.loads(path.read_text())
+            if not isinstance(earlier, dict):
+                raise ValueError("not a JSON object")
         except (OSError, ValueError) as e:
             raise SweepFolderError(f"{path} is unreadable ({e}): choose another folder or remove it") from None
-        if earlier.get("fingerprint") != manifest["fingerprint"]:
-            diff = [k for k in ("configurations", "chunk_size", "evaluator", "columns")
-                    if earlier.get(k) != manifest.get(k)]
+        mine = legacy if earlier.get("version", 1) < 2 else manifest["fingerprint"]
+        if earlier.get("fingerprint") != mine:
+            names = {"configurations": "configurations", "chunk_size": "chunk_size", "evaluator": "evaluator",
+                     "columns": "columns", "evaluator_code": "the evaluator's code (or its sweep_version)"}
+            diff = [words for k, words in names.items() if earlier.get(k) != manifest.get(k)]
             what = f"they differ in {', '.join(diff)}" if diff else "the configuration values differ"
             raise SweepFolderError(f"{out}/ holds the results of another sweep ({what}; its manifest: "
                                    f"{earlier.get('configurations')} configurations, evaluator "
                                    f"{earlier.get('evaluator')!r}): choose another folder, or delete it to start over")
-        return
+        if path.name == LEGACY_SWEEP_FILE:     # an earlier version's folder: readable by any Parquet reader now
+            os.replace(path, out / SWEEP_FILE)
+        return earlier
     strays = [p.name for p in out.iterdir() if not p.name.startswith(".")]
     if strays:
         raise SweepFolderError(f"{out}/ already holds files and no sweep manifest ({', '.join(sorted(strays)[:5])}): "
                                "choose an empty or new folder")
-    write_atomic(path, lambda tmp: tmp.write_text(json.dumps(manifest, indent=1)))
+    write_atomic(out / SWEEP_FILE, lambda tmp: tmp.write_text(json.dumps(manifest, indent=1)))
+    return manifest
 
 
 def _lock(out: Path):
@@ -441,7 +527,7 @@ def _lock(out: Path):
     try:
         lock.acquire(timeout=0)
     except Timeout:
-        raise SweepFolderError(f"another sweep is writing into {out}/ (its lock {out / '.sweep.lock'} is "
+        raise SweepInUseError(f"another sweep is writing into {out}/ (its lock {out / '.sweep.lock'} is "
                                "held): wait for it, or choose another folder") from None
     return lock
 
@@ -609,8 +695,10 @@ def choose_chunk_size(configurations, evaluate, *, executor=None, start: int = 4
         raise ValueError(f"max_chunk_s must be a positive number of seconds, got {max_chunk_s!r}")
     settings = worker_settings() if settings is None else settings
     if executor is None:
+        import sys
         from tqdm import tqdm
-        report = tqdm.write if progress else (lambda line: None)
+        # what is measured goes where the bars go (stderr, on a terminal), not into stdout
+        report = (lambda line: tqdm.write(line, file=sys.stderr)) if progress and _terminal() else _quiet
         return _measure_chunk_sizes(evaluate, table, start, tolerance, max_chunk_s, settings, report)
     client, owned = _dask(executor)
     try:
@@ -620,6 +708,11 @@ def choose_chunk_size(configurations, evaluate, *, executor=None, start: int = 4
     finally:
         if owned:
             client.close()
+
+
+def _terminal() -> bool:
+    import sys
+    return bool(getattr(sys.stderr, "isatty", lambda: False)())
 
 
 def _quiet(line) -> None:
@@ -648,10 +741,19 @@ def _chunk_size_of(out, configurations, evaluate, chunk_size=AUTO, **measure) ->
     return choice.chosen, choice
 
 
+def manifest_path(out) -> Path:
+    """The manifest of the sweep in ``out``: ``_sweep.json``, or an earlier version's
+    ``sweep.json`` where only that exists."""
+    out = Path(out)
+    if not (out / SWEEP_FILE).exists() and (out / LEGACY_SWEEP_FILE).exists():
+        return out / LEGACY_SWEEP_FILE
+    return out / SWEEP_FILE
+
+
 def _folder_chunk_size(out) -> int | None:
     """The chunk size of the sweep whose manifest ``out`` holds, or None."""
     try:
-        return int(json.loads((Path(out) / SWEEP_FILE).read_text())["chunk_size"])
+        return int(json.loads(manifest_path(out).read_text())["chunk_size"])
     except (OSError, ValueError, KeyError, TypeError):
         return None
 
@@ -688,9 +790,10 @@ def sweep(configurations, evaluate: Callable[[dict], Mapping], out, *, chunk_siz
         evaluate = evaluate.for_chunk_size(chunk_size)
     n = table.num_rows
     n_chunks = -(-n // chunk_size)
-    key = evaluator_key(evaluate)
-    manifest = {"format": FORMAT, "version": VERSION, "fingerprint": fingerprint(table, chunk_size, key),
+    key, code = evaluator_key(evaluate), evaluator_code(evaluate)
+    manifest = {"format": FORMAT, "version": VERSION, "fingerprint": fingerprint(table, chunk_size, key, code),
                 "configurations": n, "chunk_size": chunk_size, "chunks": n_chunks, "evaluator": key,
+                "evaluator_code": code, "legacy_fingerprint": fingerprint(table, chunk_size, key),
                 "columns": {c: str(t) for c, t in zip(table.column_names, table.schema.types)},
                 "files": f"chunk-{'N' * CHUNK_DIGITS}.parquet: configurations [N * chunk_size, (N + 1) * chunk_size)",
                 "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
@@ -699,22 +802,23 @@ def sweep(configurations, evaluate: Callable[[dict], Mapping], out, *, chunk_siz
                                            "why_stopped": choice.why}
     lock = _lock(out)
     try:
-        _claim(out, manifest)
+        manifest = _claim(out, manifest)
         for stale in out.glob(".chunk-*.tmp"):    # a write cut short by a killed driver
             stale.unlink(missing_ok=True)
         finished = _finished_chunks(out)
+        _chunk_schemas(out, {k: p for k, p in finished.items() if k < n_chunks}, manifest)
         todo = [k for k in range(n_chunks) if k not in finished]
 
         def chunks(k):
             return table.slice(k * chunk_size, chunk_size)
 
-        from tqdm import tqdm
-        bar = tqdm(total=n, initial=sum(chunks(k).num_rows for k in finished if k < n_chunks),
-                   unit="config", desc="sweep", disable=not progress, dynamic_ncols=True)
+        # on a terminal only, drawn in place and left once at the end
+        bar = progress_bar(n, initial=sum(chunks(k).num_rows for k in finished if k < n_chunks),
+                           unit="config", desc="sweep", progress=progress, leave=True)
         failed = [0]
 
         def done(k, result):
-            _write_chunk(out, k, result)
+            _write_chunk(out, k, result, manifest["fingerprint"])
             failed[0] += int(np.sum(np.asarray(result.column(STATUS).to_pylist()) == ERROR))
             bar.update(result.num_rows)
             if failed[0]:
@@ -734,27 +838,39 @@ def sweep(configurations, evaluate: Callable[[dict], Mapping], out, *, chunk_siz
 
 
 # ------------------------------------------------------------------ reading back
-def _files(out: Path) -> list:
+def _files(out: Path) -> dict:
     out = Path(out)
-    if not (out / SWEEP_FILE).exists():
+    if not manifest_path(out).exists():
         # a run's output folder often holds its sweep one level down (the CLI's DIR/table/)
-        below = sorted(p.parent.name for p in out.glob(f"*/{SWEEP_FILE}")) if out.is_dir() else []
+        below = sorted({p.parent.name for name in (SWEEP_FILE, LEGACY_SWEEP_FILE)
+                        for p in out.glob(f"*/{name}")}) if out.is_dir() else []
         hint = f": the sweep is in {out / below[0]}/" if len(below) == 1 else \
             (f": sweeps are in its subfolders {below}" if below else ": give the folder a sweep wrote")
         raise FileNotFoundError(f"{out}/ holds no sweep (no {SWEEP_FILE}){hint}")
-    return [str(p) for _, p in sorted(_finished_chunks(out).items())]
+    return _finished_chunks(out)
+
+
+def _manifest(out: Path) -> dict:
+    try:
+        manifest = json.loads(manifest_path(out).read_text())
+        if not isinstance(manifest, dict):
+            raise ValueError("not a JSON object")
+        return manifest
+    except (OSError, ValueError) as e:
+        raise SweepFolderError(f"{manifest_path(out)} is unreadable ({e}): the folder's manifest is damaged") from None
 
 
 def results_dataset(out):
     """The results in ``out`` as a ``pyarrow.dataset.Dataset`` (lazy: filter and select
-    columns before reading), over the chunk files written so far; the schema unifies the
-    chunks (a chunk of ``ERROR`` rows only lacks the result columns: they read as null)."""
+    columns before reading), over the chunk files written so far, each checked (readable,
+    and written by this folder's sweep: :class:`SweepFolderError` names the file otherwise);
+    the schema unifies the chunks (a chunk of ``ERROR`` rows only lacks the result columns:
+    they read as null)."""
     import pyarrow.dataset as ds
-    import pyarrow.parquet as pq
     files = _files(out)
-    schemas = [pq.read_schema(f) for f in files]
+    schemas = _chunk_schemas(Path(out), files, _manifest(Path(out)))
     schema = _pa().unify_schemas(schemas, promote_options="permissive") if schemas else None
-    return ds.dataset(files, schema=schema, format="parquet")
+    return ds.dataset([str(p) for _, p in sorted(files.items())], schema=schema, format="parquet")
 
 
 def read_sweep(out, columns: Sequence[str] | None = None, check: bool = True):

@@ -66,6 +66,14 @@ class Body:
     cells: np.ndarray | None = None
     tags: dict = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        # a summary, not the arrays: printing a body of thousands of particles stays one line
+        box = " x ".join(f"[{lo:.4g}, {hi:.4g}]" for lo, hi in zip(np.ravel(self.lower), np.ravel(self.upper)))
+        kind = "mesh" if self.cells is not None else ("box" if self.is_box else "polygon")
+        cells = "" if self.cells is None else f", {len(self.cells)} cells"
+        tags = f", tags {sorted(self.tags)}" if self.tags else ""
+        return f"Body({self.dim}D {kind}, {self.n} particles{cells}, spacing {self.spacing:.4g}, {box}{tags})"
+
     @property
     def dim(self) -> int:
         return self.X.shape[1]
@@ -163,7 +171,7 @@ class Body:
         return Body(X, vol, float(spacing), V.min(0), V.max(0), V, False, cKDTree(X))
 
     @staticmethod
-    def from_mesh(source, dim: int | None = None, refine: int = 0) -> "Body":
+    def from_mesh(source, dim: int | None = None, refine: int = 0, drop_degenerate: bool = False) -> "Body":
         """Body from a tetrahedral (3D) or triangular (2D) volume mesh: a path to any file
         meshio reads (VTU/VTK, Gmsh .msh, Abaqus .inp, Medit .mesh, ...) or a meshio.Mesh
         (e.g. from ``jaxrkpm.half_ellipsoid``). ``dim`` 3 or 2 (default: 3 if the mesh
@@ -177,8 +185,11 @@ class Body:
         vertices, faces of more than two cells, cells folded over a neighbour), each
         failure a ValueError naming it; cells with the opposite vertex order are reordered
         (a mesher's convention: scipy's Delaunay and scikit-fem mix both) and points that
-        no cell uses dropped, said in one line of the ``jaxrkpm.discretise.mesh`` logger."""
-        vm = mesh.volume_mesh(mesh.refine_mesh(source, refine) if refine else source, dim)
+        no cell uses dropped, said in one line of the ``jaxrkpm.discretise.mesh`` logger.
+        ``drop_degenerate``: zero-volume cells (the slivers scipy's ``Delaunay`` makes of
+        points on a lattice), which are refused by default, are dropped, and their number
+        said in that line."""
+        vm = mesh.volume_mesh(mesh.refine_mesh(source, refine) if refine else source, dim, drop_degenerate)
         X = vm.points
         return Body(X, mesh.vertex_volumes(X, vm.cells), mesh.mean_edge_length(X, vm.cells),
                     X.min(0), X.max(0), None, False, cKDTree(X), vm.cells, vm.tags)

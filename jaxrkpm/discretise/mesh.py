@@ -140,12 +140,21 @@ class VolumeMesh:
         return self.points.shape[1]
 
 
-def volume_mesh(source, dim: int | None = None) -> VolumeMesh:
+FLAT = 1e-10     # a cell whose measure is below this fraction of the mean is degenerate (zero volume)
+
+
+def volume_mesh(source, dim: int | None = None, drop_degenerate: bool = False) -> VolumeMesh:
     """The simplices of a mesh (tetrahedra for ``dim`` 3, triangles for 2; default: 3 if
     the mesh has tetrahedra), validated, each positively oriented, unused vertices dropped,
     with its tags. Raises a ValueError naming the defect: non-finite coordinates, no cells,
     connectivity that is not integer or indexes past the points (a -1 included), zero-volume
-    cells, coincident vertices, a face of more than two cells, cells folded over each other."""
+    cells, coincident vertices, a face of more than two cells, cells folded over each other.
+    ``drop_degenerate``: zero-volume cells (the slivers of scipy's ``Delaunay`` on points of
+    a lattice) are dropped instead of refused, and counted (``report["degenerate"]`` and the
+    log line); they add nothing to the body's volume, and the faces they leave unmatched
+    inside the body are not boundary (:func:`boundary_faces`)."""
+    if not isinstance(drop_degenerate, (bool, np.bool_)):
+        raise ValueError(f"drop_degenerate must be True or False, got {drop_degenerate!r}")
     mesh = read_mesh(source)
     name = source_name(source)
     kinds = {b.type for b in mesh.cells}
@@ -164,6 +173,13 @@ def volume_mesh(source, dim: int | None = None) -> VolumeMesh:
     if not len(cells):
         raise ValueError(f"the mesh {name} has no {SIMPLEX[dim]} cells: its {SIMPLEX[dim]} blocks are empty")
     points = _coordinates(points, dim)
+    degenerate = 0
+    if drop_degenerate:
+        vol = np.abs(simplex_volumes(points, cells))
+        flat = vol <= FLAT * vol.mean()
+        if flat.all():
+            raise ValueError(f"every {SIMPLEX[dim]} cell of the mesh {name} has zero volume: it has no body")
+        cells, degenerate = cells[~flat], int(flat.sum())
     used, cells = np.unique(cells, return_inverse=True)
     cells = cells.reshape(-1, dim + 1)
     dropped = np.setdiff1d(np.arange(len(mesh.points)), used)
@@ -177,16 +193,19 @@ def volume_mesh(source, dim: int | None = None) -> VolumeMesh:
         kept = np.unique(kept[kept >= 0])
         if kept.size:
             tags[tag] = kept
-    report = {"reoriented": reoriented, "dropped": dropped}
-    _say(name, SIMPLEX[dim], len(cells), reoriented, dropped, mesh)
+    report = {"reoriented": reoriented, "dropped": dropped, "degenerate": degenerate}
+    _say(name, SIMPLEX[dim], len(cells), reoriented, dropped, mesh, degenerate)
     return VolumeMesh(points, cells, tags, report)
 
 
-def _say(name, kind, n_cells, reoriented, dropped, mesh):
+def _say(name, kind, n_cells, reoriented, dropped, mesh, degenerate=0):
     """One log line for what loading repaired: INFO for reordered cells (a convention) and
     for the mid-edge nodes of second-order cells; WARNING where points that no cell at all
     uses were dropped (the file holds stray points: particle indices differ from its own)."""
     notes = []
+    if degenerate:
+        notes.append(f"{degenerate} zero-volume {kind} cells were dropped (drop_degenerate=True); "
+                     f"{n_cells} remain")
     if reoriented:
         notes.append(f"{reoriented} of {n_cells} {kind} cells had the opposite vertex order and were "
                      "reordered (orientation is a convention of the mesher)")
@@ -283,11 +302,13 @@ def _checked_cells(points, cells):
                          "merge duplicate nodes first")
     vol = simplex_volumes(points, cells)
     name = SIMPLEX[d]
-    flat = np.abs(vol) <= 1e-10 * np.abs(vol).mean()
+    flat = np.abs(vol) <= FLAT * np.abs(vol).mean()
     if flat.any():
         c = int(np.flatnonzero(flat)[0])
-        raise ValueError(f"{int(flat.sum())} zero-volume {name} cells, e.g. cell {c} with vertices "
-                         f"{cells[c].tolist()} (volume {vol[c]:.3g})")
+        raise ValueError(f"{int(flat.sum())} of {len(cells)} {name} cells are zero-volume, e.g. cell {c} with "
+                         f"vertices {cells[c].tolist()} (volume {vol[c]:.3g}): slivers, as scipy's Delaunay makes "
+                         "of points on a lattice; Body.from_mesh(..., drop_degenerate=True) drops them (they add "
+                         "no volume), or use a mesher that makes none")
     negative = vol < 0
     cells = cells.copy()
     cells[negative] = cells[negative][:, [1, 0, *range(2, d + 1)]]
@@ -464,7 +485,35 @@ def boundary_faces(points: np.ndarray, cells: np.ndarray):
         n = np.stack([t[:, 1], -t[:, 0]], 1)
     inward = np.sum(n * (opposite - a), 1) > 0
     F[inward] = F[inward][:, ::-1] if points.shape[1] == 2 else F[inward][:, [0, 2, 1]]
-    return F, cell, local
+    n[inward] *= -1
+    inside = _faces_inside(points, cells, F, n)
+    return F[~inside], cell[~inside], local[~inside]
+
+
+def _faces_inside(points, cells, F, n) -> np.ndarray:
+    """(M,) whether each unmatched face has body on its outer side too: the faces a dropped
+    zero-volume cell left between two cells that triangulate the same plane differently
+    (a point just outside the face lies in another cell). None in a conforming mesh."""
+    d = points.shape[1]
+    centre = points[F].mean(axis=1)
+    size = np.linalg.norm(n, axis=1, keepdims=True)
+    scale = mean_edge_length(points, cells)
+    probe = centre + 1e-6 * scale * n / np.maximum(size, 1e-300)
+    k = min(16, len(cells))
+    tree = cKDTree(points[cells].mean(axis=1))
+    inside = np.zeros(len(probe), bool)
+    for start in range(0, len(probe), 4096):         # bounded memory on large surfaces
+        p = probe[start:start + 4096]
+        _, near = tree.query(p, k=k)
+        near = np.asarray(near).reshape(len(p), k)
+        V = points[cells[near]]                                  # (m, k, d+1, d)
+        T = np.swapaxes(V[:, :, 1:] - V[:, :, :1], -1, -2)       # (m, k, d, d) edge vectors as columns
+        ok = np.abs(np.linalg.det(T)) > 0
+        T[~ok] = np.eye(d)
+        lam = np.linalg.solve(T, (p[:, None, :] - V[:, :, 0])[..., None])[..., 0]
+        bary = np.concatenate([1 - lam.sum(-1, keepdims=True), lam], -1)
+        inside[start:start + 4096] = np.any(ok & np.all(bary > -1e-9, axis=-1), axis=1)
+    return inside
 
 
 def facet_normals(V: np.ndarray):

@@ -19,9 +19,16 @@ from . import output  # noqa: E402
 UNITS = "model units"
 
 
-def deformed_particles(ax, X, u, title=None, vmax=None, cmap="viridis", size=30, show_reference=True):
+def _colorbar(ax, mappable, label: str):
+    """A colour bar beside ``ax`` saying what the colours mean."""
+    return ax.figure.colorbar(mappable, ax=ax, label=label, shrink=0.8)
+
+
+def deformed_particles(ax, X, u, title=None, vmax=None, cmap="viridis", size=30, show_reference=True,
+                       colorbar: bool = True):
     """Scatter the deformed particles x = X + u (2D, or the x-z projection in 3D),
-    coloured by |u|. Returns the scatter artist (for a colour bar)."""
+    coloured by |u|, with a colour bar (``colorbar=False``: none, e.g. where several axes
+    share one). Returns the scatter artist."""
     X, u = np.asarray(X), np.asarray(u)
     x = X + u
     mag = np.linalg.norm(u, axis=1)
@@ -36,6 +43,8 @@ def deformed_particles(ax, X, u, title=None, vmax=None, cmap="viridis", size=30,
     ax.set_ylabel(f"{'xyz'[j]} ({UNITS})")
     if title:
         ax.set_title(title)
+    if colorbar:
+        _colorbar(ax, sc, f"|u| ({UNITS})")
     return sc
 
 
@@ -45,11 +54,12 @@ def save(fig, path):
     plt.close(fig)
 
 
-def deformed_surface(ax, model, sol, *, norm=None, cmap="viridis", show_reference=True):
+def deformed_surface(ax, model, sol, *, norm=None, cmap="viridis", show_reference=True, colorbar: bool = True):
     """Draw a solved 3D body on the mplot3d axes ``ax``: the surface of its viewing cells
     (:func:`jaxrkpm.io.output.body_cells`) at the deformed particles X + u, each face coloured by
     the mean von Mises (Cauchy) stress of its vertices, and the reference surface's edges
-    faint. Sets equal aspect over both. Returns the face collection (a colour bar mappable)."""
+    faint, and a colour bar (``colorbar=False``: none). Sets equal aspect over both. Returns
+    the face collection."""
     if model.dim != 3:
         raise ValueError(f"deformed_surface draws 3D bodies, this model is {model.dim}D: "
                          "use deformed_particles for 2D")
@@ -72,16 +82,20 @@ def deformed_surface(ax, model, sol, *, norm=None, cmap="viridis", show_referenc
            zlim=(lo[2] - pad, hi[2] + pad))
     ax.set_box_aspect(hi - lo + 2 * pad)
     tidy_3d_axes(ax)
+    if colorbar:
+        _colorbar(ax, polys, "von Mises (Cauchy) stress")
     return polys
 
 
-def contact_pressures(ax, model, sol, params=None, *, cmap="magma", vmax=None):
+def contact_pressures(ax, model, sol, params=None, *, cmap="magma", vmax=None, colorbar: bool = True):
     """Draw the rigid tools (``jaxrkpm.Contact``) of a solved model at the poses in ``params``
     (the solve's) and their contact: in 2D each tool's outline, filled grey where it is solid,
     and the active contact points at their deformed positions coloured by the contact
-    pressure, with arrows of the tool's force on each point; in 3D (mplot3d axes) the active
-    points coloured by pressure (the tools' surfaces are not drawn). Returns the scatter of
-    the last tool with active points (a colour bar mappable), or None."""
+    pressure, with arrows of the tool's force on each point; in 3D (mplot3d axes) the
+    deformed particles faint and the active points coloured by pressure (the tools' surfaces
+    are not drawn), the axes fitted to the body. A colour bar of the pressure
+    (``colorbar=False``: none). Returns the scatter of the last tool with active points, or
+    None."""
     problem = model.problem(params)
     tools = [t for t in problem.terms if isinstance(t, ContactTerm)]
     if not tools:
@@ -108,11 +122,21 @@ def contact_pressures(ax, model, sol, params=None, *, cmap="magma", vmax=None):
                 ax.quiver(pts[:, 0], pts[:, 1], f[:, 0], f[:, 1], color="0.2", width=0.003, zorder=3)
                 sc = ax.scatter(pts[:, 0], pts[:, 1], c=p, s=12, cmap=cmap, vmin=0, vmax=vmax, zorder=4)
         elif len(pts):
-            sc = ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c=p, s=10, cmap=cmap, vmin=0, vmax=vmax)
+            sc = ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c=p, s=30, cmap=cmap, vmin=0, vmax=vmax,
+                            edgecolors="k", linewidths=0.3, depthshade=False)
     if model.dim == 2:
         ax.set_xlim(lo[0] - 0.25 * span, hi[0] + 0.25 * span)
         ax.set_ylim(lo[1] - 0.25 * span, hi[1] + 0.25 * span)
         ax.set_aspect("equal")
+    else:
+        # the body for context, and the axes fitted to it (mplot3d does not autoscale to a
+        # scatter added alone, which left the points outside the view)
+        ax.scatter(x[:, 0], x[:, 1], x[:, 2], s=4, color="0.6", alpha=0.4, depthshade=False)
+        pad = 0.05 * span
+        ax.set(xlim=(lo[0] - pad, hi[0] + pad), ylim=(lo[1] - pad, hi[1] + pad), zlim=(lo[2] - pad, hi[2] + pad))
+        ax.set_box_aspect(hi - lo + 2 * pad)
+    if colorbar and sc is not None:
+        _colorbar(ax, sc, "contact pressure")
     return sc
 
 
@@ -152,7 +176,7 @@ def deformed_body_png(path, model, sol, *, title=None, stress_unit=None, view=(2
     stresses come). ``view`` = (elevation, azimuth) in degrees. Returns the path."""
     fig = plt.figure(figsize=(7.0, 5.6))
     ax = fig.add_subplot(projection="3d", computed_zorder=False)   # the reference wireframe on top
-    polys = deformed_surface(ax, model, sol)
+    polys = deformed_surface(ax, model, sol, colorbar=False)
     ax.view_init(*view)
     unit = stress_unit or "units of the material constants"
     fig.colorbar(polys, ax=ax, shrink=0.7, pad=0.1, label=f"von Mises (Cauchy) stress ({unit})")

@@ -82,7 +82,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..discretise.quadrature import Table
-from .term import Context, Pairs, Term, TermSpec, static, term
+from .term import Context, Pairs, Term, TermSpec, boolean_mask, static, term
 
 LN2_HALF = float(np.log(2.0) + 0.5)   # p(ghat / 2) = kappa ghat (ln 2 + 1/2)
 
@@ -100,6 +100,14 @@ def _safe_norm(v):
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, s, 1.0)), 0.0)
 
 
+def _length(owner: str, name: str, v, zero: bool = False) -> float:
+    """``v`` as a float, checked: a finite number > 0 (>= 0 with ``zero``)."""
+    ok = not isinstance(v, (bool, np.bool_)) and isinstance(v, (int, float, np.integer, np.floating))
+    if not ok or not np.isfinite(v) or not (v >= 0 if zero else v > 0):
+        raise ValueError(f"{owner}.{name} must be a finite number {'>= 0' if zero else '> 0'}, got {v!r}")
+    return float(v)
+
+
 @dataclass(frozen=True)
 class HalfSpace:
     """The half-space {n . y <= 0} of the tool's frame (a plate's face through its origin);
@@ -109,7 +117,14 @@ class HalfSpace:
 
     def __post_init__(self):
         if self.normal is not None:
-            object.__setattr__(self, "normal", tuple(float(v) for v in self.normal))
+            try:
+                n = np.asarray(self.normal, float).reshape(-1)
+            except (TypeError, ValueError):
+                raise ValueError(f"HalfSpace.normal must be a vector of numbers, got {self.normal!r}") from None
+            if not np.all(np.isfinite(n)) or not np.linalg.norm(n) > 0:
+                raise ValueError(f"HalfSpace.normal must be a finite, non-zero vector (the outward normal), "
+                                 f"got {self.normal!r}")
+            object.__setattr__(self, "normal", tuple(float(v) for v in n))
 
     def sdf(self, y):
         n = np.zeros(y.shape[-1]) if self.normal is None else np.asarray(self.normal, float)
@@ -126,6 +141,9 @@ class Sphere:
 
     radius: float
 
+    def __post_init__(self):
+        object.__setattr__(self, "radius", _length("Sphere", "radius", self.radius))
+
     def sdf(self, y):
         return _safe_norm(y) - self.radius
 
@@ -137,6 +155,10 @@ class Capsule:
 
     half_length: float
     radius: float
+
+    def __post_init__(self):
+        object.__setattr__(self, "half_length", _length("Capsule", "half_length", self.half_length, zero=True))
+        object.__setattr__(self, "radius", _length("Capsule", "radius", self.radius))
 
     def sdf(self, y):
         t = jnp.clip(y[..., 0], -self.half_length, self.half_length)
@@ -152,7 +174,18 @@ class Box:
     radius: float = 0.0
 
     def __post_init__(self):
-        object.__setattr__(self, "half", tuple(float(v) for v in np.atleast_1d(self.half)))
+        try:
+            half = np.atleast_1d(np.asarray(self.half, float))
+        except (TypeError, ValueError):
+            raise ValueError(f"Box.half must be the box's half extents (numbers), got {self.half!r}") from None
+        if half.ndim != 1 or not np.all(np.isfinite(half)) or np.any(half < 0):
+            raise ValueError(f"Box.half must be finite half extents >= 0, one per axis, got {self.half!r}")
+        radius = _length("Box", "radius", self.radius, zero=True)
+        if np.any(half + radius <= 0):
+            raise ValueError(f"Box: a half extent of 0 needs radius > 0 (the box would have no thickness), "
+                             f"got half={self.half!r}, radius={self.radius!r}")
+        object.__setattr__(self, "half", tuple(float(v) for v in half))
+        object.__setattr__(self, "radius", radius)
 
     def sdf(self, y):
         h = jnp.asarray(np.asarray(self.half, float))
@@ -408,6 +441,17 @@ class ContactResult(NamedTuple):
     lag: dict
 
 
+class ContactPenetrationWarning(UserWarning):
+    """A solve converged with contact points inside a tool (``min_gap < 0``): the barrier's
+    pressure (``Contact.pressure``) is too low for the load, or the step too long."""
+
+
+def penetration(term: "ContactTerm", d, load) -> float:
+    """The smallest gap of the contact ``term``'s points at coefficients ``d`` (N, d) and load
+    scale ``load`` (negative: a point inside the tool)."""
+    return float(jnp.min(term.gaps(term.points(d), load)))
+
+
 def contact_forces(model, sol, name: str, params=None) -> ContactResult:
     """The contact of the tool ``name`` (a ``Contact`` term of ``model``) at the solution
     ``sol`` (solved with ``params``): forces (normal and tangential), pressure, gaps, active
@@ -480,9 +524,10 @@ class Contact(TermSpec):
             raise ValueError(f"contact {self.name!r}: position must be {dim} finite numbers, got {self.position!r}")
         rshape = () if dim == 2 else (3,)
         r0 = np.zeros(rshape) if self.rotation is None else np.asarray(self.rotation, float)
-        if r0.shape != rshape:
+        if r0.shape != rshape or not np.all(np.isfinite(r0)):
             raise ValueError(f"contact {self.name!r}: rotation must be " + (
-                "an angle (a number)" if dim == 2 else "a rotation vector (3 numbers)") + f", got {self.rotation!r}")
+                "a finite angle (a number)" if dim == 2 else "a rotation vector (3 finite numbers)")
+                + f", got {self.rotation!r}")
         rule = _contact_points(ctx, self.where, self.name)
         X, w = rule.points, rule.weights
         kappa = self.pressure / (self.gap * LN2_HALF)
@@ -509,7 +554,7 @@ def _contact_points(ctx: Context, where, name) -> Table:
     which ``where`` holds; their shape functions are trimmed to the widest kept row."""
     rule = ctx.surface if ctx.balanced is None else ctx.balanced
     if where is not None:
-        mask = np.asarray(where(rule.points), bool)
+        mask = boolean_mask(where(rule.points), f"contact {name!r}: where")
         if mask.shape != (len(rule.points),):
             raise ValueError(f"contact {name!r}: where must return ({len(rule.points)},) booleans "
                              f"(one per boundary quadrature point), got shape {mask.shape}")

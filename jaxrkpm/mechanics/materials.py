@@ -11,6 +11,7 @@ from typing import Callable, Mapping
 
 import jax
 import jax.numpy as jnp
+from jax.experimental import checkify
 import numpy as np
 
 
@@ -75,11 +76,18 @@ class Material:
             p = {**{k: jnp.asarray(v, jnp.float64) for k, v in point.items()},
                  **{k: jnp.asarray(v) for k, v in self.global_params(dim).items()}}
             shape = jax.eval_shape(self.W, jnp.asarray(E), p).shape
-            value = None if shape != () else float(jax.jit(self.W)(jnp.asarray(E), p))
+            value, outside = None, None
+            if shape == ():
+                # JAX clamps an index past the strain's size (E[2, 2] of a 2D strain): checked here
+                err, value = jax.jit(checkify.checkify(self.W, errors=checkify.index_checks))(jnp.asarray(E), p)
+                value, outside = float(value), err.get()
         except Exception as e:   # any failure of user code: name it and where it happened
             raise ValueError(f"{self.name}: the strain energy W(E, params) fails on a {dim}D test "
                              f"strain with parameters {sorted(p) if 'p' in locals() else sorted(point)}: "
                              f"{type(e).__name__}: {e}") from e
+        if outside:
+            raise ValueError(f"{self.name}: the strain energy W(E, params) reads outside the {dim}x{dim} "
+                             f"strain of a {dim}D body ({outside.strip()}): index E by the body's dimension")
         if shape != ():
             raise ValueError(f"{self.name}: the strain energy W(E, params) must return a scalar, "
                              f"got shape {shape} (sum it, e.g. jnp.sum(...))")

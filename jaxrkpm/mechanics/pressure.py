@@ -42,7 +42,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .materials import det
-from .term import Context, Pairs, Term, TermSpec, static, term, window_plan
+from .term import Context, Pairs, Term, TermSpec, boolean_mask, static, term, window_plan
 
 
 def _volume_change(Y, U):
@@ -215,7 +215,7 @@ class Pressure(TermSpec):
     def build(self, ctx: Context) -> PressureTerm:
         body = ctx.body
         facets, normals = body.boundary_facets()
-        mask = np.asarray(self.where(facets.mean(1)), bool)
+        mask = boolean_mask(self.where(facets.mean(1)), f"pressure {self.name!r}: where")
         if mask.shape != (len(facets),):
             raise ValueError(f"pressure {self.name!r}: where must return ({len(facets)},) booleans "
                              f"(one per boundary facet centre), got shape {mask.shape}")

@@ -118,6 +118,16 @@ class Pairs(NamedTuple):
         return self.i.shape[-1]
 
 
+
+def boolean_mask(values, what: str) -> np.ndarray:
+    """A predicate's answer, checked to be booleans: numbers would be cast (non-zero = True),
+    loading the wrong part of the boundary without a word. ``what`` names the predicate."""
+    arr = np.asarray(values)
+    if arr.dtype != np.bool_:
+        raise ValueError(f"{what} must return booleans, got {arr.dtype} values (a number is not a side: "
+                         "return a comparison, e.g. X[:, 0] > 0.5)")
+    return arr
+
 @dataclass(frozen=True)
 class Context:
     """What a term's builder may use (host side, NumPy): the body, its kernel dilation ``a``

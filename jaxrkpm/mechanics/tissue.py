@@ -186,6 +186,10 @@ def bulk_modulus(mu, nu):
     ν in (−1, 1/2)."""
     nu = check_poisson(nu)
     factor = 2.0 * (1.0 + nu) / (3.0 * (1.0 - 2.0 * nu))
+    if not callable(mu):
+        arr = np.asarray(mu, float)
+        if not np.all(np.isfinite(arr)) or not np.all(arr > 0):
+            raise ValueError(f"bulk_modulus: the shear modulus mu must be positive and finite, got {mu!r}")
     if callable(mu):
         return lambda X: factor * np.asarray(mu(X), float)
     return factor * mu
@@ -287,6 +291,16 @@ def Ogden(mu: Sequence, alpha: Sequence, kappa=None, *, nu=None) -> Material:
                     positive=("kappa",), split=True)
 
 
+def _fibre_field(field, X, k: int) -> np.ndarray:
+    """The (n, 3) directions of fibre field ``k`` at ``X`` (n, d), checked."""
+    a = np.asarray(field(X), float)
+    if a.shape != (len(X), 3):
+        raise ValueError(f"HolzapfelGasserOgden: fibre {k}'s field must return (n, 3) directions (3D vectors, "
+                         f"also on a {np.shape(X)[-1]}D body: plane strain keeps the out-of-plane part), "
+                         f"got shape {a.shape} for {len(X)} points")
+    return a
+
+
 def HolzapfelGasserOgden(mu, k1, k2, fibres: Sequence, kappa=None, *, nu=None,
                          dispersion: float = 0.0) -> Material:
     """Fibre-reinforced tissue (Holzapfel, Gasser & Ogden 2000; dispersion: Gasser et al. 2006):
@@ -303,7 +317,8 @@ def HolzapfelGasserOgden(mu, k1, k2, fibres: Sequence, kappa=None, *, nu=None,
     fibres = [fibres] if one else list(fibres)
     if not 1 <= len(fibres) <= 2:
         raise ValueError(f"HolzapfelGasserOgden: fibres must be one or two directions, got {len(fibres)}")
-    if not 0.0 <= float(dispersion) <= 1.0 / 3.0:
+    if isinstance(dispersion, (str, bytes, bool, np.bool_)) or not isinstance(dispersion, (int, float, np.number)) \
+            or not 0.0 <= float(dispersion) <= 1.0 / 3.0:
         raise ValueError(f"HolzapfelGasserOgden: dispersion must lie in [0, 1/3], got {dispersion}")
     params = {"mu": mu, "k1": k1, "k2": k2, "dispersion": float(dispersion),
               "kappa": _kappa("HolzapfelGasserOgden", mu, kappa, nu)}
@@ -311,7 +326,7 @@ def HolzapfelGasserOgden(mu, k1, k2, fibres: Sequence, kappa=None, *, nu=None,
         if callable(a):
             field = _evaluated_once(a)
             for i, axis in enumerate("xyz"):
-                params[f"fibre{k}_{axis}"] = (lambda X, field=field, i=i: field(X)[:, i])
+                params[f"fibre{k}_{axis}"] = (lambda X, field=field, i=i, k=k: _fibre_field(field, X, k)[:, i])
             continue
         a = np.asarray(a, float)
         if a.shape != (3,) or not np.all(np.isfinite(a)) or not np.linalg.norm(a) > 0:

@@ -146,7 +146,7 @@ def arc_length(model, ds: float, *, steps: int = 50, initial: Solution | None = 
         idx, psi_p = probes
         # one point at a time: a compiled function of the path's length would recompile per length
         disp = np.stack([np.asarray(_point_values(problem, idx, psi_p, u_k, g_k)) for u_k, g_k in zip(U, G)])
-    return EquilibriumPath(L, U, G, disp, R, ST, NEG, A, IT, cuts, int(status), start)
+    return EquilibriumPath(L, U, G, disp, R, ST, NEG, A, IT, cuts, PathStatus.of(status), start)
 
 
 _point_values = jax.jit(lambda problem, idx, psi, u, g: problem.point_values(idx, psi, u, g))

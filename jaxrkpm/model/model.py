@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from dataclasses import dataclass
 from typing import Mapping
 
@@ -16,6 +17,7 @@ from ..discretise import scni
 from ..discretise.body import Body
 from ..discretise.constraints import EssentialSets, Transformation
 from ..mechanics.constraint import Essential, essential as essential_constraint
+from ..mechanics.contact import ContactPenetrationWarning, ContactTerm, penetration
 from ..mechanics.loads import SpringTerm, Springs, dead_load, spring_psi, spring_term
 from ..mechanics.materials import Material, det, green_lagrange, pk2
 from ..mechanics.problem import Problem
@@ -192,6 +194,10 @@ class Model:
                              f"exceeds {MAX_SUPPORT_DIAMETERS:g} x the body's diameter {diameter:.3g}: "
                              "every shape function would cover the whole body; use a support of a "
                              "few spacings (e.g. 2.01 .. 4)")
+        # checked before any rule is built from it (the boundary rule is built first)
+        if isinstance(order, (bool, np.bool_)) or not isinstance(order, (int, np.integer)) or not 1 <= order <= 20:
+            raise ValueError(f"order must be a whole number of integration points per direction in 1..20 "
+                             f"(2 is the default), got {order!r}")
         if integration not in ("gauss", *scni.SCHEMES):
             raise ValueError(f"unknown integration {integration!r}: choose 'gauss', "
                              + ", ".join(repr(k) for k in scni.SCHEMES))
@@ -472,6 +478,13 @@ class Model:
         return Solution(u, jnp.zeros((len(self.sets.bnd), self.dim)), f, z, f + 1.0, z, z, z, f, z,
                         Critical.empty(u))
 
+    def __repr__(self) -> str:
+        sets = {name: len(self.sets.bnd[sl]) for name, sl in self.sets.slices.items()}
+        terms = [t.name for t in self._problem.terms if t.name not in ("strain", "springs", "dead_load")]
+        return (f"Model({self.body.dim}D, {self.body.n} particles, {self.material.name}, {self.integration}, "
+                f"support {self.support:g}, essential {sets or 'none'}"
+                + (f", terms {terms}" if terms else "") + f", {type(self.linear).__name__})")
+
     def solve(self, prescribed: Mapping | None = None, *, loads: float = 1.0, params=None,
               steps: int = 1, initial: Solution | None = None, throw: bool = True,
               max_iter: int = 25, **options) -> Solution:
@@ -549,7 +562,23 @@ class Model:
         if throw and status is not None and not Status.of(status).equilibrium:
             # under jax.jacfwd / jax.grad the fields are tracers: the error carries their values
             raise SolveError(Solution(*jax.tree.map(_concrete, tuple(sol))))
+        if eager and status is not None and Status.of(status).equilibrium:
+            self._check_penetration(problem, sol)
         return sol
+
+    def _check_penetration(self, problem, sol) -> None:
+        """Warn where a converged solve left contact points inside a tool: its status says
+        CONVERGED, but the contact it describes is not what the tool allows."""
+        terms = [t for t in problem.terms if isinstance(t, ContactTerm)]
+        if not terms:
+            return
+        d = self.constraint.coefficients(sol.u, sol.g)
+        for t in terms:
+            gap = penetration(t, d, sol.load)
+            if gap < 0:
+                warnings.warn(f"the solve converged with points of contact {t.name!r} inside the tool (min gap "
+                              f"{gap:.3g} < 0): raise Contact.pressure, or take more load steps (steps=...), "
+                              "and check contact_forces(...).min_gap", ContactPenetrationWarning, stacklevel=4)
 
     def _driver(self, options, eager: bool) -> LoadPath:
         """``solver(**options)``, keeping the linear state in the Solution where ``eager``."""

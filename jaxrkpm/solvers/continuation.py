@@ -101,7 +101,7 @@ class EquilibriumPath:
     arc: np.ndarray
     iterations: np.ndarray
     cuts: int
-    status: int
+    status: PathStatus
     start: Solution
 
     def __len__(self) -> int:

@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..base.progress import progress_bar
 from ..mechanics.contact import Box, Contact, contact_forces
 from ..model.model import Model
 from ..solvers.results import Status
@@ -404,15 +405,23 @@ def glued_finals(phantom, inclusion: str, increments: int, paddles: Sequence[int
 
 
 def contact_sweep(phantom, inclusion: str = "none", increments: int = 15, control=None,
-                  spec: ContactPaddle = ContactPaddle(), paddles: Sequence[int] | None = None) -> ContactSweep:
+                  spec: ContactPaddle = ContactPaddle(), paddles: Sequence[int] | None = None,
+                  progress: bool = True) -> ContactSweep:
     """The static sweep with contact paddles: each paddle position's contact paddle pressed
     to ``control`` (default: indented by one particle spacing, no shift), then the needle
-    inserted; with the glued sweep and the no-paddle run to compare."""
+    inserted; with the glued sweep and the no-paddle run to compare. ``progress``: a bar of
+    the paddles on a terminal."""
     paddles = list(range(1, len(phantom.paddles) + 1)) if paddles is None else list(paddles)
     d = phantom.body.dim
     control = np.r_[phantom.spacing, np.zeros(d - 1)] if control is None else np.asarray(control, float)
-    runs = [contact_insertion(phantom, p, control, inclusion, increments, spec) for p in paddles]
-    glued, free = glued_finals(phantom, inclusion, increments, paddles)
+    runs = []
+    with progress_bar(len(paddles) + 1, desc=f"contact sweep ({inclusion})", unit="paddle", progress=progress) as bar:
+        for p in paddles:
+            runs.append(contact_insertion(phantom, p, control, inclusion, increments, spec))
+            bar.update()
+        bar.set_postfix_str("glued paddles and no paddle")
+        glued, free = glued_finals(phantom, inclusion, increments, paddles)
+        bar.update()
     return ContactSweep(inclusion, float(spec.mu), control, runs, glued, free)
 
 
@@ -578,12 +587,13 @@ def final_deviation_and_gradient(phantom, paddle, control, inclusion, increments
 def optimize_contact_paddle(phantom, paddle: int, inclusion: str = "none", increments: int = 15,
                             spec: ContactPaddle = ContactPaddle(), start=None, iterations: int = 10,
                             learning_rate: float = 0.02, decay: float = 0.9, tol: float = 1e-6,
-                            step_tol: float = 1e-4) -> ContactOptimum:
+                            step_tol: float = 1e-4, progress: bool = True) -> ContactOptimum:
     """Adam on the pose (indentation, shift) within ``control_bounds`` for min deviation^2 at
     full insertion, from ``start`` (default: 1.5 spacings in, no shift: deep enough that the
     paddle still touches at full insertion, where a shallower one lets go and the gradient is
     zero). A pose whose insertion fails is undone and the steps halved; a step that lets go of
-    the tissue is kept in the history but not chosen (its deviation is the no-paddle one)."""
+    the tissue is kept in the history but not chosen (its deviation is the no-paddle one).
+    ``progress``: a bar of the iterations on a terminal."""
     import optax
     lo, hi = control_bounds(phantom, paddle)
     d = len(lo)
@@ -596,7 +606,10 @@ def optimize_contact_paddle(phantom, paddle: int, inclusion: str = "none", incre
                               OptimizeStatus.START_FAILED, f"the insertion fails at the start pose {c.tolist()}")
     hist, runs, scale = [[*c, dev, *(2 * dev * grad)]], [run], 1.0
     status, message = OptimizeStatus.MAX_ITERATIONS, f"{iterations} iterations"
+    bar = progress_bar(iterations, desc=f"optimize contact paddle {paddle}", unit="iteration", progress=progress)
     for _ in range(iterations):
+        bar.update()
+        bar.set_postfix(deviation=f"{dev:.2e}")
         if abs(dev) < tol:
             status, message = OptimizeStatus.CONVERGED, f"|deviation| < {tol:g}"
             break
@@ -612,6 +625,7 @@ def optimize_contact_paddle(phantom, paddle: int, inclusion: str = "none", incre
         c, dev, grad, state = c_new, dn, gn, new_state
         hist.append([*c, dev, *(2 * dev * grad)])
         runs.append(rn)
+    bar.close()
     hist = np.array(hist)
     best = int(np.argmin(np.abs(hist[:, d])))
     return ContactOptimum(paddle, inclusion, hist[best, :d], float(hist[best, d]), hist, runs[best], status, message)

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..base.outcome import Outcome
+from ..base.progress import progress_bar
 from ..control.batching import BATCHING, batch_axes, default_batching, map_batch, run_batched, stack_models
 from ..discretise.body import Body
 from ..mechanics.loads import Springs
@@ -568,10 +569,13 @@ class StaticSweep:
 
 
 def static_sweep(phantom: Phantom, inclusion: str = "none", increments: int = 15,
-                 paddles: Sequence[int] | None = None, n_devices: int | None = None) -> StaticSweep:
+                 paddles: Sequence[int] | None = None, n_devices: int | None = None,
+                 progress: bool = True) -> StaticSweep:
     """Every paddle position x every increment in one batched call, plus the no-paddle run.
     ``phantom``: a :class:`Phantom` or any phantom with the same interface (``NeedleTrack``,
-    ``model(inclusion, paddle)``, ``paddles``), e.g. the 3D :class:`jaxrkpm.thesis.phantom3d.Phantom3D`."""
+    ``model(inclusion, paddle)``, ``paddles``), e.g. the 3D :class:`jaxrkpm.thesis.phantom3d.Phantom3D`.
+    ``progress``: a bar of its stages on a terminal (the models, the batched insertion, the
+    no-paddle run)."""
     paddles = list(range(1, len(phantom.paddles) + 1)) if paddles is None else list(paddles)
     if not paddles:
         raise ValueError(f"paddles is empty: give 1-based paddle indices in 1..{len(phantom.paddles)} "
@@ -580,10 +584,19 @@ def static_sweep(phantom: Phantom, inclusion: str = "none", increments: int = 15
         phantom.sets(p)
     depths = phantom.depths(increments)
     direction = phantom.needle_direction
-    runs = insert([phantom.model(inclusion, p) for p in paddles], depths, phantom.target,
-                  n_devices=n_devices, direction=direction)
-    free = insert([phantom.model(inclusion, None)], depths, phantom.target, jacobian_set=None,
-                  direction=direction)
+    with progress_bar(len(paddles) + 2, desc=f"static sweep ({inclusion})", unit="step", progress=progress) as bar:
+        models = []
+        for p in paddles:
+            bar.set_postfix_str(f"model of paddle {p}")
+            models.append(phantom.model(inclusion, p))
+            bar.update()
+        bar.set_postfix_str(f"{len(paddles)} paddles x {increments} increments, batched")
+        runs = insert(models, depths, phantom.target, n_devices=n_devices, direction=direction)
+        bar.update()
+        bar.set_postfix_str("no paddle")
+        free = insert([phantom.model(inclusion, None)], depths, phantom.target, jacobian_set=None,
+                      direction=direction)
+        bar.update()
     tu, fu = np.asarray(runs.target_u), np.asarray(free.target_u[0])
     return StaticSweep(inclusion, depths, phantom.deviation_of(tu), phantom.deviation_of(fu),
                        np.asarray(runs.status), np.asarray(free.status[0]), np.asarray(runs.jacobian),
@@ -637,14 +650,15 @@ def cancelling_move(Jp, lateral, e) -> np.ndarray:
 
 
 def dynamic_paddle(phantom: Phantom, paddle: int, inclusion: str = "none", increments: int = 15,
-                   tol: float = 1e-6, max_corrections: int = 10) -> DynamicRun:
+                   tol: float = 1e-6, max_corrections: int = 10, progress: bool = True) -> DynamicRun:
     """Move the paddle during insertion so the target stays on the needle line.
 
     Each increment: a feed-forward paddle move cancels the lateral target motion the implicit
     Jacobians predict for the needle increment (``cancelling_move``: minimum norm, from the
     lateral rows of d target/d paddle); then corrections with the Jacobian at the new
     equilibrium until |lateral deviation| < tol. A failed solve stops the loop with its
-    status; what was computed is kept. Any phantom with the ``NeedleTrack`` interface."""
+    status; what was computed is kept. Any phantom with the ``NeedleTrack`` interface.
+    ``progress``: a bar of the increments on a terminal."""
     model = phantom.model(inclusion, paddle)
     target = np.atleast_2d(phantom.target)
     depths = phantom.depths(increments)
@@ -662,7 +676,10 @@ def dynamic_paddle(phantom: Phantom, paddle: int, inclusion: str = "none", incre
     def lateral_error(s):
         return B @ np.asarray(model.displacement(s, target)[0])          # (L,)
 
+    bar = progress_bar(len(depths), desc=f"dynamic paddle {paddle} ({inclusion})", unit="increment",
+                       progress=progress)
     for depth in depths:
+        bar.update()
         Jp = np.asarray(model.jacobian(sol, "paddle", target))           # (d, d)
         Jn = np.asarray(model.jacobian(sol, "needle", target)) @ direction   # (d,)
         p = p + cancelling_move(Jp, B, B @ Jn * (depth - depth_prev))
@@ -690,6 +707,7 @@ def dynamic_paddle(phantom: Phantom, paddle: int, inclusion: str = "none", incre
             message = (f"|lateral deviation| {np.linalg.norm(e):.2e} >= {tol:g} after {k} corrections "
                        f"at depth {depth:.4f}")
             break
+    bar.close()
     n = len(dev)
     return DynamicRun(paddle, depths[:n], np.array(dev), np.array(pre[:n]),
                       np.array(pu).reshape(n, d), np.array(its, int), status, message, sol, solve_status)
@@ -771,14 +789,15 @@ def final_deviation_and_gradient(model: Model, phantom: Phantom, q, depths):
 def optimize_paddle(phantom: Phantom, inclusion: str = "none", start=None,
                     increments: int = 15, iterations: int = 30, learning_rate: float = 0.1,
                     decay: float = 0.9, stiffness: float = 1e6, tol: float = 1e-7,
-                    step_tol: float = 1e-4) -> PaddleOptimum:
+                    step_tol: float = 1e-4, progress: bool = True) -> PaddleOptimum:
     """Adam on the paddle coordinates q within ``phantom.paddle_bounds`` for min
     deviation(q)^2 at full insertion, from ``start`` (default: the middle of the bounds),
     the learning rate decaying by ``decay`` per iteration (plain Adam circles a minimum at a
     fixed step). A step into a position whose insertion fails (the material inverts near the
     needle tip) is undone and the steps halved: the optimum may sit on that feasibility
     edge. Stops when |deviation| < tol, a step is below ``step_tol`` (largest coordinate),
-    or after ``iterations``; returns the best iterate."""
+    or after ``iterations``; returns the best iterate. ``progress``: a bar of the
+    iterations on a terminal."""
     import optax
     lo, hi = (np.asarray(b, float) for b in phantom.paddle_bounds)
     q = 0.5 * (lo + hi) if start is None else np.asarray(start, float)
@@ -801,7 +820,10 @@ def optimize_paddle(phantom: Phantom, inclusion: str = "none", start=None,
 
     hist, rejected, scale = [row(q, d, g)], 0, 1.0
     status, message = OptimizeStatus.MAX_ITERATIONS, f"{iterations} iterations"
+    bar = progress_bar(iterations, desc=f"optimize paddle ({inclusion})", unit="iteration", progress=progress)
     for _ in range(iterations):
+        bar.update()
+        bar.set_postfix(deviation=f"{d:.2e}")
         if abs(d) < tol:
             status, message = OptimizeStatus.CONVERGED, f"|deviation| < {tol:g}"
             break
@@ -817,6 +839,7 @@ def optimize_paddle(phantom: Phantom, inclusion: str = "none", start=None,
             continue
         q, d, g, state = q_new, d_new, g_new, new_state
         hist.append(row(q, d, g))
+    bar.close()
     hist = np.array(hist)
     best = int(np.argmin(np.abs(hist[:, k])))
     if rejected:

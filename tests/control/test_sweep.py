@@ -32,6 +32,7 @@ class Square:
 
     requires = {"x": "float", "k": "int"}
     sweep_key = "tests.control.test_sweep.Square"
+    sweep_version = "1"     # the subclasses below only watch or interrupt: the same sweep
 
     def __call__(self, chunk):
         import jax.numpy as jnp
@@ -288,3 +289,117 @@ def test_a_killed_workers_chunk_is_redone(reference, client, tmp_path):
 def test_the_chunk_size_is_measured_on_a_worker(client):
     choice = sw.choose_chunk_size(table_of(1000), Knee(), executor=client, start=8, progress=False)
     assert choice.sizes == (8, 16, 32, 64) and choice.chosen == Knee.KNEE
+
+
+# ------------------------------------------------------------------ the folder is a Parquet dataset
+def test_any_parquet_reader_opens_the_folder(reference, tmp_path):
+    import pyarrow.dataset as ds
+    import pyarrow.parquet as pq
+    out, _, table = reference
+    assert (out / sw.SWEEP_FILE).exists() and sw.SWEEP_FILE.startswith("_")
+    for read in (lambda d: pq.read_table(d), lambda d: ds.dataset(d, format="parquet").to_table()):
+        got = read(out).sort_by("id")
+        assert got.num_rows == N
+        np.testing.assert_array_equal(got.column("y").to_numpy(), table.column("y").to_numpy())
+    pd = pytest.importorskip("pandas")
+    frame = pd.read_parquet(out).sort_values("id")
+    np.testing.assert_allclose(frame["y"].to_numpy(), table.column("y").to_numpy())
+    # a folder of an earlier version (its manifest named sweep.json) still reads and resumes,
+    # and is renamed so that other readers open it too
+    old = tmp_path / "old"
+    shutil.copytree(out, old)
+    os.replace(old / sw.SWEEP_FILE, old / sw.LEGACY_SWEEP_FILE)
+    assert sw.read_sweep(old).num_rows == N
+    again = sw.sweep(configurations(), Square(), old, chunk_size=CHUNK, progress=False)
+    assert again.evaluated == 0 and (old / sw.SWEEP_FILE).exists() and not (old / sw.LEGACY_SWEEP_FILE).exists()
+
+
+# ------------------------------------------------------------------ chunks carry the sweep's fingerprint
+def _y_plus_one(chunk):
+    return {"y": np.asarray(chunk["x"]) + 1.0}
+
+
+def _y_plus_two(chunk):      # the same function edited: renamed below to _y_plus_one
+    return {"y": np.asarray(chunk["x"]) + 2.0}
+
+
+_y_plus_two.__qualname__ = _y_plus_two.__name__ = "_y_plus_one"
+
+
+def test_an_edited_evaluator_or_a_foreign_chunk_is_refused_by_name(reference, tmp_path):
+    table = {"x": np.arange(6.0)}
+    out = tmp_path / "edited"
+    sw.sweep(table, _y_plus_one, out, chunk_size=2, progress=False)
+    assert sw.evaluator_key(_y_plus_one) == sw.evaluator_key(_y_plus_two)
+    with pytest.raises(sw.SweepFolderError, match=r"another sweep \(they differ in the evaluator's code"):
+        sw.sweep(table, _y_plus_two, out, chunk_size=2, progress=False)
+    # an evaluator that declares its version is the same sweep while the version stays
+    for f in (_y_plus_one, _y_plus_two):
+        f.sweep_version = "1"
+    try:
+        v = tmp_path / "versioned"
+        sw.sweep(table, _y_plus_one, v, chunk_size=2, progress=False)
+        assert sw.sweep(table, _y_plus_two, v, chunk_size=2, progress=False).evaluated == 0
+    finally:
+        del _y_plus_one.sweep_version, _y_plus_two.sweep_version
+    # a chunk copied from another sweep (same file name) is refused on resume and on read
+    mixed = tmp_path / "mixed"
+    shutil.copytree(reference[0], mixed)
+    other = tmp_path / "other"
+    sw.sweep([{**c, "x": c["x"] + 1} for c in configurations()], Square(), other, chunk_size=CHUNK, progress=False)
+    shutil.copy(sw.chunk_path(other, 1), sw.chunk_path(mixed, 1))
+    name = re.escape(str(sw.chunk_path(mixed, 1)))
+    with pytest.raises(sw.SweepFolderError, match=f"{name} was not written by the sweep.*redo chunk 1"):
+        sw.read_sweep(mixed)
+    with pytest.raises(sw.SweepFolderError, match=f"{name} was not written by the sweep"):
+        sw.sweep(configurations(), Square(), mixed, chunk_size=CHUNK, progress=False)
+    # a chunk of this sweep under another chunk's name
+    shutil.copy(sw.chunk_path(mixed, 2), sw.chunk_path(mixed, 1))
+    with pytest.raises(sw.SweepFolderError, match="holds chunk 2 of this sweep, not chunk 1"):
+        sw.read_sweep(mixed)
+
+
+def test_a_truncated_chunk_is_named_and_redone_once_deleted(reference, tmp_path):
+    cut = tmp_path / "cut"
+    shutil.copytree(reference[0], cut)
+    path = sw.chunk_path(cut, 3)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    match = re.escape(str(path)) + r" is unreadable .*delete it and run the same sweep again to redo chunk 3"
+    with pytest.raises(sw.SweepFolderError, match=match):
+        sw.read_sweep(cut)
+    with pytest.raises(sw.SweepFolderError, match=match):
+        sw.sweep(configurations(), Square(), cut, chunk_size=CHUNK, progress=False)
+    path.unlink()
+    again = sw.sweep(configurations(), Square(), cut, chunk_size=CHUNK, progress=False)
+    assert again.evaluated == 1 and sw.read_sweep(cut).equals(reference[2])
+
+
+# ------------------------------------------------------------------ progress
+class _Terminal:
+    """A stderr that says it is a terminal and keeps what is written."""
+
+    def __init__(self, tty=True):
+        self.text, self.tty = "", tty
+
+    def write(self, s):
+        self.text += s
+
+    def flush(self):
+        pass
+
+    def isatty(self):
+        return self.tty
+
+
+def test_the_bar_is_drawn_on_a_terminal_only_and_can_be_silenced(tmp_path, monkeypatch, capsys):
+    import sys
+    for tty, progress, shown in ((True, True, True), (False, True, False), (True, False, False)):
+        err = _Terminal(tty)
+        monkeypatch.setattr(sys, "stderr", err)
+        out = tmp_path / f"p{tty}{progress}"
+        sw.sweep(configurations(), Square(), out, chunk_size=CHUNK, progress=progress)
+        monkeypatch.undo()
+        assert ("sweep: 100%" in err.text and f"{N}/{N}" in err.text) == shown, (tty, progress, err.text)
+        assert err.text.count("\n") <= 1                   # drawn in place, left once
+        assert capsys.readouterr().out == ""

@@ -192,3 +192,30 @@ def test_the_default_integration_of_a_mesh_body_is_the_accurate_one(tmp_path):
                                             / np.sum(body.volumes[:, None] * ref ** 2))
     print(f"manufactured solution on the {body.n}-particle box: relative errors {errors}")
     assert set(errors) == {"gauss", "scni"} and errors["gauss"] < 3e-3 and errors["scni"] > 5 * errors["gauss"]
+
+
+def test_delaunay_slivers_are_named_and_dropped_on_request(caplog):
+    """scipy's Delaunay of a lattice cube holds zero-volume slivers: refused with the count and
+    the option that drops them; dropped, the body has the cube's volume and its surface (the
+    faces the slivers left inside are not boundary), said in the log line."""
+    from scipy.spatial import Delaunay
+    from jaxrkpm.discretise import mesh
+    g = np.linspace(0.0, 1.0, 4)
+    P = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    cells = Delaunay(P).simplices
+    lattice = meshio.Mesh(P, [("tetra", cells)])
+    flat = int(np.sum(np.abs(signed_volumes(P, cells)) < 1e-12))
+    assert flat > 0
+    with pytest.raises(ValueError, match=rf"{flat} of {len(cells)} tetra cells are zero-volume.*"
+                                         r"drop_degenerate=True\) drops them"):
+        jr.Body.from_mesh(lattice)
+    with caplog.at_level(logging.INFO, logger=LOGGER):
+        body = jr.Body.from_mesh(lattice, drop_degenerate=True)
+    assert f"{flat} zero-volume tetra cells were dropped" in caplog.text
+    assert len(body.cells) == len(cells) - flat and body.volumes.sum() == pytest.approx(1.0, abs=1e-12)
+    faces = mesh.boundary_faces(body.X, body.cells)[0]
+    normals, areas = mesh.facet_normals(body.X[faces])
+    assert areas.sum() == pytest.approx(6.0, abs=1e-12)                # the cube's surface, no inner faces
+    assert np.all(np.sum(normals * (body.X[faces].mean(1) - 0.5), 1) > 0)
+    with pytest.raises(ValueError, match="drop_degenerate must be True or False"):
+        jr.Body.from_mesh(lattice, drop_degenerate="yes")

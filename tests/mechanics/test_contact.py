@@ -125,8 +125,9 @@ def test_contact_in_the_vtu_and_the_figure(pressed_block, tmp_path):
     assert f["contact_top_min_gap"][0] == pytest.approx(float(res.min_gap))
     assert abs(f["contact_top_tangential"]).max() < 1e-10 * abs(f["contact_top_normal"]).max()
     fig, ax = plot.plt.subplots()
-    plot.deformed_particles(ax, model.body.X, model.particle_displacements(sol))
+    plot.deformed_particles(ax, model.body.X, model.particle_displacements(sol), colorbar=False)
     sc = jr.contact_pressures(ax, model, sol, params)
+    assert [a.get_ylabel() for a in fig.axes[1:]] == ["contact pressure"]          # its colour bar
     assert sc.get_offsets().shape == (len(res.gap), 2) and np.allclose(sc.get_array(), np.asarray(res.pressure))
     plot.save(fig, tmp_path / "pressed.png")
     assert (tmp_path / "pressed.png").stat().st_size > 10_000
@@ -224,6 +225,24 @@ def ball_3d():
     return model, model.solve(params=params, steps=4, rtol=1e-12), params
 
 
+def test_3d_figures_show_the_contact_and_say_what_the_colours_mean(ball_3d):
+    """On 3D axes the contact points are drawn inside the view, over the body, with colour
+    bars for the pressure and (deformed_surface) the stress."""
+    from jaxrkpm.io import plot
+    model, sol, params = ball_3d
+    fig = plot.plt.figure()
+    ax = fig.add_subplot(projection="3d")
+    jr.deformed_surface(ax, model, sol)
+    sc = jr.contact_pressures(ax, model, sol, params)
+    res = jr.contact_forces(model, sol, "ball", params)
+    pts = np.asarray(res.points)[np.asarray(res.active)]
+    assert len(pts) > 0 and np.asarray(sc.get_array()).shape == (len(pts),)
+    for lim, c in zip((ax.get_xlim(), ax.get_ylim(), ax.get_zlim()), pts.T):
+        assert lim[0] < c.min() and c.max() < lim[1]
+    assert [a.get_ylabel() for a in fig.axes[1:]] == ["von Mises (Cauchy) stress", "contact pressure"]
+    plot.plt.close(fig)
+
+
 def test_pose_jacobian_3d(ball_3d):
     model, sol, params = ball_3d
     J, fd = _fd_vs_implicit(model, sol, params, "ball", ("position",), np.array([[0.0, 0.0, 0.5]]), 1e-5)
@@ -256,6 +275,52 @@ def test_bad_input_is_named():
         jr.Contact(object(), position=(0, 0))
     with pytest.raises(ValueError, match="gap"):
         jr.Contact(jr.Sphere(0.3), position=(0, 2), gap=0.0)
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: jr.Sphere(-0.5), r"Sphere.radius must be a finite number > 0, got -0.5"),
+    (lambda: jr.Sphere(float("nan")), r"Sphere.radius must be a finite number > 0, got nan"),
+    (lambda: jr.Box((0.2, -0.05)), r"Box.half must be finite half extents >= 0"),
+    (lambda: jr.Box((0.2, 0.0)), r"a half extent of 0 needs radius > 0"),
+    (lambda: jr.Box((0.2, 0.1), -0.1), r"Box.radius must be a finite number >= 0"),
+    (lambda: jr.Capsule(-0.1, 0.2), r"Capsule.half_length must be a finite number >= 0"),
+    (lambda: jr.Capsule(0.1, 0.0), r"Capsule.radius must be a finite number > 0"),
+    (lambda: jr.HalfSpace((0.0, 0.0)), r"HalfSpace.normal must be a finite, non-zero vector"),
+    (lambda: jr.HalfSpace((float("nan"), 1.0)), r"HalfSpace.normal must be a finite, non-zero vector"),
+])
+def test_tools_of_no_size_are_refused_when_built(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_a_nan_rotation_or_a_float_predicate_is_named():
+    body = jr.Body.grid((3, 3), 0.5)
+    with pytest.raises(ValueError, match="contact 'disc': rotation must be a finite angle"):
+        jr.Model(body, MAT, essential={"b": [0]},
+                 terms=[jr.Contact(jr.Sphere(0.3), position=(0.5, 1.5), rotation=float("nan"), name="disc")])
+    with pytest.raises(ValueError, match="contact 'disc': where must return booleans, got float64"):
+        jr.Model(body, MAT, essential={"b": [0]},
+                 terms=[jr.Contact(jr.Sphere(0.3), position=(0.5, 1.5), where=lambda X: X[:, 1] * 1.0, name="disc")])
+    with pytest.raises(ValueError, match="pressure 'p': where must return booleans, got float64"):
+        jr.Model(body, MAT, essential={"b": [0]}, terms=[jr.Pressure(lambda X: X[:, 1] - 0.5, name="p")])
+
+
+def test_a_converged_solve_inside_the_tool_says_so():
+    """A barrier far too soft for the load lets the points pass into the tool: the solve
+    converges, and warns, naming the tool and the gap; a solve that stays clear says nothing."""
+    import warnings
+    gap = 1e-2
+    body = jr.Body.grid((3, 3), 0.5, origin=(-0.5, -0.5))
+    plate = jr.Contact(jr.HalfSpace((0.0, -1.0)), position=(0.0, 0.5 + gap), gap=gap, pressure=1e-6, name="plate",
+                       where=lambda X: X[:, 1] > 0.5 - 1e-9)
+    model = jr.Model(body, jr.NeoHookean(lam=1e3, mu=1e3), essential={"w": body.select(lambda X: X[:, 1] < -0.4)},
+                     terms=[plate])
+    with pytest.warns(jr.ContactPenetrationWarning, match=r"contact 'plate' inside the tool \(min gap -0.0\d+ < 0\)"):
+        sol = model.solve(params={"plate": {"position": jnp.array([0.0, 0.5 + gap - 0.1])}})
+    assert jr.Status.of(sol.status) == jr.Status.CONVERGED
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", jr.ContactPenetrationWarning)
+        model.solve(params={"plate": {"position": jnp.array([0.0, 0.5 + gap])}})
 
 
 # ------------------------------------------------------------- friction vs glued

@@ -257,3 +257,24 @@ def test_the_barrier_carries_the_compressed_square_past_the_fold():
     prob = model.problem()
     assert float(np.linalg.eigvalsh(np.asarray(jax.jit(prob.tangent)(sol.u, sol.g)))[0]) > 0
     assert float(prob.energy(sol.u, sol.g)[1]) > 0.3               # smallest det F: no corner folds
+
+
+def test_hostile_constants_and_fields_are_named():
+    """Constants and fields that were accepted silently, or failed with a raw error, are
+    ValueErrors naming the bad thing."""
+    for mu in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="bulk_modulus: the shear modulus mu must be positive and finite"):
+            jr.bulk_modulus(mu, 0.3)
+    with pytest.raises(ValueError, match="dispersion must lie in"):
+        jr.HolzapfelGasserOgden(1.0, 1.0, 1.0, (1.0, 0, 0), 10.0, dispersion="0.1")
+    body = jr.Body.grid((3, 3), 0.5)
+    wall = {"w": body.select(lambda X: X[:, 0] < 1e-9)}
+    flat = jr.HolzapfelGasserOgden(1.0, 1.0, 1.0, lambda X: np.stack([np.ones(len(X)), 0 * X[:, 0]], 1), 10.0)
+    with pytest.raises(ValueError, match=r"fibre 0's field must return \(n, 3\) directions .* got shape \(\d+, 2\)"):
+        jr.Model(body, flat, essential=wall)
+    # an energy that reads E[2, 2] works in 3D; on a 2D body JAX would clamp the index
+    reads_3d = jr.Material(lambda E, p: jnp.sum(E * E) + E[2, 2] ** 2, name="reads_3d")
+    with pytest.raises(ValueError, match=r"reads_3d: the strain energy W\(E, params\) reads outside the 2x2 strain"):
+        jr.Model(body, reads_3d, essential=wall)
+    with pytest.raises(ValueError, match=r"order must be a whole number of integration points .* got 0"):
+        jr.Model(body, jr.Fung(), essential=wall, order=0)

@@ -65,7 +65,7 @@ def test_unknown_command_says_so(capsys):
     (["compress", "--max", "nan"], "--max", "a number in (0, 1)"),
     (["needle", "--increments", "-3"], "--increments", "an integer in [1, 1000]"),
     (["needle", "--paddle", "6"], "--paddle", "an integer in [1, 5]"),
-    (["rig-sim", "--gain", "inf"], "--gain", "a number > 0"),
+    (["rig-sim", "--gain", "inf"], "--gain", "a number in (0, 1]"),
     (["track", "--tol", "abc"], "--tol", "a number > 0"),
 ])
 def test_out_of_range_numbers_are_one_line_usage_errors(argv, option, wanted, capsys):
@@ -335,6 +335,25 @@ def test_contact_summary_words():
     assert not ok and "a contact force left the cone" in words
 
 
+def test_studies_that_fail_say_so():
+    """A contact paddle sweep whose best paddle leaves the deviation as it was misses its goal;
+    a sweep whose rows failed counts them by status and misses its goal (exit code 1)."""
+    from jaxrkpm.thesis.studies import needle, sweep
+    s = {"mode": "static", "paddle_model": "contact", "friction": 0.5, "inclusion": "right", "table": [],
+         "deviation": [0.0688, 0.0690, np.nan], "no_paddle_deviation": 0.0688, "glued_only": [1, 2],
+         "contact_ok": True}
+    ok, words = needle.result(s)
+    assert not ok and "deviation 0.0688 -> 0.0688" in words and "no contact paddle reduced the deviation" in words
+    ok, words = needle.result({**s, "deviation": [0.03, 0.069, np.nan]})
+    assert ok and "no contact paddle" not in words
+    summary = {"configurations": 30, "chunks": 2, "skipped_chunks": 0, "evaluated_chunks": 2,
+               "statuses": {"CONVERGED": 13, "INVERTED": 16, "MAX_ITERATIONS": 1}}
+    ok, words = sweep.result(summary)
+    assert not ok and words.endswith("; 17 of 30 rows failed (16 INVERTED, 1 MAX_ITERATIONS; their reasons are "
+                                     "in table/'s reason column)")
+    assert sweep.result({**summary, "statuses": {"CONVERGED": 30}})[0]
+
+
 def test_every_option_shows_its_default():
     for command, make in interface.PARSERS.items():
         p = make()
@@ -423,6 +442,68 @@ def test_ctrl_c_is_one_line_that_says_what_was_kept(tmp_path, monkeypatch, capsy
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith(f"jaxrkpm sweep: interrupted; the chunks finished so far are kept in "
                               f"{tmp_path / 'sw'}/table/")
+
+
+def test_sweep_checks_where_it_runs_before_writing(tmp_path, monkeypatch, capsys):
+    """A malformed or unreachable --executor, or --workers without Dask, ends at once with exit
+    2 and writes nothing; changing only where the chunks run is the same sweep."""
+    out = tmp_path / "sw"
+    one_line_usage(capsys, ["sweep", "--executor", "localhost:8786", "--out", str(out)],
+                   "--executor", "SCHEME://HOST:PORT", "got 'localhost:8786'")
+    one_line_usage(capsys, ["sweep", "--executor", "tcp://127.0.0.1:1", "--out", str(out)],
+                   "--executor: no Dask scheduler answers at tcp://127.0.0.1:1")
+    import importlib.util
+    find = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "distributed" else find(name, *a))
+    one_line_usage(capsys, ["sweep", "--workers", "2", "--out", str(out)],
+                   "--workers runs the chunks on Dask, which is not installed: pip install 'dask[distributed]'")
+    assert not out.exists()
+    monkeypatch.setattr(importlib.util, "find_spec", find)
+    from jaxrkpm.thesis import sweeps
+    from jaxrkpm.thesis.studies import sweep
+
+    def fake_sweep(table, cfg, **k):
+        (table / "chunk-0000000.parquet").parent.mkdir(parents=True, exist_ok=True)
+        (table / "chunk-0000000.parquet").write_text(str(len(cfg["paddle"])))
+        return SimpleNamespace(configurations=len(cfg["paddle"]), chunks=1, skipped=0, evaluated=1,
+                               statuses={"CONVERGED": len(cfg["paddle"])})
+    monkeypatch.setattr(sweeps, "needle_sweep", fake_sweep)
+    monkeypatch.setattr(sweep, "_cluster", lambda args: (None, lambda: None))
+    monkeypatch.setattr("jaxrkpm.control.sweep.read_sweep", lambda *a, **k: __import__("pyarrow").table(
+        {"id": [0], "paddle": [1], "inclusion": ["right"], "stiffness_ratio": [1.0], "final_deviation": [0.1],
+         "status": ["CONVERGED"]}))
+    monkeypatch.setattr(interface, "unreachable", lambda address: None)
+    assert cli.main(["sweep", "--paddles", "1", "2", "--workers", "2", "--out", str(out)]) == 0
+    assert cli.main(["sweep", "--paddles", "1", "2", "--out", str(out)]) == 0            # in process: the same run
+    assert cli.main(["sweep", "--paddles", "1", "2", "--executor", "tcp://h:1", "--out", str(out)]) == 0
+    assert cli.main(["sweep", "--paddles", "1", "--out", str(out)]) == interface.EXIT_OUTPUT
+    capsys.readouterr()
+    # --overwrite with other options: the other sweep's table goes, the new run is recorded
+    (out / "table" / "chunk-0000001.parquet").write_text("old")
+    assert cli.main(["sweep", "--paddles", "1", "--overwrite", "--out", str(out)]) == 0
+    assert sorted(p.name for p in (out / "table").iterdir()) == ["chunk-0000000.parquet"]
+    assert json.loads((out / "run.json").read_text())["options"]["paddles"] == [1]
+    assert cli.main(["sweep", "--paddles", "1", "--out", str(out)]) == 0                 # and it resumes
+
+
+def test_help_names_no_internal_reference_and_bounds_the_gain(capsys):
+    """Every command's help speaks to a user (no "the issue's" bound); rig-sim's gain is a
+    fraction of the error (a gain of 100 ran long and reached almost nothing)."""
+    import re
+    for command in interface.PARSERS:
+        text = interface.PARSERS[command]().format_help()
+        assert not re.search(r"\bissue", text, re.I), (command, text)
+    one_line_usage(capsys, ["rig-sim", "--gain", "100"], "--gain", "(0, 1]", "got 100")
+    assert interface.parse("rig-sim", ["--gain", "1"]).gain == 1.0
+
+
+def test_the_demo_line_counts_the_whole_run():
+    from jaxrkpm.thesis.studies import track
+    s = {"path": "box", "integration": "gauss", "particles": [9, 9], "dim": 2, "waypoints_reached": 4,
+         "waypoints_total": 4, "max_waypoint_error": 9e-5, "tol": 1e-4, "iterations": 100, "wall_s": 1.0,
+         "compile_s": 2.0, "total_s": 7.5, "status": "DONE"}
+    ok, words = track.result(s)
+    assert ok and "1.0 s warm + 2.0 s compile, 7.5 s in all with the model, figures and files" in words
 
 
 def test_needle_modes_write_their_own_folders(tmp_path, monkeypatch, capsys):

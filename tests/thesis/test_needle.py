@@ -177,3 +177,51 @@ def test_continuous_paddle_and_optimised_placement(phantom, sweeps):
     print("optimised paddle (left):", opt.q, opt.deviation, "discrete", sw.final[sw.best - 1])
     assert abs(opt.deviation) < 0.5 * abs(sw.final[sw.best - 1])
     assert 1.0 <= opt.q <= len(phantom.paddles)
+
+
+class _Terminal:
+    """A stderr that says it is a terminal and keeps what is written."""
+
+    def __init__(self):
+        self.text = ""
+
+    def write(self, s):
+        self.text += s
+
+    def flush(self):
+        pass
+
+    def isatty(self):
+        return True
+
+
+def test_long_calls_show_progress_on_a_terminal(phantom, monkeypatch):
+    """The phantom studies and the optimiser draw a bar with an estimate on a terminal and
+    are silent with progress=False (the insertions are stand-ins: the bars are what is tested)."""
+    from types import SimpleNamespace
+    from jaxrkpm.thesis import contact_paddle as cp
+
+    def fake_insert(models, depths, point, **k):
+        B, n = len(models), len(depths)
+        return SimpleNamespace(target_u=np.zeros((B, n, 2)), status=np.zeros((B, n), int),
+                               jacobian=np.zeros((B, n, 2, 2)))
+    monkeypatch.setattr(nd, "insert", fake_insert)
+    monkeypatch.setattr(nd, "final_deviation_and_gradient",
+                        lambda model, ph, q, depths: (0.01 * (1 + float(np.sum(q))), np.ones(np.shape(q)), Status.CONVERGED))
+    monkeypatch.setattr(cp, "contact_insertion", lambda *a, **k: None)
+    monkeypatch.setattr(cp, "glued_finals", lambda *a, **k: (np.zeros(5), 0.0))
+    monkeypatch.setattr(cp, "final_deviation_and_gradient",
+                        lambda ph, paddle, c, *a: (0.01 * (1 + float(np.sum(c))), np.ones(np.shape(c)), None))
+    P = len(phantom.paddles)
+    calls = {"static sweep (none)": (lambda **k: nd.static_sweep(phantom, "none", 3, **k), f"/{P + 2} ["),
+             "optimize paddle (none)": (lambda **k: nd.optimize_paddle(phantom, "none", iterations=4, **k), "/4 ["),
+             "contact sweep (none)": (lambda **k: cp.contact_sweep(phantom, "none", 3, **k), f"/{P + 1} ["),
+             "optimize contact paddle 3": (lambda **k: cp.optimize_contact_paddle(phantom, 3, "none", 3,
+                                                                                   iterations=4, **k), "/4 [")}
+    for desc, (call, count) in calls.items():
+        for progress in (True, False):
+            err = _Terminal()
+            monkeypatch.setattr(sys, "stderr", err)
+            call(progress=progress)
+            monkeypatch.setattr(sys, "stderr", sys.__stderr__)
+            assert (desc in err.text and count in err.text) == progress, (desc, err.text)

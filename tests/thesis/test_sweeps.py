@@ -91,6 +91,9 @@ def test_the_command_writes_and_resumes(swept, tmp_path, capsys):
     assert read_sweep(out / "table").equals(expected.slice(0, 5))
     assert cli.main(argv[:-1]) == 3                                     # other options: another run's folder
     assert "holds the results of another run" in capsys.readouterr().err
+    # --overwrite with other options starts afresh (it raised on the other sweep's table/)
+    assert cli.main(argv[:-1] + ["--overwrite"]) == 0
+    assert read_sweep(out / "table").equals(expected.slice(0, 4))
 
 
 def test_the_evaluator_travels_without_its_phantom(swept):

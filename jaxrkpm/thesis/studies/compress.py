@@ -254,7 +254,7 @@ def mode_figures(out: Path, summary, model, tag: str) -> None:
     for i, cp in enumerate(summary["critical_points"]):
         mode = np.asarray(cp.pop("mode"))
         fig, ax = plot.plt.subplots(figsize=(4.6, 4.2))
-        sc = plot.deformed_particles(ax, X, 0.1 * mode, size=18 if len(X) < 100 else 6)
+        sc = plot.deformed_particles(ax, X, 0.1 * mode, size=18 if len(X) < 100 else 6, colorbar=False)
         ax.set_title(f"critical mode {i + 1}: {100 * cp['compression']:.2f}% compression\n"
                      f"lowest eigenvalues / rest: {', '.join(f'{e:.3g}' for e in cp['eigenvalues_rel'])}",
                      fontsize=9)
@@ -335,7 +335,7 @@ def figures(out: Path, summary, model, states, tag: str):
     hi = np.maximum(shown.max(0), [1.08, 1.25]) + 0.04
     for ax, c in zip(axes.flat, levels):
         u = states[c]
-        sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=18 if len(X) < 100 else 6)
+        sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=18 if len(X) < 100 else 6, colorbar=False)
         x = X + u
         ax.scatter(x[paddle, 0], x[paddle, 1], marker="s", s=max(12.0, 40.0 * (9.0 / n) ** 2),
                    facecolors="none", edgecolors="r", lw=1.2, label="paddle (moved)")

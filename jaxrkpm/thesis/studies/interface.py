@@ -375,7 +375,9 @@ def rig_sim_parser():
                    help="particles per side of the physical object (bounded by the memory available)")
     p.add_argument("--noise", type=number(float, 0, 255), default=2.0, help="pixel noise std (grey levels, 0..255)")
     p.add_argument("--seed", type=number(int, 0, SEED_MAX), default=0, help="noise seed, 0..2^32-1")
-    p.add_argument("--gain", type=POSITIVE, default=0.7)
+    p.add_argument("--gain", type=number(float, 0, 1, low_open=True), default=0.7,
+                   help="the fraction of the camera error each iteration corrects, in (0, 1] (above 1 every "
+                        "step overshoots its waypoint and the loop oscillates)")
     p.add_argument("--tol-mm", type=POSITIVE, default=0.3, help="camera tolerance per waypoint (mm)")
     p.add_argument("--max-iter", type=number(int, 1, 10_000), default=30,
                    help="iterations per waypoint (tracking), 1..10000")
@@ -434,13 +436,45 @@ def sweep_parser():
                         "size the sweep started with)")
     p.add_argument("--jacobians", action="store_true", help="keep every increment's paddle Jacobian")
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--executor", default=None, metavar="ADDRESS",
+    where.add_argument("--executor", type=scheduler_address, default=None, metavar="ADDRESS",
                        help="a Dask scheduler's address (tcp://host:8786): run the chunks on that cluster "
                             "(default: in this process)")
     where.add_argument("--workers", type=number(int, 1, 256), default=None,
                        help="run the chunks on a local Dask cluster of this many worker processes, 1..256 "
                             "(default: in this process)")
     return p
+
+
+SCHEDULER_SCHEMES = ("tcp", "tls", "ucx", "ws", "wss")     # Dask's network protocols with a host and port
+
+
+def scheduler_address(text: str) -> str:
+    """A Dask scheduler's address, checked for its form (``tcp://host:8786``); whether one
+    answers there is checked before any work (:func:`unreachable`)."""
+    from urllib.parse import urlsplit
+    try:
+        parts = urlsplit(text)
+        port = parts.port
+    except ValueError:
+        port, parts = None, None
+    if parts is None or parts.scheme not in SCHEDULER_SCHEMES or not parts.hostname or port is None:
+        raise argparse.ArgumentTypeError(f"a Dask scheduler's address is SCHEME://HOST:PORT with SCHEME one of "
+                                         f"{', '.join(SCHEDULER_SCHEMES)} (e.g. tcp://localhost:8786), got {text!r}")
+    return text
+
+
+def unreachable(address: str, timeout: float = 5.0) -> str | None:
+    """Why nothing answers at the scheduler ``address`` (None where something does): checked
+    before a sweep claims its folder, so that a wrong address ends at once, having written
+    nothing."""
+    import socket
+    from urllib.parse import urlsplit
+    parts = urlsplit(address)
+    try:
+        with socket.create_connection((parts.hostname, parts.port), timeout=timeout):
+            return None
+    except OSError as e:
+        return f"no Dask scheduler answers at {address} ({e.strerror or e}): start one (dask scheduler) or fix the address"
 
 
 PARSERS = {"sweep": sweep_parser, "demo": demo_parser, "track": track_parser, "compress": compress_parser,
@@ -497,15 +531,16 @@ class Results:
     (``reproduce``, whose experiments are each written atomically by their own study) writes
     in place."""
 
-    def __init__(self, out: Path, run: dict, staged: bool = True):
+    def __init__(self, out: Path, run: dict, staged: bool = True, replaces: bool = False):
         self.out, self.run, self.staged = out, run, staged
+        self.replaces = replaces          # --overwrite over another run's results
         self.t0 = time.time()
         self.tmp = None
 
     def __enter__(self) -> Path:
         if not self.staged:           # claimed at once: an interrupted run is recognised as this run
             out = output_folder(self.out)
-            if not (out / RUN_FILE).exists():
+            if self.replaces or not (out / RUN_FILE).exists():
                 (out / RUN_FILE).write_text(json.dumps({**self.run, "files": []}, indent=2, default=str))
             return out
         try:
@@ -582,8 +617,11 @@ def results(command: str, args: argparse.Namespace, out=None, staged: bool = Tru
     run = identity(command, args, ignore)
     if out.exists() and not out.is_dir():
         raise OutputError(f"cannot write to {out}/: it is a file")
+    earlier = _earlier(out) if out.is_dir() else {}
+    if isinstance(earlier.get("options"), dict):   # a record of a version that kept the ignored options
+        earlier = {**earlier, "options": {k: v for k, v in earlier["options"].items() if k not in ignore}}
+    replaces = bool(earlier) and {k: earlier.get(k) for k in ("command", "options")} != run
     if out.is_dir() and any(out.iterdir()) and not getattr(args, "overwrite", False):
-        earlier = _earlier(out)
         if not earlier:
             raise OutputError(f"{out}/ already holds files that no jaxrkpm run wrote: choose another --out, "
                               "or pass --overwrite to write over them")
@@ -599,7 +637,7 @@ def results(command: str, args: argparse.Namespace, out=None, staged: bool = Tru
             pass
     except OSError as e:
         _fail(out, e)
-    return Results(out, run, staged)
+    return Results(out, run, staged, replaces and bool(getattr(args, "overwrite", False)))
 
 
 def also_written(out: Path, name: str):

@@ -65,7 +65,7 @@ def draw_phantom(ax, phantom: nd.Phantom, model, sol, inclusion, paddle=None, pa
     caller's (outside the axes: see :func:`legend_below`)."""
     X = model.body.X
     u = np.asarray(model.particle_displacements(sol))
-    sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=22)
+    sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=22, colorbar=False)
     x = X + u
     V = np.vstack([phantom.vertices, phantom.vertices[0]])
     ax.plot(V[:, 0], V[:, 1], color="0.6", lw=0.8, label="reference outline")
@@ -485,7 +485,7 @@ def contact_figure(path: Path, phantom, inclusion, spec, state, curves) -> str:
                                       gridspec_kw={"width_ratios": [1.15, 1]})
     x = model.body.X + np.asarray(model.particle_displacements(sol))
     sc = draw_phantom(a1, phantom, model, sol, inclusion, title=state["title"])
-    pc = plot.contact_pressures(a1, model, sol, params)
+    pc = plot.contact_pressures(a1, model, sol, params, colorbar=False)
     (x0, x1), (y0, y1) = extent(phantom.vertices, x, tool_outline(model, params), margin=0.05)
     a1.set_xlim(x0, x1)
     a1.set_ylim(y0, y1)
@@ -504,6 +504,9 @@ def contact_figure(path: Path, phantom, inclusion, spec, state, curves) -> str:
     return path.name
 
 
+REDUCTION_MIN = 0.01      # the least relative reduction of |deviation| a contact paddle's goal asks for
+
+
 def contact_result(s: dict, what: str = "needle") -> tuple[bool, str]:
     """(goal reached, words) of a contact-paddle summary: every contact force compressive and
     in the friction cone (and, static, the insertion at full depth; dynamic, the target held;
@@ -515,7 +518,12 @@ def contact_result(s: dict, what: str = "needle") -> tuple[bool, str]:
         words = head + (f"best contact paddle {best}: deviation {abs(s['no_paddle_deviation']):.4f} -> "
                         f"{abs(fin[best - 1]):.4f}" if best else "every contact insertion failed")
         words += f"; glued only: {s['glued_only'] or 'none'}"
-        return bool(s["contact_ok"] and best), words + ("" if s["contact_ok"] else "; a contact force left the cone")
+        # a paddle that never bears on the phantom leaves the deviation as it was: no result
+        reduced = bool(best) and abs(fin[best - 1]) < (1 - REDUCTION_MIN) * abs(s["no_paddle_deviation"])
+        if best and not reduced:
+            words += (f"; no contact paddle reduced the deviation by {REDUCTION_MIN:.0%} or more "
+                      "(pressed too little to bear on the phantom? --indentation)")
+        return bool(s["contact_ok"] and reduced), words + ("" if s["contact_ok"] else "; a contact force left the cone")
     final = "none (no increment converged)" if s["final"] is None else f"{abs(s['final']):.2e}"
     said = f": {s['message']}" if s["message"] and s["message"] != s["status"] else ""
     words = head + f"paddle {s['paddle']}: final deviation {final}; {s['status']}{said}"

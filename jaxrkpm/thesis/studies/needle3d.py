@@ -12,7 +12,7 @@ per unit lateral correction, 1/sigma_min of the lateral rows of J^-1) as a map o
 
 ``--mode dynamic``: the closed loop moving the most controllable patch during insertion so
 the target stays on the needle line (|lateral deviation| below ``--tol`` at every
-increment; the issue's bound is 1e-4 of the object size).
+increment; the summary also states it against 1e-4 of the object size).
 
 ``--mode optimize``: the best discrete patch's contact points as stiff springs, slid over
 the skin by two surface coordinates (theta, phi) and optimised with Adam (optax) through
@@ -50,7 +50,7 @@ def draw_deformed(ax, phantom: Phantom3D, model, sol, title: str, vmax=None, pat
     needle particles, the patch and the target marked."""
     X = model.body.X
     u = np.asarray(model.particle_displacements(sol))
-    sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=10)
+    sc = plot.deformed_particles(ax, X, u, vmax=vmax, size=10, colorbar=False)
     x = X + u
     n = model.set_indices("needle")
     ax.plot(x[n, 0], x[n, 2], "r^", ms=6, label="needle")
