@@ -19,8 +19,10 @@ Problems (the same energy, loads, boundary conditions and load steps in both cod
   frictionless plate over its top face. jaxrkpm: ``Contact(HalfSpace(normal=(0, 0, -1)))``
   on the top face's boundary points, its pose moved from 2 gaps above the top to z = 1 -
   compression (barrier range --gap, pressure parameter the nominal pressure E x compression).
-  FElupe: hex27 with ``ContactRigidPlane`` on the top face's nodes (a centre point moved by
-  the same distance; penalty ``multiplier`` --penalty times FElupe's mean-stiffness base).
+  FElupe: hex27 with ``ContactRigidPlane`` on the top face's nodes (its centre point moved from
+  z = 1 to the same final plane z = 1 - compression; penalty ``multiplier`` --penalty times
+  FElupe's mean-stiffness base). Each code's regularisation error (barrier stand-off, penalty
+  penetration) is part of its error.
 
 Errors. Reaction: the x (cube) or z (plate) component of the resultant force that the moved
 face or the plate exerts on the body (jaxrkpm: ``Model.reaction`` of the moved set,
@@ -58,11 +60,15 @@ Newton, no line search, at most 30 iterations a step). After each code's first s
 record keeps the same measure for both, |r_free| / |r_prescribed| (the reactions of the
 essential DOFs), so that the two stops can be compared.
 
-Equal error. For each jaxrkpm size, FElupe's time at jaxrkpm's error is read off FElupe's
-(error, time) curve: the sizes that no cheaper size beats in error, joined log-log; outside
-their range the end segment is extended (marked ``extrapolated``). The ratio is jaxrkpm's time
-over FElupe's (above 1: FElupe reaches that error sooner), for the warm and the cold time, by
-the reaction error and by the probe error.
+Equal error. For each jaxrkpm size, FElupe's time to reach jaxrkpm's error is read off
+FElupe's (error, time) points: those that no cheaper size beats in error, joined log-log
+("interpolated"); an error above the cheapest point's takes that point's time (it reaches a
+smaller error already: "coarsest"); one below the smallest error FElupe reached extends the
+last segment ("extrapolated"; add finer --m). The ratio is jaxrkpm's time over FElupe's (above
+1: FElupe reaches that error sooner), for the warm and the cold time, by the reaction error
+and by the probe error; the ratio's key names how FElupe's time was found where it was not
+interpolated. Errors within twice the reference's own relative error estimate are marked
+unresolved (``reaction_error_resolved``).
 
 Threads: both codes run with the environment the bench was started in (recorded); KMP_BLOCKTIME
 is set to 0 where unset, for both (jaxrkpm's import does so for its own PARDISO; FElupe's
@@ -175,7 +181,7 @@ def jaxrkpm_worker(p: dict, n: int, repeats: int, integration: str, solver: str)
 
     import jaxrkpm as jr
     from jaxrkpm.solvers.newton import Tolerance
-    jr.Model, jr.Body, jr.NeoHookean   # noqa: B018 - the lazy imports load here, not in the build
+    jr.Model, jr.Body, jr.NeoHookean, jr.Contact, jr.HalfSpace, jr.contact_forces   # noqa: B018 - lazy imports load now
     out = {"import_s": time.perf_counter() - t0, "n": n, "particles": n ** 3, "integration": integration,
            "rtol": Tolerance().rtol, "jaxrkpm_path": str(Path(jr.__file__).parent)}
     clock = CompileClock()
@@ -184,7 +190,6 @@ def jaxrkpm_worker(p: dict, n: int, repeats: int, integration: str, solver: str)
     w0, t0 = time.time(), time.perf_counter()
     body = jr.Body.grid((n, n, n), 1.0 / (n - 1))
     material = jr.NeoHookean(lam=p["lam"], mu=p["mu"])
-    X = np.asarray(body.X)
     if case == "plate":
         gap, c = p["gap"], p["compression"]
         top = lambda Y: np.asarray(Y)[:, 2] > 1 - TOL   # noqa: E731
@@ -470,6 +475,7 @@ def reference(p: dict, a, levels, log) -> dict:
     if key in cache and not a.recompute_reference:
         return {**cache[key], "cached": True}
     rows = []
+    p = {**p, "steps": a.ref_steps or p["steps"]}   # an equilibrium: the same whatever the path's steps
     for m in levels:
         t0 = time.perf_counter()
         r = run_worker("felupe", p, m, a, repeats=0, variant="reference")
@@ -663,6 +669,7 @@ def main(argv=None):
                     help="FElupe's u-p-Jbar family of the incompressible case")
     ap.add_argument("--tol", type=float, default=None, help="FElupe's Newton tolerance (default: jaxrkpm's rtol)")
     ap.add_argument("--ref-m", type=int, nargs="*", default=REF_M, help="the references' meshes (each twice the last)")
+    ap.add_argument("--ref-steps", type=int, default=None, help="the references' load steps (default --steps)")
     ap.add_argument("--recompute-reference", action="store_true")
     ap.add_argument("--reference-only", action="store_true", help="compute (or read) the references and stop")
     ap.add_argument("--quick", action="store_true", help="fewer sizes, 2 repeats")
