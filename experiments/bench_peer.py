@@ -12,9 +12,11 @@ Problems (the same energy, loads, boundary conditions and load steps in both cod
 * ``incompressible``: the same cube at Poisson's ratio --nu-incompressible. jaxrkpm: the same
   model with ``anti_locking=True``. FElupe: the three-field u-p-Jbar formulation
   (``NearlyIncompressible(NeoHookeCompressible(mu), bulk=lam, U = lam/2 (ln Jbar)^2)``, exactly
-  W at p = U'(J), Jbar = J) on hex27 with FElupe's dual fields for it (discontinuous trilinear
-  p and Jbar, ``FieldsMixed``; --mixed hex20-P0: serendipity hexahedra with element-constant
-  p and Jbar, cook_reference.py's family).
+  W at p = U'(J), Jbar = J) on serendipity hexahedra with element-constant p and Jbar (hex20-P0,
+  ``FieldsMixed`` on ``RegionQuadraticHexahedron``, cook_reference.py's family); --mixed
+  hex27-P0: tri-quadratic hexahedra with element-constant p and Jbar; hex27-dQ1: FElupe's own
+  dual fields of hex27 (discontinuous trilinear p and Jbar), which on this cube converge from
+  above and slowly, where the P0 families converge from below.
 * ``plate``: the unit cube, the face z = 0 clamped, pressed by --compression by a rigid
   frictionless plate over its top face. jaxrkpm: ``Contact(HalfSpace(normal=(0, 0, -1)))``
   on the top face's boundary points, its pose moved from 2 gaps above the top to z = 1 -
@@ -285,8 +287,12 @@ def felupe_model(p: dict, m: int, variant: str):
         mesh.update(points=np.vstack([mesh.points, [[0.5, 0.5, 1.0]]]))   # the plate's centre point
     x = mesh.points
     region = fem.RegionQuadraticHexahedron(mesh) if fam == "hex20-P0" else fem.RegionTriQuadraticHexahedron(mesh)
-    if case == "incompressible":
+    if case == "incompressible" and fam == "hex27-P0":   # element-constant p and Jbar on hex27
+        dual = fem.RegionConstantHexahedron(mesh.dual(points_per_cell=1), quadrature=region.quadrature, grad=False)
+        field = fem.FieldContainer([fem.Field(region, dim=3), fem.Field(dual, values=0.0), fem.Field(dual, values=1.0)])
+    elif case == "incompressible":
         field = fem.FieldsMixed(region, n=3)
+    if case == "incompressible":
         lam = p["lam"]
         umat = fem.NearlyIncompressible(fem.NeoHookeCompressible(mu=p["mu"]), bulk=lam,
                                         dUdJ=lambda J, K: K * np.log(J) / J,
@@ -665,7 +671,7 @@ def main(argv=None):
     ap.add_argument("--gap", type=float, default=1e-3, help="jaxrkpm's contact barrier range")
     ap.add_argument("--penalty", type=float, default=1000.0,
                     help="FElupe ContactRigidPlane's multiplier (times its mean-stiffness base)")
-    ap.add_argument("--mixed", default="hex27-dQ1", choices=["hex27-dQ1", "hex20-P0"],
+    ap.add_argument("--mixed", default="hex20-P0", choices=["hex20-P0", "hex27-P0", "hex27-dQ1"],
                     help="FElupe's u-p-Jbar family of the incompressible case")
     ap.add_argument("--tol", type=float, default=None, help="FElupe's Newton tolerance (default: jaxrkpm's rtol)")
     ap.add_argument("--ref-m", type=int, nargs="*", default=REF_M, help="the references' meshes (each twice the last)")
