@@ -33,9 +33,11 @@ error |R - R_ref| / |R_ref|. Probe: the displacement at a point (cube: the top e
 (0.5, 1, 1), whose x component is -push/2 by symmetry, so only its bulge, y and z, counts;
 plate: the side face's centre (0.5, 1, 0.5), y and z), error |u - u_ref| / |u_ref| over those
 components. The references are FElupe solutions on finer meshes of the same element family
-(--ref-m, each twice the one before), extrapolated by Richardson from the three finest with
-their observed order; the error estimate is the extrapolation's correction |V - finest| (the
-change from the next coarser triple where there are four levels). The plate's reference is
+(--ref-m, each twice the one before; --ref-steps load steps: an equilibrium does not depend
+on them), extrapolated by Richardson from the three finest with their observed order; the
+error estimate is the extrapolation's correction |V - finest|, or with four levels or more
+the change of V from the next coarser triple (where the three finest are not monotone and
+contracting: V = the finest value, the estimate its last change). The plate's reference is
 the limit of frictionless contact over the whole top face: u_z = -compression prescribed on
 the top face, u_x and u_y free (exact contact, no penalty or barrier); the record checks that
 every top node then pushes against the plate (no node would lift off). References are cached
@@ -53,7 +55,8 @@ post-processing (reaction and probe), then --repeats warm solves (median, min, m
 the whole load path from the undeformed state (FElupe: the fields reset, its items made anew,
 one ``Step`` of --steps equal increments; jaxrkpm: ``Model.solve(..., steps=--steps)``, which may
 cut and then regrow its steps; the load steps each took are recorded). "cold" = import + build +
-first solve (the time from a fresh process to the solved state).
+first solve (the time from a fresh process to the solved state); "cold_to_answer" adds the first
+post-processing (jaxrkpm compiles its reaction and displacement evaluations there).
 
 Convergence criteria (the same tolerance, --tol, default jaxrkpm's ``Tolerance().rtol``):
 jaxrkpm stops when |r_free| <= rtol max(|r_ref|, force scale) (``jaxrkpm.solvers.newton``);
@@ -81,7 +84,7 @@ Run from the repository root on a quiet machine (FElupe from the ``reference`` e
 
     python -m experiments.bench_peer                       # all cases, default sizes
     python -m experiments.bench_peer --quick               # fewer sizes and repeats
-    python -m experiments.bench_peer --smoke --no-record   # seconds: a check of the pipeline
+    python -m experiments.bench_peer --smoke --no-record   # tiny sizes: a check of the pipeline
 
 writes a record (experiments/records.py) and prints the summary table.
 """
@@ -600,6 +603,7 @@ def run_case(case: str, a, log) -> tuple[dict, dict, list]:
                "compile_s": (statistics.median([r["first_solve_compile_s"] + r["build_compile_s"] for r in ok])
                              if ok and "first_solve_compile_s" in first else None),
                "first_post_s": statistics.median([r["first_post_s"] for r in ok]) if ok else None,
+               "cold_to_answer_s": statistics.median([r["cold_s"] + r["first_post_s"] for r in ok]) if ok else None,
                "reaction": first.get("reaction"), "relative_residual": first.get("relative_residual"),
                "error": None if ok else first.get("error")}
         row["reaction_error"], row["probe_error"] = errors_of(first, p, ref) if ok else (None, None)
