@@ -67,13 +67,14 @@ essential DOFs), so that the two stops can be compared.
 
 Equal error. For each jaxrkpm size, FElupe's time to reach jaxrkpm's error is read off
 FElupe's (error, time) points: those that no cheaper size beats in error, joined log-log
-("interpolated"); an error above the cheapest point's takes that point's time (it reaches a
-smaller error already: "coarsest"); one below the smallest error FElupe reached extends the
-last segment ("extrapolated"; add finer --m). The ratio is jaxrkpm's time over FElupe's (above
-1: FElupe reaches that error sooner), for the warm and the cold time, by the reaction error
-and by the probe error; the ratio's key names how FElupe's time was found where it was not
-interpolated. Errors within twice the reference's own relative error estimate are marked
-unresolved (``reaction_error_resolved``).
+("interpolated"). An error above the cheapest point's takes that point's time (FElupe reaches
+a smaller error in it: "coarsest", the ratio a lower bound); one below the smallest error
+FElupe reached takes the finest point's time (FElupe would need more: "finest", the ratio an
+upper bound; add finer --m), never an extrapolation. The ratio is jaxrkpm's time over
+FElupe's (above 1: FElupe reaches that error sooner), for the warm and the cold time, by the
+reaction error and by the probe error; the ratio's key says where it is a bound. Errors
+within twice the reference's own relative error estimate are marked unresolved
+(``reaction_error_resolved``).
 
 Threads: both codes run with the environment the bench was started in (recorded); KMP_BLOCKTIME
 is set to 0 where unset, for both (jaxrkpm's import does so for its own PARDISO; FElupe's
@@ -530,9 +531,10 @@ def errors_of(r: dict, p: dict, ref: dict) -> tuple[float | None, float | None]:
 
 def time_at_error(points, e):
     """FElupe's time to reach error ``e`` from its (error, time) points: the points that no
-    cheaper one beats in error, joined log-log. Past the cheapest point's error: that point's
-    time (it reaches a smaller error already; "coarsest"); below the smallest error reached:
-    the last segment extended ("extrapolated"). (time, how) or (None, None)."""
+    cheaper one beats in error, joined log-log ("interpolated"). Past the cheapest point's
+    error: that point's time ("coarsest": FElupe reaches a smaller error in it, so its time at
+    ``e`` is at most this); below the smallest error reached: the finest point's time
+    ("finest": FElupe needs more than this; no extrapolation). (time, how) or (None, None)."""
     pts = sorted((t, err) for err, t in points if err is not None and t is not None and err > 0 and t > 0)
     front = []
     for t, err in pts:
@@ -542,17 +544,14 @@ def time_at_error(points, e):
         return None, None
     if e >= front[0][1]:
         return front[0][0], "coarsest"
-    if len(front) < 2:
-        return None, None
+    if e < front[-1][1]:
+        return front[-1][0], "finest"
     lx = [math.log(err) for _, err in front]
     ly = [math.log(t) for t, _ in front]
     x = math.log(e)
-    if x < lx[-1]:
-        i, how = len(front) - 2, "extrapolated"
-    else:
-        i, how = next(k for k in range(len(front) - 1) if lx[k] >= x >= lx[k + 1]), "interpolated"
+    i = next(k for k in range(len(front) - 1) if lx[k] >= x >= lx[k + 1])
     s = (ly[i + 1] - ly[i]) / (lx[i + 1] - lx[i])
-    return math.exp(ly[i] + s * (x - lx[i])), how
+    return math.exp(ly[i] + s * (x - lx[i])), "interpolated"
 
 
 def median_of(stats_list):
@@ -624,9 +623,10 @@ def run_case(case: str, a, log) -> tuple[dict, dict, list]:
                 ratio = row[f"{kind}_s"] / t if t and row[f"{kind}_s"] else None
                 row[f"felupe_{kind}_s_at_{metric}_error"] = t
                 row[f"{kind}_ratio_at_{metric}_error"] = ratio
-                row[f"felupe_{kind}_at_{metric}_error_from"] = how
-                ratios[f"{name}: {kind} time / FElupe's at equal {metric} error"
-                       + ("" if how == "interpolated" else f" ({how})")] = ratio
+                row[f"felupe_{kind}_at_{metric}_error_from"] = how   # interpolated, coarsest or finest
+                bound = {"coarsest": " (FElupe's coarsest is more accurate: a lower bound)",
+                         "finest": " (below FElupe's finest error: an upper bound)"}.get(how, "")
+                ratios[f"{name}: {kind} time / FElupe's at equal {metric} error{bound}"] = ratio
         if fel_newton and row["newton_iterations"] is not None:
             row["newton_over_felupe_median"] = row["newton_iterations"] / statistics.median(fel_newton)
             ratios[f"{name}: Newton iterations / FElupe's median"] = row["newton_over_felupe_median"]
