@@ -145,7 +145,9 @@ def checkout(rev: str, where: Path) -> Path:
 
 
 def run_child(tree: Path, spec: dict, timeout: float) -> dict:
-    env = {**os.environ, "PYTHONPATH": str(tree), "JAXRKPM_COMPILATION_CACHE": "off"}
+    # the tree first (its package is the one imported), then whatever the caller's path held
+    path = os.pathsep.join(p for p in (str(tree), os.environ.get("PYTHONPATH", "")) if p)
+    env = {**os.environ, "PYTHONPATH": path, "JAXRKPM_COMPILATION_CACHE": "off"}
     env.pop("JAX_COMPILATION_CACHE_DIR", None)
     t0 = time.perf_counter()
     try:
