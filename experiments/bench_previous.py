@@ -20,8 +20,8 @@ Per case and tree: the model's build, the first solve (compile included: the col
 warm solve (median of ``--repeats``; not for ``phantom3d``, whose call is the figure), the
 Newton iterations and a result (a displacement or force) to check that both trees solve the
 same problem. The ratio this / base of each figure is the same-run speed-up. Run from the
-repository root: ``python -m experiments.bench_previous [--base REV] [--cases ...]``; writes a
-record (experiments/records.py). Figures only from a quiet machine."""
+repository root: ``python -m experiments.bench_previous --base REV [--cases ...]``; writes a
+record (experiments/records.py) after every case (``"partial": true`` until the run ends). Figures only from a quiet machine."""
 from __future__ import annotations
 
 import argparse
@@ -209,6 +209,7 @@ def main(argv=None):
                     if vals["base"] and vals["this"]:
                         ratios[f"{label}: {key} this/base"] = statistics.median(vals["this"]) / statistics.median(vals["base"])
                 figures["cases"].append(row)
+                records.finish(run, figures, ratios, partial=True)   # a run cut short keeps its cases
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(base)], cwd=ROOT, capture_output=True)
     print(json.dumps(ratios, indent=1))
