@@ -15,7 +15,7 @@ from ..discretise import quadrature as integ
 from ..discretise import scni
 from ..discretise.body import Body
 from ..discretise.constraints import EssentialSets, Transformation
-from ..mechanics.constraint import Essential, essential as essential_constraint
+from ..mechanics.constraint import Essential, essential as essential_constraint, held_components
 from ..mechanics.loads import SpringTerm, Springs, dead_load, spring_psi, spring_term
 from ..mechanics.materials import Material, det, green_lagrange, pk2
 from ..mechanics.problem import Problem
@@ -141,11 +141,14 @@ class Model:
                 volumetric locking as nu -> 1/2 (jaxrkpm.discretise.quadrature.dilatation_patches,
                 ``docs/guide/models.md``). Stresses at arbitrary points (``stress``) are the
                 point's own.
-    essential   name -> particle indices (or boolean mask) of each essential set
+    essential   name -> particle indices (or boolean mask) of each essential set, or a
+                ``Roller`` (a set that holds only some components: a symmetry plane; dense solver)
     support     kernel dilation a = support x spacing (eq 3.20)
     body_force  (d,) or X -> (Q, d): dead load per unit reference volume
     tractions   [(predicate, h0), ...]: dead load per unit reference area on the boundary
-                points where predicate(X) holds
+                points where predicate(X) holds (the points of the integration's own boundary
+                rule: under SCNI/MSCNI its smoothing cells' boundary facets, so that a uniform
+                traction passes the patch test)
     springs     Springs(points, stiffness, region): zero-length springs holding material
                 points (elastic supports, penalty paddles; movable, see ``springs_at``)
     terms       [spec, ...]: further terms of the total potential energy, each a
@@ -213,7 +216,12 @@ class Model:
             self.volume, balanced = smooth.table, smooth.boundary
 
         self.sets = EssentialSets.build(body, dict(essential or {}))
-        trans = Transformation.build(body, self.sets, self.a, self.support) if len(self.sets.bnd) else None
+        partial = self.sets.partial
+        if partial and solver in ("sparse", "krylov"):
+            raise ValueError(f"solver {solver!r} does not take Roller sets (held components) yet: use "
+                             "solver='dense' or 'auto'")
+        trans = (Transformation.build(body, self.sets, self.a, self.support)
+                 if len(self.sets.bnd) and not partial else None)
         ctx = Context(body, self.a, self.support, self.volume, self.surface, self.sets, balanced)
         if anti_locking not in (None, True, False):
             raise ValueError(f"anti_locking must be None (where the material needs it), True or False, "
@@ -223,14 +231,15 @@ class Model:
         built = (strain, self._springs(springs, ctx), dead_load(ctx, body_force, tractions),
                  *self._terms(terms, ctx, {*strain.point, *strain.tensors}))
         pairs, built, pair_i, pair_j = on_pattern(built, body.n, d)
-        self._problem = Problem(essential_constraint(self.sets, trans, body.n, d, pair_i, pair_j), pairs, built,
-                                jnp.asarray(body.spacing))
+        constraint = (held_components(body, self.sets, self.a, self.support, body.n, d) if partial
+                      else essential_constraint(self.sets, trans, body.n, d, pair_i, pair_j))
+        self._problem = Problem(constraint, pairs, built, jnp.asarray(body.spacing))
 
         n_free = len(self.sets.free) * d
         if not isinstance(choice, SolverChoice):
             raise ValueError(f"choice must be a SolverChoice, got {type(choice).__name__}")
         self.choice = choice
-        use_dense = solver == "dense" or (solver == "auto" and n_free <= choice.dense_limit(d))
+        use_dense = solver == "dense" or (solver == "auto" and (partial or n_free <= choice.dense_limit(d)))
         if use_dense:
             self.linear = DenseSolver(mixed=precision == "mixed" or (precision == "auto" and n_free >= choice.mixed_min))
         elif solver == "krylov":
