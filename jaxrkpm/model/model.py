@@ -119,6 +119,15 @@ def _concrete(x):
     return np.asarray(x)
 
 
+def _params_at(p0, p1, t):
+    """The parameters at the fraction t of a path that ramps them from p0 to p1 (None: p0 None)."""
+    if p0 is None:
+        return None
+    t = float(t)
+    return jax.tree.map(lambda a, b: b if t >= 1.0 or not jnp.issubdtype(jnp.result_type(b), jnp.inexact)
+                        else a + t * (b - a), p0, p1)
+
+
 class Model:
     """Total-Lagrangian RKPM hyperelastic model.
 
@@ -541,18 +550,36 @@ class Model:
         if eager:
             kept = self._kept_linear(start, problem)
             kept = self.linear.empty(problem, jnp.float64) if kept is None else kept
+        params0 = self._ramped_from(start, problem) if eager else None
         sol = solve_path_jit(self._driver(options, eager), problem, lim, start.u, start.g, g,
-                             jnp.asarray(start.load, jnp.float64), loads, kept)
+                             jnp.asarray(start.load, jnp.float64), loads, kept, params0)
         status = _concrete(sol.status)
         if auto and status == Status.UNSTABLE_TANGENT and (
                 branching := self._driver({**options, "stable_branch": True}, eager)).switches:
-            rest = solve_path_jit(branching, problem, lim, sol.u, sol.g, g, sol.load, loads)
+            rest = solve_path_jit(branching, problem, lim, sol.u, sol.g, g, sol.load, loads, None,
+                                  _params_at(params0, problem.params, sol.t))
             sol = joined(sol, rest)
             status = _concrete(sol.status)
+        if eager:   # the parameters where the path stopped: the start of the next solve's ramp
+            sol = sol._replace(params=_params_at(params0, problem.params, sol.t) or problem.params)
         if throw and status is not None and not Status.of(status).equilibrium:
             # under jax.jacfwd / jax.grad the fields are tracers: the error carries their values
             raise SolveError(Solution(*jax.tree.map(_concrete, tuple(sol))))
         return sol
+
+    def _ramped_from(self, start: Solution, problem):
+        """The parameters that ``start`` was solved with where they differ from ``problem``'s
+        (then the path ramps them, so that step cutting shrinks a pose change made at a
+        converged state); None where they are the same, unknown or of another model."""
+        p0 = start.params
+        if p0 is None or jax.tree.structure(p0) != jax.tree.structure(problem.params):
+            return None
+        pairs = list(zip(jax.tree.leaves(p0), jax.tree.leaves(problem.params)))
+        if any(np.shape(a) != np.shape(b) for a, b in pairs):
+            return None
+        if all(a is b or np.array_equal(np.asarray(a), np.asarray(b)) for a, b in pairs):
+            return None
+        return p0
 
     def _driver(self, options, eager: bool) -> LoadPath:
         """``solver(**options)``, keeping the linear state in the Solution where ``eager``."""

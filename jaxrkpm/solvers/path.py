@@ -28,6 +28,20 @@ class Path(NamedTuple):
     dt_locate: jax.Array  # () the step that pins a critical point before a branch switch
     nominal: jax.Array    # () a converging solve's nominal Newton work (steps x easy)
     max_iter: jax.Array   # () Newton iterations per step
+    p0: Any = None        # the problem's parameters at the start (None: its own throughout)
+
+    def problem_at(self, problem, t):
+        """``problem`` with its parameters at the fraction t of the increment: from ``p0`` to
+        its own, like g, so that cutting a step also shrinks a change of parameters (a tool's
+        pose)."""
+        if self.p0 is None:
+            return problem
+
+        def lerp(a, b):
+            if not jnp.issubdtype(jnp.result_type(b), jnp.inexact):
+                return b
+            return jnp.where(t >= 1.0, b, jnp.where(t > 0.0, a + t * (b - a), a))
+        return problem.replace(params=jax.tree.map(lerp, self.p0, problem.params))
 
     def at(self, t):
         """(g, load) at the fraction t of the increment: exactly g0 before the first converged
@@ -141,6 +155,7 @@ class LoadPath:
         t, dt, u = s.t, s.dt, s.u
         t1 = jnp.minimum(t + dt, 1.0)
         t1 = jnp.where(1.0 - t1 < 1e-12, 1.0, t1)
+        problem = path.problem_at(problem, t1)
         ga, la = path.at(t)
         gb, lb = path.at(t1)
         res = self.newton.solve(problem, u, ga, gb, la, lb, s.linear, max_iter=path.max_iter)
@@ -177,10 +192,11 @@ class LoadPath:
                          s.iterations + it, s.steps + ok, s.cuts + (~ok), jnp.where(ok, rn_v, s.residual_norm),
                          s.unknown | (st == Status.STABILITY_UNKNOWN), linear, branch, crit, wasted)
 
-    def solve(self, problem, lim: Limits, u0, g0, g1, l0, l1, state0=None) -> Solution:
+    def solve(self, problem, lim: Limits, u0, g0, g1, l0, l1, state0=None, params0=None) -> Solution:
         """The equilibrium at (g1, l1) reached from (u0, g0, l0): a Solution (the last
-        converged state and the failing status where the path stopped)."""
-        path = self.path(lim, g0, g1, l0, l1)
+        converged state and the failing status where the path stopped). ``params0``: the
+        problem's parameters at the start, ramped to its own along the path."""
+        path = self.path(lim, g0, g1, l0, l1)._replace(p0=params0)
         s = iterate(self, problem, path, self.init(problem, path, u0, state0))
         status = jnp.where((s.status == 0) & s.unknown, Status.STABILITY_UNKNOWN, s.status)
         g, load = path.at(s.t)
