@@ -158,10 +158,12 @@ class LoadPath:
         t1 = jnp.where(1.0 - t1 < 1e-12, 1.0, t1)
         ga, la = path.at(t)
         gb, lb = path.at(t1)
-        if path.p0 is not None:
-            u = self._parameter_predictor(path.problem_at(problem, t), path.problem_at(problem, t1), u, ga, la)
+        start, linear = u, s.linear
+        if path.p0 is not None:   # its factorisation is the one a modified Newton then keeps
+            start, linear = self._parameter_predictor(path.problem_at(problem, t), path.problem_at(problem, t1),
+                                                      u, ga, la)
         problem = path.problem_at(problem, t1)
-        res = self.newton.solve(problem, u, ga, gb, la, lb, s.linear, max_iter=path.max_iter)
+        res = self.newton.solve(problem, start, ga, gb, la, lb, linear, max_iter=path.max_iter)
         v, st, it, rn_v, linear = res
         ok = (st == Status.CONVERGED) | (st == Status.STABILITY_UNKNOWN)
         branch, crit = s.branch, s.critical
@@ -196,16 +198,16 @@ class LoadPath:
                          s.unknown | (st == Status.STABILITY_UNKNOWN), linear, branch, crit, wasted)
 
     def _parameter_predictor(self, problem_a, problem_b, u, g, load):
-        """u + du with K_ff du = -(r + dr/dp (p_b - p_a)) at u under problem_a (an equilibrium
-        of it, or at a path's start near one): the linearised response to a step of the
-        parameters (a frictional tool that moves drags the points that stick to it along),
-        which Newton's own first step, with the tangent at the new parameters, does not see."""
+        """(u + du, K_ff's factorisation) with K_ff du = -(r + dr/dp (p_b - p_a)) at u under
+        problem_a (an equilibrium of it, or at a path's start near one): the linearised response
+        to a step of the parameters (a frictional tool that moves drags the points that stick to
+        it along), which Newton's first step, with the tangent at the new ones, does not see."""
         dp = jax.tree.map(lambda a, b: b - a if jnp.issubdtype(jnp.result_type(b), jnp.inexact)
                           else np.zeros(jnp.shape(b), jax.dtypes.float0), problem_a.params, problem_b.params)
         r, dr = jax.jvp(lambda p: problem_a.replace(params=p).residual(u, g, load), (problem_a.params,), (dp,))
         state = self.linear.state_at(problem_a, u, g, load)
         du = self.linear.solve(state, r + dr)
-        return jnp.where(jnp.all(jnp.isfinite(du)), u - du, u)
+        return jnp.where(jnp.all(jnp.isfinite(du)), u - du, u), state
 
     def solve(self, problem, lim: Limits, u0, g0, g1, l0, l1, state0=None, params0=None) -> Solution:
         """The equilibrium at (g1, l1) reached from (u0, g0, l0): a Solution (the last

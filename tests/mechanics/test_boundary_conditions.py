@@ -195,3 +195,77 @@ def test_roller_input_is_checked():
         jr.Model(body, MAT, essential={"a": jr.Roller(left, components=0), "b": jr.Roller(bottom, normal=(1, 0))})
     with pytest.raises(ValueError, match="dense"):
         jr.Model(body, MAT, essential={"left": jr.Roller(left, components=0)}, solver="sparse")
+
+
+# ------------------------------------------------------- thick vessels on symmetry planes
+A, B, NU_LAME, P_IN = 1.0, 2.0, 0.499, 0.01      # radii, Poisson's ratio, inner pressure (E = 1)
+
+
+def lame_material(nu):
+    mu = 1.0 / (2 * (1 + nu))
+    return jr.NeoHookean(2 * mu * nu / (1 - 2 * nu), mu)
+
+
+def inner_pressure(body):
+    """The pressure on the inner surface as a dead traction, radial (small strains)."""
+    def on_inner(X):
+        return np.linalg.norm(X, axis=1) < A + 1e-3 * body.spacing
+    return [(on_inner, lambda X: P_IN * X / np.linalg.norm(X, axis=1)[:, None])]
+
+
+def quarter_annulus(nr, nt):
+    """A triangle mesh of the quarter of the ring A <= r <= B in the first quadrant."""
+    R, T = np.meshgrid(np.linspace(A, B, nr), np.linspace(0, np.pi / 2, nt), indexing="ij")
+    pts = np.c_[(R * np.cos(T)).ravel(), (R * np.sin(T)).ravel(), np.zeros(R.size)]
+    pts[np.abs(pts) < 1e-12] = 0.0                                   # exactly on the symmetry planes
+    k = np.arange(nr * nt).reshape(nr, nt)
+    a, b, c, d = k[:-1, :-1].ravel(), k[1:, :-1].ravel(), k[1:, 1:].ravel(), k[:-1, 1:].ravel()
+    return meshio.Mesh(pts, [("triangle", np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]))])
+
+
+def radial_error(model, sol, body, lame):
+    r = np.linalg.norm(body.X, axis=1)
+    u = np.asarray(model.particle_displacements(sol))
+    ratio = np.sum(u * body.X, 1) / r / lame(r)
+    inner = r < A + 1e-3 * body.spacing
+    return ratio[inner].mean() - 1, np.abs(ratio - 1).max()
+
+
+def test_thick_cylinder_quarter_matches_lame():
+    """Plane strain, nu = 0.499, anti-locking on (the default there): a quarter of a thick
+    cylinder on two symmetry rollers under inner pressure against Lame's solution."""
+    body = jr.Body.from_mesh(quarter_annulus(9, 13), dim=2)
+    model = jr.Model(body, lame_material(NU_LAME), essential=rollers(body), tractions=inner_pressure(body))
+    sol = model.solve()
+
+    def lame(r):
+        return P_IN * A ** 2 * (1 + NU_LAME) / (B ** 2 - A ** 2) * ((1 - 2 * NU_LAME) * r + B ** 2 / r)
+    inner, worst = radial_error(model, sol, body, lame)
+    print(f"quarter cylinder, {body.n} particles: u_r(a) / Lame - 1 = {inner:.2e}, largest |u_r / Lame - 1| {worst:.3f}")
+    assert abs(inner) < 0.01 and worst < 0.03
+
+
+@pytest.mark.slow(reason="a 3D mesh body of about 900 particles with rollers: minutes on two cores")
+def test_thick_sphere_octant_matches_lame():
+    """nu = 0.499, anti-locking on (the default there): an octant of a thick hollow sphere on
+    three symmetry rollers under inner pressure against Lame's solution."""
+    from jaxrkpm.discretise.mesh import gmsh_session, gmsh_to_meshio
+    with gmsh_session("octant") as gmsh:
+        occ = gmsh.model.occ
+        shell = occ.cut([(3, occ.addSphere(0, 0, 0, B))], [(3, occ.addSphere(0, 0, 0, A))])[0]
+        occ.intersect(shell, [(3, occ.addBox(0, 0, 0, B, B, B))])
+        occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMin", 0.18)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.18)
+        gmsh.model.mesh.generate(3)
+        mesh = gmsh_to_meshio(gmsh)
+    body = jr.Body.from_mesh(mesh)
+    ess = {f"sym{a}": jr.Roller(body.select(lambda X, a=a: np.abs(X[:, a]) < 1e-9), components=a) for a in range(3)}
+    model = jr.Model(body, lame_material(NU_LAME), essential=ess, tractions=inner_pressure(body))
+    sol = model.solve()
+
+    def lame(r):
+        return P_IN * A ** 3 / (B ** 3 - A ** 3) * ((1 - 2 * NU_LAME) * r + (1 + NU_LAME) * B ** 3 / (2 * r ** 2))
+    inner, worst = radial_error(model, sol, body, lame)
+    print(f"sphere octant, {body.n} particles: u_r(a) / Lame - 1 = {inner:.2e}, largest |u_r / Lame - 1| {worst:.3f}")
+    assert 800 <= body.n <= 1100 and abs(inner) < 0.03
