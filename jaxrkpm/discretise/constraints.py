@@ -63,7 +63,8 @@ class Roller:
         try:
             n = np.atleast_2d(np.asarray(self.normal, float))
         except (TypeError, ValueError):
-            raise ValueError(f"Roller {name!r}: normal must be numbers of shape ({dim},), got {self.normal!r}") from None
+            raise ValueError(f"Roller {name!r}: normal must be numbers of shape ({dim},), "
+                             f"got {self.normal!r}") from None
         if n.ndim != 2 or n.shape[1] != dim or not np.all(np.isfinite(n)) or len(n) > dim:
             raise ValueError(f"Roller {name!r}: normal must be finite, shape ({dim},) or (k, {dim}), "
                              f"got {self.normal!r}")

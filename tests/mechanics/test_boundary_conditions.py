@@ -47,7 +47,8 @@ def errors(model, sol, points, F0, P0):
     return np.abs(F - F0).max(), np.abs(P - P0).max()
 
 
-slow = pytest.mark.slow(reason="one more nodal-integration block (3D: 64-343 particles), each a compile of its own: a minute or more on two cores")
+slow = pytest.mark.slow(reason="one more nodal-integration block (3D: 64-343 particles), each a compile "
+                               "of its own: a minute or more on two cores")
 
 
 @pytest.mark.parametrize("dim, n, integration", [
@@ -241,7 +242,8 @@ def test_thick_cylinder_quarter_matches_lame():
     def lame(r):
         return P_IN * A ** 2 * (1 + NU_LAME) / (B ** 2 - A ** 2) * ((1 - 2 * NU_LAME) * r + B ** 2 / r)
     inner, worst = radial_error(model, sol, body, lame)
-    print(f"quarter cylinder, {body.n} particles: u_r(a) / Lame - 1 = {inner:.2e}, largest |u_r / Lame - 1| {worst:.3f}")
+    print(f"quarter cylinder, {body.n} particles: u_r(a) / Lame - 1 = {inner:.2e}, "
+          f"largest |u_r / Lame - 1| {worst:.3f}")
     assert abs(inner) < 0.01 and worst < 0.03
 
 
