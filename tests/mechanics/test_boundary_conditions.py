@@ -47,8 +47,8 @@ def errors(model, sol, points, F0, P0):
     return np.abs(F - F0).max(), np.abs(P - P0).max()
 
 
-slow = pytest.mark.slow(reason="one more nodal-integration block (3D: 64-343 particles), each a compile "
-                               "of its own: a minute or more on two cores")
+slow = pytest.mark.slow(reason="the rest of the patch test's cases (MSCNI at n = 7, 3D MSCNI, 3D n = 7; the "
+                               "default run has 2D n = 4 and 7 and 3D n = 4): minutes of compiles on two cores")
 
 
 @pytest.mark.parametrize("dim, n, integration", [
@@ -247,7 +247,8 @@ def test_thick_cylinder_quarter_matches_lame():
     assert abs(inner) < 0.01 and worst < 0.03
 
 
-@pytest.mark.slow(reason="a 3D mesh body of about 900 particles with rollers: minutes on two cores")
+@pytest.mark.slow(reason="the 3D octant of about 900 particles on three rollers (the default run has the 2D "
+                         "quarter cylinder): many minutes on two cores")
 def test_thick_sphere_octant_matches_lame():
     """nu = 0.499, anti-locking on (the default there): an octant of a thick hollow sphere on
     three symmetry rollers under inner pressure against Lame's solution."""
