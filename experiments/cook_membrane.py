@@ -7,6 +7,7 @@ integration at several resolutions and Poisson's ratios, with the model's defaul
     python -m experiments.cook_membrane --table         # the ratio tables from the JSON
     python -m experiments.cook_membrane --cook-spacings --block-spacings 0.1666666666666667
                                                         # one resolution, merged into the JSON
+    python -m experiments.cook_membrane --schemes scni mscni   # some integrations, merged
 
 The problems are ``tests/problems.py``'s ``cook_membrane`` and ``cantilever_block``; the
 references are ``experiments/cook_reference.json`` (made by ``experiments/cook_reference.py``).
@@ -81,12 +82,15 @@ def main(argv=None):
     p.add_argument("--table", action="store_true", help="print the tables of the stored results")
     p.add_argument("--cook-spacings", type=float, nargs="*", default=[4.0, 2.0, 1.0])
     p.add_argument("--block-spacings", type=float, nargs="*", default=[0.5, 0.25])
+    p.add_argument("--schemes", nargs="*", default=list(SCHEMES), choices=SCHEMES)
     a = p.parse_args(argv)
     if not a.table:
-        rows = run("cook_2d", a.cook_spacings) + run("block_3d", a.block_spacings)
-        # the rows of the resolutions not run this time are kept
+        rows = (run("cook_2d", a.cook_spacings, schemes=a.schemes)
+                + run("block_3d", a.block_spacings, schemes=a.schemes))
+        # the rows of the resolutions and integrations not run this time are kept
+        new = {(n["problem"], n["particles"], n["integration"]) for n in rows}
         kept = [r for r in (json.loads(OUT.read_text())["rows"] if OUT.exists() else [])
-                if (r["problem"], r["particles"]) not in {(n["problem"], n["particles"]) for n in rows}]
+                if (r["problem"], r["particles"], r["integration"]) not in new]
         OUT.write_text(json.dumps({"date": time.strftime("%Y-%m-%d"), "rows": kept + rows}, indent=1))
     print(table(json.loads(OUT.read_text())["rows"]))
 

@@ -24,6 +24,7 @@ from .control.tracking import (
     waypoint_table as waypoint_table,
 )
 from .discretise.body import Body as Body
+from .discretise.constraints import Roller as Roller
 from .discretise.mesh import read_mesh as read_mesh, refine_mesh as refine_mesh
 from .discretise.surface import (
     cylinder as cylinder,

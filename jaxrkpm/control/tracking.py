@@ -220,7 +220,7 @@ class ControlledModel:
         and a loss of stability shows as a chord that stops contracting (a refactorisation,
         whose stability is then checked)."""
         prob = self.problem
-        sol = sol._replace(linear=None)   # the loop carries its factorisations itself (``state``)
+        sol = sol._replace(linear=None, params=None)   # the loop carries its factorisations itself (``state``)
         # a kept factorisation is given up by its contraction (the chord's reuse), not a count
         cap = max(max_corr, self.corrections) if self.keeps else max_corr
 
@@ -450,7 +450,7 @@ class Tracker:
         """Track ``desired`` (W, C*d) from the equilibria c0 and p0 (one jitted while-loop)."""
         models = TrackModels(ctrl, plant)
         # the loop carries its own factorisations: the ones the Solutions kept stay out of its carry
-        c0, p0 = c0._replace(linear=None), p0._replace(linear=None)
+        c0, p0 = c0._replace(linear=None, params=None), p0._replace(linear=None, params=None)
         args = self.constants(models, lim, c0, p0, desired, gain, clamp, tol, damping)
         s = iterate(self, models, args, self.init(models, args, c0, p0))
         status = jnp.where(s.status < 0, TrackStatus.DONE, s.status)

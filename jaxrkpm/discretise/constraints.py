@@ -5,6 +5,11 @@ follow from the free ones and the prescribed values g so that u^h(X_b) = g exact
 
     d_b = (D^b)^-1 (g - D^nb d_nb),   D^b_ij = Psi_{b_j}(X_{b_i}),  D^nb_ij = Psi_{nb_j}(X_{b_i}).
 
+A ``Roller`` set holds only some components of its particles' displacement (a symmetry
+plane, a roller support): the same transformation written per held direction n,
+n . u^h(X_b) = n . g_b, with the coefficients of held particles in a frame whose first axes
+span their held directions (``mechanics.constraint.HeldComponents``).
+
 ``EssentialSets`` names and validates the sets; ``Transformation`` holds (D^b)^-1 and the
 rows of D^nb; ``EliminationLayout`` lays out T = [I; -A], A = (D^b)^-1 D^nb, by independent
 components for the dense tangent; ``HostElimination`` applies T and T^T on the host (sparse
@@ -24,23 +29,94 @@ from .body import Body
 
 
 @dataclass(frozen=True)
+class Roller:
+    """An essential set that holds only some displacement components of its particles
+    (``Model(essential={name: Roller(...)})``): a symmetry plane or a roller support.
+
+    particles   particle indices or a boolean mask (as a plain essential set)
+    components  the held axes: an int or a sequence of them (e.g. 0: u_x held, the others free)
+    normal      instead of ``components``: the held direction(s), (d,) or (k, d), for a plane
+                not aligned with the axes (its normal component is held)
+
+    The prescribed value of the set is a displacement as for any set; only its component along
+    the held directions acts (zero: a symmetry plane). A particle may lie in several rollers
+    (the edge of two symmetry planes) if their held directions are independent."""
+
+    particles: object
+    components: object = None
+    normal: object = None
+
+    def directions(self, dim: int, name: str) -> np.ndarray:
+        """The held unit directions (k, dim), orthonormal."""
+        if (self.components is None) == (self.normal is None):
+            raise ValueError(f"Roller {name!r}: give either components=... (held axes) or normal=... "
+                             "(held direction), not both or neither")
+        if self.components is not None:
+            comps = np.atleast_1d(np.asarray(self.components))
+            if comps.size == 0 or comps.ndim != 1 or not np.issubdtype(comps.dtype, np.integer):
+                raise ValueError(f"Roller {name!r}: components must be axis indices in 0..{dim - 1}, "
+                                 f"got {self.components!r}")
+            if comps.min() < 0 or comps.max() >= dim or len(np.unique(comps)) != len(comps):
+                raise ValueError(f"Roller {name!r}: components must be distinct axis indices in "
+                                 f"0..{dim - 1} (a {dim}D body), got {self.components!r}")
+            return np.eye(dim)[np.sort(comps)]
+        try:
+            n = np.atleast_2d(np.asarray(self.normal, float))
+        except (TypeError, ValueError):
+            raise ValueError(f"Roller {name!r}: normal must be numbers of shape ({dim},), "
+                             f"got {self.normal!r}") from None
+        if n.ndim != 2 or n.shape[1] != dim or not np.all(np.isfinite(n)) or len(n) > dim:
+            raise ValueError(f"Roller {name!r}: normal must be finite, shape ({dim},) or (k, {dim}), "
+                             f"got {self.normal!r}")
+        sv = np.linalg.svd(n, compute_uv=False)
+        if sv.min() < 1e-9 * max(sv.max(), 1e-300):
+            raise ValueError(f"Roller {name!r}: the normal is zero or its directions are not independent: "
+                             f"{self.normal!r}")
+        q = np.linalg.qr(n.T)[0].T                  # orthonormal rows spanning the same directions
+        return q * np.sign(np.sum(q * n, 1))[:, None]
+
+
+@dataclass(frozen=True)
 class EssentialSets:
-    """Validated, non-overlapping named particle sets, concatenated in ``bnd``."""
+    """Validated named particle sets, concatenated in ``bnd`` (a particle appears once per set
+    that holds it: only ``Roller`` sets may share particles). ``free``: the particles with a
+    displacement component that no set holds (the unknowns' rows)."""
 
     names: tuple
     slices: dict   # name -> slice into bnd
     bnd: np.ndarray   # (Nb,) particle indices
     free: np.ndarray  # (Nf,) particle indices
+    directions: dict = None   # name -> held unit directions (k, d) of a Roller set; None: all
+
+    @property
+    def partial(self) -> bool:
+        """Whether a set holds only some components (a ``Roller``)."""
+        return any(v is not None for v in (self.directions or {}).values())
+
+    def held(self, dim: int) -> list:
+        """Per entry of ``bnd``, its held unit directions (k, dim)."""
+        out = []
+        for name in self.names:
+            sl = self.slices[name]
+            D = (self.directions or {}).get(name)
+            out.extend([np.eye(dim) if D is None else D] * (sl.stop - sl.start))
+        return out
 
     @staticmethod
     def build(body: Body, essential: dict) -> "EssentialSets":
         if not isinstance(essential, dict):
             raise ValueError("essential must be a dict: name -> particle indices")
         seen = {}
+        held = np.zeros(body.n, np.int64)   # held components per particle
+        directions = {}
         parts, slices, start = [], {}, 0
         for name, idx in essential.items():
             if not isinstance(name, str):
                 raise ValueError(f"essential set names must be strings, got {name!r}")
+            directions[name] = None
+            if isinstance(idx, Roller):
+                directions[name] = idx.directions(body.dim, name)
+                idx = idx.particles
             try:
                 idx = np.asarray(idx)
             except (TypeError, ValueError):
@@ -62,18 +138,25 @@ class EssentialSets:
             if len(np.unique(idx)) != len(idx):
                 raise ValueError(f"essential set {name!r} lists a particle twice")
             for i in idx:
-                if int(i) in seen:
-                    raise ValueError(f"essential sets {seen[int(i)]!r} and {name!r} overlap "
-                                     f"(particle {int(i)} at {body.X[i].tolist()})")
+                other = seen.get(int(i))
+                if other is not None and (directions[other] is None or directions[name] is None):
+                    raise ValueError(f"essential sets {other!r} and {name!r} overlap "
+                                     f"(particle {int(i)} at {body.X[i].tolist()}); only Roller sets "
+                                     "may share particles")
                 seen[int(i)] = name
+            held[idx] += body.dim if directions[name] is None else len(directions[name])
             parts.append(idx)
             slices[name] = slice(start, start + len(idx))
             start += len(idx)
         bnd = np.concatenate(parts) if parts else np.zeros(0, np.int64)
-        free = np.setdiff1d(np.arange(body.n), bnd)
+        if np.any(held > body.dim):
+            i = int(np.argmax(held))
+            raise ValueError(f"particle {i} at {body.X[i].tolist()} is held in {held[i]} directions by "
+                             f"rollers, more than its {body.dim} components")
+        free = np.flatnonzero(held < body.dim)
         if len(free) == 0:
             raise ValueError("every particle is in an essential set: nothing left to solve for")
-        return EssentialSets(tuple(essential), slices, bnd, free)
+        return EssentialSets(tuple(essential), slices, bnd, free, directions)
 
 
 @dataclass(frozen=True)

@@ -130,10 +130,12 @@ def _pad(a, shape):
     return out
 
 
-def point_fields(model, sol) -> dict:
+def point_fields(model, sol, params=None) -> dict:
     """The point data of a solution at the particles: ``displacement`` (N, 3),
     ``cauchy_stress`` (N, 9) (row-major 3x3), ``von_mises`` (N,) of it, ``det_F`` (N,) (area
-    ratio in 2D), ``volume`` (N,) and ``set_<name>`` (N,) 0/1 for each essential set. A 2D
+    ratio in 2D), ``volume`` (N,), ``set_<name>`` (N,) 0/1 for each essential set and, where
+    there are essential sets, ``reaction`` (N, 3), the force the sets exert on each particle
+    (``Model.reactions``, under ``params``, the solve's). A 2D
     stress is padded with zeros out of plane (von Mises of the plane-stress state)."""
     X = np.asarray(model.body.X)
     n = len(X)
@@ -149,6 +151,11 @@ def point_fields(model, sol) -> dict:
         mask = np.zeros(n, np.uint8)
         mask[model.set_indices(name)] = 1
         fields[f"set_{name}"] = mask
+    if model.set_names:   # a roller's reaction lies along its held directions only
+        R = np.zeros((n, model.dim))
+        np.add.at(R, np.concatenate([model.set_indices(k) for k in model.set_names]),
+                  np.asarray(model.reactions(sol, params)))
+        fields["reaction"] = _pad(R, (3,))
     return fields
 
 
@@ -212,7 +219,7 @@ def _checked(model, sol, what: str = "solution", params=None):
         raise ValueError(f"{what} is a batch of {np.size(sol.status)} solves (status shape "
                          f"{np.shape(sol.status)}): write one at a time (index the batch)")
     model.check_solution(sol, what)
-    fields = point_fields(model, sol)
+    fields = point_fields(model, sol, params)
     touch, record = contact_fields(model, sol, params)
     fields.update(touch)
     bad = {k: np.flatnonzero(~np.all(np.isfinite(np.asarray(v, float).reshape(len(v), -1)), axis=1))

@@ -13,8 +13,9 @@ pose at load scale 0 (where the body is undeformed: it must not touch the tool t
 parameters are its pose at load scale 1, and in between the pose is interpolated linearly
 (c(l) = c_0 + l (c - c_0), likewise the angle or rotation vector). So the solver's load steps
 (``solve(..., steps=n)``, halved on failure) move the tool in steps, as they scale a dead load.
-A solve warm-started at load 1 (``initial=sol``) with a new pose moves the tool there in one
-step: keep such moves small (a control step, a finite difference), or solve from load 0.
+A solve warm-started at load 1 (``initial=sol``) with a new pose moves the tool from its pose
+in ``sol`` (``Solution.params``) to the new one along the solve's path, each step predicted
+from the tangent of the converged state before it, so step cutting shrinks the move.
 
 **Contact points: the boundary quadrature points of the model's own boundary rule**
 (``Context.balanced``), each displaced by that rule's shape-function row and weighted by its

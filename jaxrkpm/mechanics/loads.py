@@ -106,7 +106,8 @@ class DeadLoad(Term):
 
 def dead_load(ctx: Context, body_force=None, tractions=()) -> DeadLoad:
     """The ``DeadLoad`` of a body force and tractions (see ``nodal_forces``)."""
-    return DeadLoad(jnp.asarray(nodal_forces(ctx.body, ctx.volume, ctx.surface, body_force, tractions)))
+    rule = ctx.surface if ctx.balanced is None else ctx.balanced
+    return DeadLoad(jnp.asarray(nodal_forces(ctx.body, ctx.volume, rule, body_force, tractions)))
 
 
 @term

@@ -16,7 +16,7 @@ from ..discretise import quadrature as integ
 from ..discretise import scni
 from ..discretise.body import Body
 from ..discretise.constraints import EssentialSets, Transformation
-from ..mechanics.constraint import Essential, essential as essential_constraint
+from ..mechanics.constraint import Essential, essential as essential_constraint, held_components
 from ..mechanics.contact import ContactPenetrationWarning, ContactTerm, penetration
 from ..mechanics.loads import SpringTerm, Springs, dead_load, spring_psi, spring_term
 from ..mechanics.materials import Material, det, green_lagrange, pk2
@@ -122,6 +122,15 @@ def _concrete(x):
     return np.asarray(x)
 
 
+def _params_at(p0, p1, t):
+    """The parameters at the fraction t of a path that ramps them from p0 to p1 (None: p0 None)."""
+    if p0 is None:
+        return None
+    t = float(t)
+    return jax.tree.map(lambda a, b: b if t >= 1.0 or not jnp.issubdtype(jnp.result_type(b), jnp.inexact)
+                        else a + t * (b - a), p0, p1)
+
+
 class Model:
     """Total-Lagrangian RKPM hyperelastic model.
 
@@ -144,11 +153,14 @@ class Model:
                 volumetric locking as nu -> 1/2 (jaxrkpm.discretise.quadrature.dilatation_patches,
                 ``docs/guide/models.md``). Stresses at arbitrary points (``stress``) are the
                 point's own.
-    essential   name -> particle indices (or boolean mask) of each essential set
+    essential   name -> particle indices (or boolean mask) of each essential set, or a
+                ``Roller`` (a set that holds only some components: a symmetry plane; dense solver)
     support     kernel dilation a = support x spacing (eq 3.20)
     body_force  (d,) or X -> (Q, d): dead load per unit reference volume
     tractions   [(predicate, h0), ...]: dead load per unit reference area on the boundary
-                points where predicate(X) holds
+                points where predicate(X) holds (the points of the integration's own boundary
+                rule: under SCNI/MSCNI its smoothing cells' boundary facets, so that a uniform
+                traction passes the patch test)
     springs     Springs(points, stiffness, region): zero-length springs holding material
                 points (elastic supports, penalty paddles; movable, see ``springs_at``)
     terms       [spec, ...]: further terms of the total potential energy, each a
@@ -223,7 +235,12 @@ class Model:
             self.volume, balanced = smooth.table, smooth.boundary
 
         self.sets = EssentialSets.build(body, dict(essential or {}))
-        trans = Transformation.build(body, self.sets, self.a, self.support) if len(self.sets.bnd) else None
+        partial = self.sets.partial
+        if partial and solver in ("sparse", "krylov"):
+            raise ValueError(f"solver {solver!r} does not take Roller sets (held components) yet: use "
+                             "solver='dense' or 'auto'")
+        trans = (Transformation.build(body, self.sets, self.a, self.support)
+                 if len(self.sets.bnd) and not partial else None)
         ctx = Context(body, self.a, self.support, self.volume, self.surface, self.sets, balanced)
         if anti_locking not in (None, True, False):
             raise ValueError(f"anti_locking must be None (where the material needs it), True or False, "
@@ -233,14 +250,15 @@ class Model:
         built = (strain, self._springs(springs, ctx), dead_load(ctx, body_force, tractions),
                  *self._terms(terms, ctx, {*strain.point, *strain.tensors}))
         pairs, built, pair_i, pair_j = on_pattern(built, body.n, d)
-        self._problem = Problem(essential_constraint(self.sets, trans, body.n, d, pair_i, pair_j), pairs, built,
-                                jnp.asarray(body.spacing))
+        constraint = (held_components(body, self.sets, self.a, self.support, body.n, d) if partial
+                      else essential_constraint(self.sets, trans, body.n, d, pair_i, pair_j))
+        self._problem = Problem(constraint, pairs, built, jnp.asarray(body.spacing))
 
         n_free = len(self.sets.free) * d
         if not isinstance(choice, SolverChoice):
             raise ValueError(f"choice must be a SolverChoice, got {type(choice).__name__}")
         self.choice = choice
-        use_dense = solver == "dense" or (solver == "auto" and n_free <= choice.dense_limit(d))
+        use_dense = solver == "dense" or (solver == "auto" and (partial or n_free <= choice.dense_limit(d)))
         if isinstance(solver, LinearSolver):   # the user's own, used as given
             self.linear = solver
         elif use_dense:
@@ -551,14 +569,18 @@ class Model:
         if eager:
             kept = self._kept_linear(start, problem)
             kept = self.linear.empty(problem, jnp.float64) if kept is None else kept
+        params0 = self._ramped_from(start, problem) if eager else None
         sol = solve_path_jit(self._driver(options, eager), problem, lim, start.u, start.g, g,
-                             jnp.asarray(start.load, jnp.float64), loads, kept)
+                             jnp.asarray(start.load, jnp.float64), loads, kept, params0)
         status = _concrete(sol.status)
         if auto and status == Status.UNSTABLE_TANGENT and (
                 branching := self._driver({**options, "stable_branch": True}, eager)).switches:
-            rest = solve_path_jit(branching, problem, lim, sol.u, sol.g, g, sol.load, loads)
+            rest = solve_path_jit(branching, problem, lim, sol.u, sol.g, g, sol.load, loads, None,
+                                  _params_at(params0, problem.params, sol.t))
             sol = joined(sol, rest)
             status = _concrete(sol.status)
+        if eager:   # the parameters where the path stopped: the start of the next solve's ramp
+            sol = sol._replace(params=_params_at(params0, problem.params, sol.t) or problem.params)
         if throw and status is not None and not Status.of(status).equilibrium:
             # under jax.jacfwd / jax.grad the fields are tracers: the error carries their values
             raise SolveError(Solution(*jax.tree.map(_concrete, tuple(sol))))
@@ -579,6 +601,20 @@ class Model:
                 warnings.warn(f"the solve converged with points of contact {t.name!r} inside the tool (min gap "
                               f"{gap:.3g} < 0): raise Contact.pressure, or take more load steps (steps=...), "
                               "and check contact_forces(...).min_gap", ContactPenetrationWarning, stacklevel=4)
+
+    def _ramped_from(self, start: Solution, problem):
+        """The parameters that ``start`` was solved with where they differ from ``problem``'s
+        (then the path ramps them, so that step cutting shrinks a pose change made at a
+        converged state); None where they are the same, unknown or of another model."""
+        p0 = start.params
+        if p0 is None or jax.tree.structure(p0) != jax.tree.structure(problem.params):
+            return None
+        pairs = list(zip(jax.tree.leaves(p0), jax.tree.leaves(problem.params)))
+        if any(np.shape(a) != np.shape(b) for a, b in pairs):
+            return None
+        if all(a is b or np.array_equal(np.asarray(a), np.asarray(b)) for a, b in pairs):
+            return None
+        return p0
 
     def _driver(self, options, eager: bool) -> LoadPath:
         """``solver(**options)``, keeping the linear state in the Solution where ``eager``."""

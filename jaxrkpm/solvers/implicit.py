@@ -62,19 +62,19 @@ def sensitivity(problem, linear, u, g, load, rhs, state=None, refine: float = 0.
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(0,))
-def solve_path_diff(driver: LoadPath, problem, lim: Limits, u0, g0, g1, l0, l1, state0=None):
+def solve_path_diff(driver: LoadPath, problem, lim: Limits, u0, g0, g1, l0, l1, state0=None, params0=None):
     """``driver.solve`` differentiable in (g1, l1, the problem's parameters) by the implicit
     function theorem at the converged state: K_ff du = -(dr/dg dg + dr/dl dl + dr/dp dp). No
-    Newton iteration is differentiated; the path start (u0, g0, l0) and ``state0`` only select
-    the equilibrium branch and where Newton starts."""
-    return driver.solve(problem, lim, u0, g0, g1, l0, l1, state0)
+    Newton iteration is differentiated; the path start (u0, g0, l0, the parameters ``params0``
+    there) and ``state0`` only select the equilibrium branch and where Newton starts."""
+    return driver.solve(problem, lim, u0, g0, g1, l0, l1, state0, params0)
 
 
 @solve_path_diff.defjvp
 def _solve_path_jvp(driver, primals, tangents):
-    problem, lim, u0, g0, g1, l0, l1, state0 = primals
-    dproblem, _, _, _, dg1, _, dl1, _ = tangents
-    sol = solve_path_diff(driver, problem, lim, u0, g0, g1, l0, l1, state0)
+    problem, lim, u0, g0, g1, l0, l1, state0, params0 = primals
+    dproblem, _, _, _, dg1, _, dl1, _, _ = tangents
+    sol = solve_path_diff(driver, problem, lim, u0, g0, g1, l0, l1, state0, params0)
     # a failed solve has no derivative: NaN, never the finite derivative of the kept state
     # (a factor, not a select, so the tangent stays linear and reverse mode transposes it)
     valid = jnp.where(reached_equilibrium(sol.status), 1.0, jnp.nan)

@@ -8,6 +8,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .branch import BranchSwitch
 from .iterate import iterate, when
@@ -27,6 +28,20 @@ class Path(NamedTuple):
     dt_locate: jax.Array  # () the step that pins a critical point before a branch switch
     nominal: jax.Array    # () a converging solve's nominal Newton work (steps x easy)
     max_iter: jax.Array   # () Newton iterations per step
+    p0: Any = None        # the problem's parameters at the start (None: its own throughout)
+
+    def problem_at(self, problem, t):
+        """``problem`` with its parameters at the fraction t of the increment: from ``p0`` to
+        its own, like g, so that cutting a step also shrinks a change of parameters (a tool's
+        pose)."""
+        if self.p0 is None:
+            return problem
+
+        def lerp(a, b):
+            if not jnp.issubdtype(jnp.result_type(b), jnp.inexact):
+                return b
+            return jnp.where(t >= 1.0, b, jnp.where(t > 0.0, a + t * (b - a), a))
+        return problem.replace(params=jax.tree.map(lerp, self.p0, problem.params))
 
     def at(self, t):
         """(g, load) at the fraction t of the increment: exactly g0 before the first converged
@@ -142,7 +157,12 @@ class LoadPath:
         t1 = jnp.where(1.0 - t1 < 1e-12, 1.0, t1)
         ga, la = path.at(t)
         gb, lb = path.at(t1)
-        res = self.newton.solve(problem, u, ga, gb, la, lb, s.linear, max_iter=path.max_iter)
+        start, linear = u, s.linear
+        if path.p0 is not None:   # its factorisation is the one a modified Newton then keeps
+            start, linear = self._parameter_predictor(path.problem_at(problem, t), path.problem_at(problem, t1),
+                                                      u, ga, la)
+        problem = path.problem_at(problem, t1)
+        res = self.newton.solve(problem, start, ga, gb, la, lb, linear, max_iter=path.max_iter)
         v, st, it, rn_v, linear = res
         ok = (st == Status.CONVERGED) | (st == Status.STABILITY_UNKNOWN)
         branch, crit = s.branch, s.critical
@@ -176,10 +196,23 @@ class LoadPath:
                          s.iterations + it, s.steps + ok, s.cuts + (~ok), jnp.where(ok, rn_v, s.residual_norm),
                          s.unknown | (st == Status.STABILITY_UNKNOWN), linear, branch, crit, wasted)
 
-    def solve(self, problem, lim: Limits, u0, g0, g1, l0, l1, state0=None) -> Solution:
+    def _parameter_predictor(self, problem_a, problem_b, u, g, load):
+        """(u + du, K_ff's factorisation) with K_ff du = -(r + dr/dp (p_b - p_a)) at u under
+        problem_a (an equilibrium of it, or at a path's start near one): the linearised response
+        to a step of the parameters (a frictional tool that moves drags the points that stick to
+        it along), which Newton's first step, with the tangent at the new ones, does not see."""
+        dp = jax.tree.map(lambda a, b: b - a if jnp.issubdtype(jnp.result_type(b), jnp.inexact)
+                          else np.zeros(jnp.shape(b), jax.dtypes.float0), problem_a.params, problem_b.params)
+        r, dr = jax.jvp(lambda p: problem_a.replace(params=p).residual(u, g, load), (problem_a.params,), (dp,))
+        state = self.linear.state_at(problem_a, u, g, load)
+        du = self.linear.solve(state, r + dr)
+        return jnp.where(jnp.all(jnp.isfinite(du)), u - du, u), state
+
+    def solve(self, problem, lim: Limits, u0, g0, g1, l0, l1, state0=None, params0=None) -> Solution:
         """The equilibrium at (g1, l1) reached from (u0, g0, l0): a Solution (the last
-        converged state and the failing status where the path stopped)."""
-        path = self.path(lim, g0, g1, l0, l1)
+        converged state and the failing status where the path stopped). ``params0``: the
+        problem's parameters at the start, ramped to its own along the path."""
+        path = self.path(lim, g0, g1, l0, l1)._replace(p0=params0)
         s = iterate(self, problem, path, self.init(problem, path, u0, state0))
         status = jnp.where((s.status == 0) & s.unknown, Status.STABILITY_UNKNOWN, s.status)
         g, load = path.at(s.t)

@@ -125,7 +125,9 @@ class Solution(NamedTuple):
     (its factorisation of K_ff at the last tangent the solve made, an iterate near the state
     returned), where the solve keeps it (an eager ``Model.solve``; None otherwise): a solve
     started from this Solution and the implicit Jacobian at it use it instead of factorising
-    again."""
+    again. ``params``: the problem's parameters at this state, where the solve keeps them (an
+    eager ``Model.solve``; None otherwise): a solve started from this Solution with other
+    parameters (a tool's new pose) ramps them from these along its path."""
 
     u: jax.Array
     g: jax.Array
@@ -139,6 +141,7 @@ class Solution(NamedTuple):
     branch: jax.Array     # () critical points passed by switching to a stable branch (0: primary)
     critical: "Critical"  # the critical points this solve passed (fixed size, NaN where unfilled)
     linear: Any = None    # the linear solver's last state, where kept (LoadPath.keep_linear)
+    params: Any = None    # the problem's parameters at this state, where kept (an eager Model.solve)
 
     def __repr__(self) -> str:
         """The outcome and the shapes, not the arrays (the critical-point record is NaN where

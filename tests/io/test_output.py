@@ -66,7 +66,7 @@ def test_vtu_2d_roundtrip_right_arrays_on_right_points(solved2d, tmp_path):
     np.testing.assert_allclose(quad_area, 0.25 ** 2)
     assert len({tuple(sorted(c)) for c in q}) == 16
     pd = back.point_data
-    assert set(pd) == {"displacement", "cauchy_stress", "von_mises", "det_F", "volume", "set_wall", "set_pad"}
+    assert set(pd) == {"displacement", "cauchy_stress", "von_mises", "det_F", "volume", "set_wall", "set_pad", "reaction"}
     assert pd["displacement"].shape == (n, 3) and pd["cauchy_stress"].shape == (n, 9)
     u = np.asarray(model.particle_displacements(sol))
     np.testing.assert_allclose(pd["displacement"][:, :2], u, rtol=1e-13, atol=1e-15)
@@ -75,6 +75,8 @@ def test_vtu_2d_roundtrip_right_arrays_on_right_points(solved2d, tmp_path):
     np.testing.assert_allclose(pd["displacement"][pad, :2], np.tile(PAD, (len(pad), 1)), atol=1e-10)
     np.testing.assert_array_equal(np.flatnonzero(pd["set_pad"]), np.sort(pad))
     np.testing.assert_array_equal(np.flatnonzero(pd["set_wall"]), np.flatnonzero(X[:, 0] == 0))
+    np.testing.assert_allclose(pd["reaction"][pad, :2].sum(0), model.reaction(sol, "pad"), rtol=1e-12, atol=1e-14)
+    assert np.all(pd["reaction"][(pd["set_pad"] == 0) & (pd["set_wall"] == 0)] == 0)
     s = np.asarray(model.stress(sol, X, kind="cauchy"))
     s33 = pd["cauchy_stress"].reshape(n, 3, 3)
     np.testing.assert_allclose(s33[:, :2, :2], s, rtol=1e-12, atol=1e-14)

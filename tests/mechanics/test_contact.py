@@ -380,3 +380,31 @@ def test_friction_against_a_glued_plate(clamped_block, lam):
     else:            # the top wants to spread: friction holds it partly, the glue wholly
         assert ux[0] > 2 * ux[1] and ux[1] > 10 * ux[2] and ux[2] < 1e-8
         assert abs(fy[1] - fy[2]) > 1e-3 * abs(fy[2]) and abs(fy[1] - fy[0]) > 1e-3 * abs(fy[0])
+
+
+# ------------------------------------------------------------- frictional restarts
+def test_frictional_slides_restart_from_the_previous_solution():
+    """A block pressed by a frictional plate (mu = 0.3) over its whole top (contact width 1),
+    then slid along it in steps of 0.1% to 10% of that width, each solve started from the
+    previous Solution with the lag of that state, at the default settings: the pose change is
+    ramped along the solve's path (so step cutting shrinks it) and predicted from the
+    converged state's tangent. The friction builds up to mu times the normal force."""
+    body = jr.Body.grid((5, 5), 0.25)
+    plate = jr.Contact(jr.HalfSpace((0.0, -1.0)), position=(0.0, 1.0 + GAP), gap=GAP, pressure=0.3, name="plate",
+                       where=lambda X: X[:, 1] > 1 - 1e-9)
+    model = jr.Model(body, MAT, integration="scni", essential={"bottom": body.select(lambda X: X[:, 1] < 1e-9)},
+                     terms=[plate])
+    pose = {**model.params["plate"], "position": jnp.array([0.0, 1.0 + GAP - 0.05]), "mu": jnp.asarray(0.3)}
+    sol = model.solve(params={"plate": pose}, steps=4)
+    x, ratios, iterations = 0.0, [], []
+    for slide in (0.001, 0.003, 0.01, 0.03, 0.1):
+        lag = jr.contact_forces(model, sol, "plate", {"plate": pose}).lag
+        x += slide
+        pose = {**pose, **lag, "position": jnp.array([x, 1.0 + GAP - 0.05])}
+        sol = model.solve(params={"plate": pose}, initial=sol)     # raises if it does not converge
+        res = jr.contact_forces(model, sol, "plate", {"plate": pose})
+        ratios.append(-float(res.force[0]) / (0.3 * float(res.force[1])))
+        iterations.append(int(sol.iterations))
+    print("slides 0.001 .. 0.1: F_t / (mu F_n)", np.round(ratios, 4), "Newton iterations", iterations)
+    assert all(0 < a < b for a, b in zip(ratios, ratios[1:]))
+    assert ratios[-1] == pytest.approx(1.0, abs=0.01)
