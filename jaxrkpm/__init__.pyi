@@ -43,6 +43,7 @@ from .io.output import (
     write_solution as write_solution,
 )
 from .mechanics.contact import (
+    Arc as Arc,
     Box as Box,
     Capsule as Capsule,
     Contact as Contact,
