@@ -387,7 +387,8 @@ def optimize_placement(phantom, tools, inclusion: str = "none", increments: int 
     if free not in ("all", "depth"):
         raise ValueError(f"free must be 'all' or 'depth', got {free!r}")
     lo, hi = bounds(phantom, tools, spec)
-    x0 = rest_control(phantom, tools, spec) if start is None else np.clip(np.asarray(start, float), lo, hi)
+    x0 = (rest_control(phantom, tools, spec, depth=0.5 * phantom.spacing) if start is None
+          else np.clip(np.asarray(start, float), lo, hi))
     mask = np.ones_like(lo, bool) if free == "all" else np.array([[False, True]] * len(tools))
     scale = abs(no_tool_deviation(phantom, inclusion, increments)) or 1.0
     hist, best, seen = [], {}, {}
@@ -435,7 +436,7 @@ def grid_search(phantom, tools, inclusion: str = "none", increments: int = 15,
     |deviation|, [(control, deviation)])."""
     tools = check_tools(tools)
     lo, hi = bounds(phantom, tools, spec)
-    x0 = rest_control(phantom, tools, spec) if start is None else np.asarray(start, float)
+    x0 = rest_control(phantom, tools, spec, depth=0.5 * phantom.spacing) if start is None else np.asarray(start, float)
     mask = np.ones_like(lo, bool) if free == "all" else np.array([[False, True]] * len(tools))
     axes = [np.linspace(a, b, points) for a, b in zip(lo[mask], hi[mask])]
     rows = []
