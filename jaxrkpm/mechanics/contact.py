@@ -191,7 +191,7 @@ class Arc:
     def sdf(self, y):
         if y.shape[-1] != 2:
             raise ValueError(f"Arc is a 2D shape, got points of dimension {y.shape[-1]}")
-        z = y.at[..., 1].add(self.radius)          # about the arc's centre
+        z = jnp.asarray(y).at[..., 1].add(self.radius)          # about the arc's centre
         phi = jnp.arctan2(z[..., 0], z[..., 1])     # from the last axis
         on_arc = jnp.abs(phi) <= self.half_angle
         ends = self.radius * jnp.array([[np.sin(self.half_angle), np.cos(self.half_angle)],

@@ -75,8 +75,8 @@ class Tool:
 
 # --tools N of the CLI: a paddle beside the target on the far side from the corner cut (it
 # pushes the target back towards the needle line), then the top and the cut corner
-DEFAULT_TOOLS = {1: (Tool("right"),), 2: (Tool("right"), Tool("top", "cup")),
-                 3: (Tool("right"), Tool("top", "cup"), Tool("cut"))}
+CUP = Tool("top", "cup", half_length=0.2)
+DEFAULT_TOOLS = {1: (Tool("right"),), 2: (Tool("right"), CUP), 3: (Tool("right"), CUP, Tool("cut"))}
 
 
 def default_tools(n: int) -> tuple:
