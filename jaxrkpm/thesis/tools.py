@@ -36,14 +36,16 @@ import numpy as np
 from ..base.outcome import Outcome
 from ..control.friction import LagStatus, solve_frictional
 from ..mechanics.contact import Arc, Box, Contact
-from ..model.model import Model
+from ..model.model import Model, SolveError
 from ..solvers.results import Status
 from .contact_paddle import ContactPaddle, check_contact, tool_rotation
 
 # the free skin of the Figure 6.1 phantom, counter-clockwise (outward normal on the right of
 # each edge's direction): the bottom edge right of the needle is held
 SKIN_2D = {"right": ((1.0, 0.0), (1.0, 1.0)), "top": ((1.0, 1.0), (0.0, 1.0)),
-           "left": ((0.0, 1.0), (0.0, 0.5)), "cut": ((0.0, 0.5), (0.5, 0.0))}
+           "left": ((0.0, 1.0), (0.0, 0.5)), "cut": ((0.0, 0.5), (0.5, 0.0)),
+           # the right edge's halves: two tools there whose faces cannot overlap
+           "right_low": ((1.0, 0.0), (1.0, 0.5)), "right_high": ((1.0, 0.5), (1.0, 1.0))}
 SHAPE_NAMES = ("box", "cup")
 CONTINUATION = 1.0      # the continuation term's weight w
 MAX_DEPTH = 1.0         # the deepest press, in particle spacings
@@ -74,9 +76,10 @@ class Tool:
 
 
 # --tools N of the CLI: a paddle beside the target on the far side from the corner cut (it
-# pushes the target back towards the needle line), then the top and the cut corner
-CUP = Tool("top", "cup", half_length=0.2)
-DEFAULT_TOOLS = {1: (Tool("right"),), 2: (Tool("right"), CUP), 3: (Tool("right"), CUP, Tool("cut"))}
+# pushes the target back towards the needle line); two: one on each half of that edge; three:
+# and one on the left edge (the side the target moves away from)
+DEFAULT_TOOLS = {1: (Tool("right"),), 2: (Tool("right_low"), Tool("right_high")),
+                 3: (Tool("right_low"), Tool("right_high"), Tool("left"))}
 
 
 def default_tools(n: int) -> tuple:
@@ -324,12 +327,17 @@ def objective(phantom, tools, control, inclusion: str = "none", increments: int 
               tol: float = 1e-6):
     """(value, gradient (T, 2), ToolsRun): (deviation / scale)^2 plus the continuation term
     w sum_i ((g_i - ghat) / h)_+^2 (module docstring); an insertion that fails gives (inf,
-    NaN)."""
+    NaN), as does one whose derivative replay fails."""
     tools = check_tools(tools)
     run = insertion(phantom, tools, control, inclusion, increments, spec, tol)
     if not run.converged:
         return np.inf, np.full((len(tools), 2), np.nan), run
-    lat, J, gaps, Jg = final_gradient(phantom, tools, run, inclusion, spec)
+    try:
+        lat, J, gaps, Jg = final_gradient(phantom, tools, run, inclusion, spec)
+    except SolveError:
+        # a replayed step that does not converge again from its own equilibrium (a tangent
+        # near singular there) has no derivative to give: the point counts as failed
+        return np.inf, np.full((len(tools), 2), np.nan), run
     h = float(phantom.spacing)
     ghat = spec.resolved(phantom)["gap"]
     e = lat / scale

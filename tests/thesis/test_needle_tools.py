@@ -104,8 +104,8 @@ def test_frictional_solve_equals_the_stepper(phantom):
 
 
 def test_two_frictional_tools_push_only(phantom):
-    """Two tools (a paddle and a cup) with friction: at every increment each settles its
-    friction lag, and every contact force of each pushes and stays inside the cone."""
+    """Two tools with friction: at every increment each settles its friction lag, and every
+    contact force of each pushes and stays inside the cone."""
     spec = cp.ContactPaddle(mu=0.8)
     tools = tl.default_tools(2)
     c = tl.rest_control(phantom, tools, spec, depth=0.3 * phantom.spacing)
