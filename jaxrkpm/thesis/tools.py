@@ -512,18 +512,23 @@ def step_jacobians(phantom, tools, model, spec, prescribed, control, sol, held):
 def qp_move(e, Je, n, Jn, t, Jt, mu, x, lo, hi, max_move, min_force, regular=1e-6):
     """The QP of one correction: min |e + Je dx|^2 + regular |dx / max_move|^2 subject to,
     for each touching tool (n > 0), n + Jn dx >= min_force and |t + Jt dx| <= mu (n + Jn dx);
-    lo <= x + dx <= hi, |dx| <= max_move. Returns (dx, QPStatus)."""
-    from scipy.optimize import minimize
+    lo <= x + dx <= hi, |dx| <= max_move. Returns (dx, QPStatus): INFEASIBLE where a linear
+    program finds no dx that meets the constraints."""
+    from scipy.optimize import linprog, minimize
     k = len(x)
     lb, ub = np.maximum(lo - x, -max_move), np.minimum(hi - x, max_move)
-    cons = []
+    # the constraints as G dx <= h: minimum force, then the cone's two sides
+    G, h = [], []
     for i in np.flatnonzero(n > 0):
-        cons.append({"type": "ineq", "fun": lambda d, i=i: n[i] + Jn[i] @ d - min_force, "jac": lambda d, i=i: Jn[i]})
+        G.append(-Jn[i])
+        h.append(n[i] - min_force)
         if mu > 0:
-            cons.append({"type": "ineq", "fun": lambda d, i=i: mu * (n[i] + Jn[i] @ d) - (t[i] + Jt[i] @ d),
-                         "jac": lambda d, i=i: mu * Jn[i] - Jt[i]})
-            cons.append({"type": "ineq", "fun": lambda d, i=i: mu * (n[i] + Jn[i] @ d) + (t[i] + Jt[i] @ d),
-                         "jac": lambda d, i=i: mu * Jn[i] + Jt[i]})
+            G += [Jt[i] - mu * Jn[i], -Jt[i] - mu * Jn[i]]
+            h += [mu * n[i] - t[i], mu * n[i] + t[i]]
+    G, h = np.reshape(G, (-1, k)), np.asarray(h, float)
+    if len(h) and linprog(np.zeros(k), A_ub=G, b_ub=h, bounds=list(zip(lb, ub)), method="highs").status == 2:
+        return np.zeros(k), QPStatus.INFEASIBLE
+    cons = [{"type": "ineq", "fun": lambda d: h - G @ d, "jac": lambda d: -G}] if len(h) else []
     w = regular / max_move ** 2
 
     def fun(d):
@@ -533,8 +538,6 @@ def qp_move(e, Je, n, Jn, t, Jt, mu, x, lo, hi, max_move, min_force, regular=1e-
                  options={"maxiter": 200, "ftol": 1e-16})
     if r.status == 0:
         return r.x, QPStatus.OPTIMAL
-    if r.status in (4, 6, 8):      # SLSQP: incompatible constraints / singular / positive directional derivative
-        return np.zeros(k), QPStatus.INFEASIBLE
     return np.zeros(k), QPStatus.FAILED
 
 
