@@ -17,8 +17,9 @@ step checks each tool's every contact force compressive and inside the friction 
 Derivatives (``final_gradient``): the final target deviation's derivative with respect to
 every tool's control is the forward-mode derivative through every increment's solve (each by
 implicit differentiation), the anchors carried from step to step and each step's settled
-pressures and normals held fixed; frictionless, the final solve's alone (the equilibrium does
-not depend on the path). A tool that lets go has no influence on the deviation, so the
+pressures and normals held fixed, or (``lag_sweeps``) the lag's relaxed fixed point replayed so
+that their derivatives are carried too; frictionless, the final solve's alone (the equilibrium
+does not depend on the path). A tool that lets go has no influence on the deviation, so the
 objective (``objective``) adds the continuation term w sum_i ((g_i - ghat) / h)_+^2 on each
 tool's smallest gap g_i: zero while every tool touches, and a gradient that presses a lost
 tool back in.
@@ -34,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..base.outcome import Outcome
-from ..control.friction import LagStatus, solve_frictional
+from ..control.friction import RELAXATION, LagStatus, solve_frictional
 from ..mechanics.contact import Arc, Box, Contact
 from ..model.model import Model, SolveError
 from ..solvers.results import Status
@@ -272,7 +273,7 @@ def insertion(phantom, tools, control, inclusion: str = "none", increments: int 
 
 
 # ------------------------------------------------------------------ derivatives
-def _final_state(phantom, model, tools, spec, run: ToolsRun, frictional: bool):
+def _final_state(phantom, model, tools, spec, run: ToolsRun, frictional: bool, sweeps: int = 0):
     """control (T*2,) -> (lateral (L,), smallest gap per tool (T,)) at full insertion, the
     path replayed from ``run``'s converged states (see the module docstring)."""
     nm = names(tools)
@@ -301,21 +302,34 @@ def _final_state(phantom, model, tools, spec, run: ToolsRun, frictional: bool):
                 anchors = {n: prev.term(n).local(prev.term(n).points(d), 1.0) for n in nm}
                 p = {n: {**params[n], "pressure": jnp.asarray(held[n]["pressure"]),
                          "normal": jnp.asarray(held[n]["normal"]), "anchor": anchors[n]} for n in nm}
-                sol = model.solve({"needle": phantom.needle_at(depth)}, params=p, initial=start, max_iter=50)
+                g = {"needle": phantom.needle_at(depth)}
+                sol = model.solve(g, params=p, initial=start, max_iter=50)
+                for _ in range(sweeps):
+                    # the lag's own fixed point, replayed: its tangent converges with it
+                    problem = model.problem(p)
+                    d = model.constraint.coefficients(sol.u, sol.g)
+                    now = {n: problem.term(n).results(d, jnp.asarray(1.0)).lag for n in nm}
+                    p = {n: {**p[n], "normal": now[n]["normal"], "pressure": jnp.where(
+                        now[n]["pressure"] > 0, p[n]["pressure"] + RELAXATION * (now[n]["pressure"] - p[n]["pressure"]),
+                        0.0)} for n in nm}
+                    sol = model.solve(g, params=p, initial=start, max_iter=50)
         lateral = B @ model.constraint.point_values(idx, psi, sol.u, sol.g)[0]
         return lateral, jnp.stack([jnp.min(g) for g in gaps_of(sol, p)])
     return f
 
 
-def final_gradient(phantom, tools, run: ToolsRun, inclusion: str = "none", spec: ContactPaddle = ContactPaddle()):
+def final_gradient(phantom, tools, run: ToolsRun, inclusion: str = "none", spec: ContactPaddle = ContactPaddle(),
+                   lag_sweeps: int = 0):
     """(lateral (L,), its Jacobian (L, T*2), smallest gaps (T,), their Jacobian (T, T*2)) at
     full insertion with respect to the controls, through every increment (see the module
-    docstring: the settled pressures and normals held, the anchors carried)."""
+    docstring: the anchors carried; the settled pressures and normals held, or, with
+    ``lag_sweeps`` > 0, that many sweeps of the lag's relaxed fixed point replayed per
+    increment, so that their derivatives converge with them)."""
     tools = check_tools(tools)
     if not run.converged:
         raise ValueError(f"the insertion did not reach full depth ({run.status.name}): no derivative")
     model = tools_model(phantom, tools, inclusion, spec)
-    f = _final_state(phantom, model, tools, spec, run, spec.mu > 0)
+    f = _final_state(phantom, model, tools, spec, run, spec.mu > 0, lag_sweeps)
     c = jnp.asarray(run.control, jnp.float64).reshape(-1)
     lat, gaps = f(c)
     J, Jg = jax.jacfwd(f)(c)
@@ -324,7 +338,7 @@ def final_gradient(phantom, tools, run: ToolsRun, inclusion: str = "none", spec:
 
 def objective(phantom, tools, control, inclusion: str = "none", increments: int = 15,
               spec: ContactPaddle = ContactPaddle(), scale: float = 1.0, weight: float = CONTINUATION,
-              tol: float = 1e-6):
+              tol: float = 1e-6, lag_sweeps: int = 0):
     """(value, gradient (T, 2), ToolsRun): (deviation / scale)^2 plus the continuation term
     w sum_i ((g_i - ghat) / h)_+^2 (module docstring); an insertion that fails gives (inf,
     NaN), as does one whose derivative replay fails."""
@@ -333,7 +347,7 @@ def objective(phantom, tools, control, inclusion: str = "none", increments: int 
     if not run.converged:
         return np.inf, np.full((len(tools), 2), np.nan), run
     try:
-        lat, J, gaps, Jg = final_gradient(phantom, tools, run, inclusion, spec)
+        lat, J, gaps, Jg = final_gradient(phantom, tools, run, inclusion, spec, lag_sweeps)
     except SolveError:
         # a replayed step that does not converge again from its own equilibrium (a tangent
         # near singular there) has no derivative to give: the point counts as failed
@@ -383,13 +397,14 @@ def projected_gradient(x, g, lo, hi) -> float:
 def optimize_placement(phantom, tools, inclusion: str = "none", increments: int = 15,
                        spec: ContactPaddle = ContactPaddle(), start=None, free: str = "all",
                        gtol: float = 1e-6, ftol: float = 1e-9, max_iterations: int = 40,
-                       tol: float = 1e-6) -> Placement:
+                       tol: float = 1e-6, lag_sweeps: int = 0) -> Placement:
     """Bounded L-BFGS (scipy's L-BFGS-B) on the tools' controls minimising ``objective``
     (the squared final deviation relative to the no-tool one, with the continuation term),
     gradients through every increment. Converged when the projected gradient's largest
     component is below ``gtol`` or the objective changes by less than ``ftol`` (relative) in
     an iteration. ``free``: "all" (positions and depths) or "depth" (each tool pressed at its
-    start position: the preload)."""
+    start position: the preload). ``lag_sweeps``: ``final_gradient``'s (0: the friction's
+    settled pressures and normals held in the gradient)."""
     from scipy.optimize import minimize
     tools = check_tools(tools)
     if free not in ("all", "depth"):
@@ -409,7 +424,8 @@ def optimize_placement(phantom, tools, inclusion: str = "none", increments: int 
     def fun(z):
         key = tuple(np.round(z, 15))
         if key not in seen:
-            v, g, run = objective(phantom, tools, full(z), inclusion, increments, spec, scale, tol=tol)
+            v, g, run = objective(phantom, tools, full(z), inclusion, increments, spec, scale, tol=tol,
+                                  lag_sweeps=lag_sweeps)
             seen[key] = (v, g, run)
             hist.append({"control": full(z).tolist(), "value": v, "deviation": run.final})
             if np.isfinite(v) and (not best or v < best["value"]):

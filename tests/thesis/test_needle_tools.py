@@ -74,6 +74,24 @@ def test_frictionless_gradient_matches_finite_differences(phantom, frictionless)
     assert run.final > 0 and J[0, 1] < 0
 
 
+def test_frictional_gradient_matches_finite_differences(phantom):
+    """With friction (mu 0.3), the path derivative with the lag's fixed point replayed (30
+    sweeps per increment) against central differences of whole insertions."""
+    spec = cp.ContactPaddle(mu=0.3)
+    c = tl.rest_control(phantom, ONE, spec, depth=0.6 * phantom.spacing)
+    run = tl.insertion(phantom, ONE, c, "none", INCREMENTS, spec)
+    assert run.converged and all(s == LagStatus.SETTLED for s in run.lag_status)
+    J = tl.final_gradient(phantom, ONE, run, "none", spec, lag_sweeps=30)[1]
+    eps = 1e-6
+    for k, rtol in ((1, 1e-6), (0, 1e-5)):
+        a, b = c.copy().reshape(-1), c.copy().reshape(-1)
+        a[k] += eps
+        b[k] -= eps
+        fd = (tl.insertion(phantom, ONE, a.reshape(1, 2), "none", INCREMENTS, spec).final
+              - tl.insertion(phantom, ONE, b.reshape(1, 2), "none", INCREMENTS, spec).final) / (2 * eps)
+        assert abs(fd - J[0, k]) <= rtol * abs(J[0, k]), (k, fd, J[0, k])
+
+
 def test_continuation_presses_a_lost_tool_back(phantom):
     """A paddle on the left edge at depth 0 lets go as the needle pushes the tissue away: the
     deviation no longer depends on its pose, the continuation term's gradient does, and a
