@@ -83,7 +83,8 @@ def test_frictional_gradient_matches_finite_differences(phantom):
     assert run.converged and all(s == LagStatus.SETTLED for s in run.lag_status)
     J = tl.final_gradient(phantom, ONE, run, "none", spec, lag_sweeps=30)[1]
     eps = 1e-6
-    for k, rtol in ((1, 1e-6), (0, 1e-5)):
+    # along the edge, the rounded edge's seam and the lag's tolerance (1e-6) both show
+    for k, rtol in ((1, 1e-6), (0, 1e-4)):
         a, b = c.copy().reshape(-1), c.copy().reshape(-1)
         a[k] += eps
         b[k] -= eps
