@@ -58,7 +58,8 @@ def run_case(ph, inclusion, mu, ntools, modes, increments, grid, out, path):
             row.update(control=opt.control.tolist(), deviation=opt.deviation, status=opt.status.name,
                        message=opt.message, iterations=opt.iterations, evaluations=opt.evaluations,
                        projected_gradient=opt.projected_gradient, objective=opt.value,
-                       history=opt.history, force_final=opt.run.force[-1].tolist(), **checks_row(opt.run.checks))
+                       history=opt.history, force_final=opt.run.force[-1].tolist() if len(opt.run.force) else None,
+                       **checks_row(opt.run.checks))
             if grid and (ntools == 1 or free == "depth"):
                 gx, gd, rows = tl.grid_search(ph, tools, inclusion, increments, spec, points=grid, free=free)
                 row["grid"] = {"points_per_axis": grid, "best_control": None if gx is None else gx.tolist(),
@@ -90,6 +91,7 @@ def main(argv=None):
     path = a.out or os.path.join(os.path.dirname(os.path.abspath(__file__)), "needle_tools.json")
     ph = nd.Phantom()
     out = {"phantom": "2D Figure 6.1 phantom (needle.Phantom defaults)", "increments": a.increments,
+           "gradient": "final_gradient with lag_sweeps 0 (the settled friction pressures and normals held)",
            "reference": {}, "rows": []}
     for inclusion in a.inclusion:
         glued = cp.glued_finals(ph, inclusion, a.increments, [BEST_GLUED[inclusion]])

@@ -403,7 +403,8 @@ def optimize_placement(phantom, tools, inclusion: str = "none", increments: int 
     gradients through every increment. Converged when the projected gradient's largest
     component is below ``gtol`` or the objective changes by less than ``ftol`` (relative) in
     an iteration. ``free``: "all" (positions and depths) or "depth" (each tool pressed at its
-    start position: the preload). ``lag_sweeps``: ``final_gradient``'s (0: the friction's
+    start position: the preload). The default start: each tool at the target's height half a
+    spacing in (half as deep again, up to three times, where that insertion fails). ``lag_sweeps``: ``final_gradient``'s (0: the friction's
     settled pressures and normals held in the gradient)."""
     from scipy.optimize import minimize
     tools = check_tools(tools)
@@ -436,6 +437,12 @@ def optimize_placement(phantom, tools, inclusion: str = "none", increments: int 
         return v, g[mask]
 
     v0, _ = fun(x0[mask])
+    for _ in range(3 if start is None else 0):
+        if v0 < 1e6:
+            break
+        # the default start presses too deep for this insertion: half as deep
+        x0[:, 1] *= 0.5
+        v0, _ = fun(x0[mask])
     if v0 >= 1e6:
         return Placement(tools, x0, np.nan, np.inf, np.nan, 0, 1, PlacementStatus.START_FAILED,
                          "the insertion fails at the start pose", hist, seen[tuple(np.round(x0[mask], 15))][2])
