@@ -534,7 +534,8 @@ def step_jacobians(phantom, tools, model, spec, prescribed, control, sol, held):
 
 def qp_move(e, Je, n, Jn, t, Jt, mu, x, lo, hi, max_move, min_force, regular=1e-6):
     """The QP of one correction: min |e + Je dx|^2 + regular |dx / max_move|^2 subject to,
-    for each touching tool (n > 0), n + Jn dx >= min_force and |t + Jt dx| <= mu (n + Jn dx);
+    for each touching tool (n > 0), n + Jn dx >= min_force and, where its resultant is inside
+    the cone now, |t + Jt dx| <= mu (n + Jn dx);
     lo <= x + dx <= hi, |dx| <= max_move. Returns (dx, QPStatus): INFEASIBLE where a linear
     program finds no dx that meets the constraints."""
     from scipy.optimize import linprog, minimize
@@ -545,7 +546,9 @@ def qp_move(e, Je, n, Jn, t, Jt, mu, x, lo, hi, max_move, min_force, regular=1e-
     for i in np.flatnonzero(n > 0):
         G.append(-Jn[i])
         h.append(n[i] - min_force)
-        if mu > 0:
+        # the cone on the resultant only where it holds now: on a rounded edge each point's
+        # force stays in its own cone (the friction law) while their sum may lean further
+        if mu > 0 and abs(t[i]) <= mu * n[i]:
             G += [Jt[i] - mu * Jn[i], -Jt[i] - mu * Jn[i]]
             h += [mu * n[i] - t[i], mu * n[i] + t[i]]
     G, h = np.reshape(G, (-1, k)), np.asarray(h, float)
