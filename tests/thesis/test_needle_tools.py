@@ -147,3 +147,18 @@ def test_qp_statuses():
     dx, st = tl.qp_move(e, Je, np.ones(1), np.zeros((1, 2)), z, np.zeros((1, 2)), 0.3, np.zeros(2), -np.ones(2),
                         np.ones(2), 0.1, 2.0)
     assert st == tl.QPStatus.INFEASIBLE and not np.any(dx)
+
+
+def test_cli_tools_options():
+    """--tools needs the contact model, --mode preload needs --tools; the summary's goal is
+    missed where the tools do no better than no tool."""
+    from jaxrkpm.thesis.studies import interface
+    from jaxrkpm.thesis.studies import needle as study
+    a = interface.parse("needle", ["--paddle-model", "contact", "--tools", "2", "--mode", "preload"])
+    assert a.tools == 2 and interface.tools_error(a) is None
+    assert "contact" in interface.tools_error(interface.parse("needle", ["--tools", "1"]))
+    assert "--tools" in interface.tools_error(interface.parse("needle", ["--paddle-model", "contact", "--mode", "preload"]))
+    s = {"mode": "static", "inclusion": "none", "tools": 1, "friction": 0.3, "no_tool_deviation": 0.0688,
+         "final": 0.0688, "status": "converged", "contact_ok": True}
+    assert not study.result(s)[0]
+    assert study.result({**s, "final": 0.001})[0]
