@@ -26,7 +26,7 @@ from ..mechanics.contact import ContactTerm, contact_forces
 from ..solvers.results import Status
 
 RELAXATION = 0.5
-PRESSURE_FLOOR = 1e-6    # pressures below this share of a tool's largest are not told apart
+PRESSURE_FLOOR = 1e-6    # pressures below this share of a tool's largest (held or reached) are not told apart
 
 
 class LagStatus(Outcome):
@@ -73,7 +73,7 @@ def contact_names(model, params=None) -> tuple:
 def _lag_change(held, now, tol):
     """The largest relative pressure change and whether the normals moved by more than tol."""
     p = np.asarray(now["pressure"])
-    floor = PRESSURE_FLOOR * max(float(np.max(p, initial=0.0)), 1e-300)
+    floor = PRESSURE_FLOOR * max(float(np.max(p, initial=0.0)), float(np.max(held["pressure"], initial=0.0)), 1e-300)
     dp = np.max(np.abs(p - held["pressure"]) / np.maximum(p, floor), initial=0.0)
     dn = np.max(np.abs(np.asarray(now["normal"]) - held["normal"]), initial=0.0)
     return float(dp), bool(dn <= tol)
