@@ -73,7 +73,8 @@ def run_case(ph, inclusion, mu, ntools, modes, increments, grid, out, path):
                        qp_status=[[q.name for q in qs] for qs in loop.qp_status], **checks_row(loop.checks))
         row["seconds"] = time.perf_counter() - t0
         out["rows"].append(row)
-        print(inclusion, mu, ntools, mode, row.get("deviation"), row.get("status"), f"{row['seconds']:.0f}s", flush=True)
+        print(inclusion, mu, ntools, mode, row.get("deviation"), row.get("status"), f"{row['seconds']:.0f}s",
+              flush=True)
         with open(path, "w") as f:
             json.dump(out, f, indent=1)
 

@@ -140,7 +140,8 @@ def solve_frictional(model, prescribed=None, *, params=None, initial=None, lag=N
         new = {}
         for n in names:
             p = now[n]["pressure"] if held is None else np.where(
-                now[n]["pressure"] > 0, held[n]["pressure"] + relaxation * (now[n]["pressure"] - held[n]["pressure"]), 0.0)
+                now[n]["pressure"] > 0,
+                held[n]["pressure"] + relaxation * (now[n]["pressure"] - held[n]["pressure"]), 0.0)
             new[n] = {"pressure": p, "normal": now[n]["normal"], "anchor": anchor[n]}
         again = model.solve(prescribed, params=with_lag(new), initial=sol, max_iter=max_iter, throw=False)
         k += 1

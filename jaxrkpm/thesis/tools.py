@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -175,7 +174,8 @@ def tool_params(phantom, tools, control, spec: ContactPaddle = ContactPaddle()) 
 def check_control(phantom, tools, control, spec) -> np.ndarray:
     control = np.asarray(control, float)
     if control.shape != (len(tools), 2) or not np.all(np.isfinite(control)):
-        raise ValueError(f"control must be ({len(tools)}, 2) finite numbers (s, depth per tool), got {control.tolist()}")
+        raise ValueError(f"control must be ({len(tools)}, 2) finite numbers (s, depth per tool), "
+                         f"got {control.tolist()}")
     lo, hi = bounds(phantom, tools, spec)
     if np.any(control < lo - 1e-12) or np.any(control > hi + 1e-12):
         raise ValueError(f"control {control.tolist()} outside the bounds {lo.tolist()} .. {hi.tolist()} "
@@ -404,8 +404,9 @@ def optimize_placement(phantom, tools, inclusion: str = "none", increments: int 
     component is below ``gtol`` or the objective changes by less than ``ftol`` (relative) in
     an iteration. ``free``: "all" (positions and depths) or "depth" (each tool pressed at its
     start position: the preload). The default start: each tool at the target's height half a
-    spacing in (half as deep again, up to three times, where that insertion fails). ``lag_sweeps``: ``final_gradient``'s (0: the friction's
-    settled pressures and normals held in the gradient)."""
+    spacing in (half as deep again, up to three times, where that insertion fails).
+    ``lag_sweeps``: ``final_gradient``'s (0: the friction's settled pressures and normals held
+    in the gradient)."""
     from scipy.optimize import minimize
     tools = check_tools(tools)
     if free not in ("all", "depth"):

@@ -157,7 +157,8 @@ def test_cli_tools_options():
     a = interface.parse("needle", ["--paddle-model", "contact", "--tools", "2", "--mode", "preload"])
     assert a.tools == 2 and interface.tools_error(a) is None
     assert "contact" in interface.tools_error(interface.parse("needle", ["--tools", "1"]))
-    assert "--tools" in interface.tools_error(interface.parse("needle", ["--paddle-model", "contact", "--mode", "preload"]))
+    preload = interface.parse("needle", ["--paddle-model", "contact", "--mode", "preload"])
+    assert "--tools" in interface.tools_error(preload)
     s = {"mode": "static", "inclusion": "none", "tools": 1, "friction": 0.3, "no_tool_deviation": 0.0688,
          "final": 0.0688, "status": "converged", "contact_ok": True}
     assert not study.result(s)[0]
