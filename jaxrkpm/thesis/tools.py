@@ -601,7 +601,9 @@ def closed_loop(phantom, tools, inclusion: str = "none", increments: int = 15,
     the needle advances with the controls held, then corrections, each the QP ``qp_move`` on
     the implicit Jacobians of the target and of every tool's force (moves of at most
     ``max_move`` spacings; a touching tool keeps at least ``min_force``, default a
-    thousandth of p0 times the spacing), halved until it brings the target nearer the line."""
+    thousandth of p0 times the spacing), halved until it brings the target nearer the line.
+    The default start: each tool at the target's height half a spacing in (half as deep
+    again, up to three times, where the press fails)."""
     tools = check_tools(tools)
     h = float(phantom.spacing)
     lo, hi = (b.reshape(-1) for b in bounds(phantom, tools, spec))
@@ -612,8 +614,16 @@ def closed_loop(phantom, tools, inclusion: str = "none", increments: int = 15,
     target = np.atleast_2d(phantom.target)
     fmin = 1e-3 * spec.resolved(phantom)["pressure"] * h if min_force is None else float(min_force)
     P = lambda x: tool_params(phantom, tools, x, spec)        # noqa: E731
-    press = solve_frictional(model, {"needle": np.zeros(2)}, params={n: {**p, "mu": 0.0} for n, p in P(x).items()},
-                             steps=spec.press_steps, tol=lag_tol)
+    for attempt in range(4 if start is None else 1):
+        if attempt:
+            x = x.reshape(-1, 2)
+            x[:, 1] *= 0.5            # the default start presses too deep for this phantom: half as deep
+            x = x.reshape(-1)
+        press = solve_frictional(model, {"needle": np.zeros(2)},
+                                 params={n: {**p, "mu": 0.0} for n, p in P(x).items()}, steps=spec.press_steps,
+                                 tol=lag_tol)
+        if press.status != LagStatus.SOLVE_FAILED:
+            break
     out = {k: [] for k in ("dev", "pre", "ctl", "frc", "its", "qp", "chk")}
     if press.status == LagStatus.SOLVE_FAILED:
         return LoopRun(np.zeros(0), *(np.zeros(0),) * 2, np.zeros((0, len(tools), 2)), np.zeros((0, len(tools), 2)),
