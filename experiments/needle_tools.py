@@ -11,7 +11,7 @@ the cone at every increment (``contact_ok``). Writes needle_tools.json beside th
 (or --out), case by case.
 
     python experiments/needle_tools.py [--increments 5] [--tools 1 2 3] [--inclusion none]
-        [--mu 0.3] [--modes static preload optimize dynamic] [--grid 4] [--out FILE]
+        [--mu 0.3] [--modes static preload optimize dynamic] [--grid 4] [--grid-start] [--out FILE]
 """
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ def checks_row(checks):
             "active_points_final": [c.active for c in checks[-1]] if checks else []}
 
 
-def run_case(ph, inclusion, mu, ntools, modes, increments, grid, out, path):
+def run_case(ph, inclusion, mu, ntools, modes, increments, grid, out, path, grid_start=False):
     spec = cp.ContactPaddle(mu=mu)
     tools = tl.default_tools(ntools)
     base = {"inclusion": inclusion, "mu": mu, "tools": ntools,
@@ -54,14 +54,19 @@ def run_case(ph, inclusion, mu, ntools, modes, increments, grid, out, path):
                        if len(run.force) else None, **checks_row(run.checks))
         elif mode in ("preload", "optimize"):
             free = "depth" if mode == "preload" else "all"
-            opt = tl.optimize_placement(ph, tools, inclusion, increments, spec, free=free)
+            gx = None
+            if grid_start:
+                gx, gd, rows = tl.grid_search(ph, tools, inclusion, increments, spec, points=grid, free=free)
+            opt = tl.optimize_placement(ph, tools, inclusion, increments, spec, free=free, start=gx)
+            row["start"] = "the best grid point" if gx is not None else "default"
             row.update(control=opt.control.tolist(), deviation=opt.deviation, status=opt.status.name,
                        message=opt.message, iterations=opt.iterations, evaluations=opt.evaluations,
                        projected_gradient=opt.projected_gradient, objective=opt.value,
                        history=opt.history, force_final=opt.run.force[-1].tolist() if len(opt.run.force) else None,
                        **checks_row(opt.run.checks))
             if grid and (ntools == 1 or free == "depth"):
-                gx, gd, rows = tl.grid_search(ph, tools, inclusion, increments, spec, points=grid, free=free)
+                if gx is None:
+                    gx, gd, rows = tl.grid_search(ph, tools, inclusion, increments, spec, points=grid, free=free)
                 row["grid"] = {"points_per_axis": grid, "best_control": None if gx is None else gx.tolist(),
                                "best_deviation": gd, "rows": [(x.tolist(), d) for x, d in rows]}
         else:
@@ -87,6 +92,7 @@ def main(argv=None):
     ap.add_argument("--mu", type=float, nargs="+", default=[0.3, 0.8])
     ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
     ap.add_argument("--grid", type=int, default=4, help="grid points per free control (one tool; preloads)")
+    ap.add_argument("--grid-start", action="store_true", help="start the optimiser from the grid's best point")
     ap.add_argument("--out", default=None)
     a = ap.parse_args(argv)
     path = a.out or os.path.join(os.path.dirname(os.path.abspath(__file__)), "needle_tools.json")
@@ -102,7 +108,7 @@ def main(argv=None):
     for ntools in a.tools:
         for inclusion in a.inclusion:
             for mu in a.mu:
-                run_case(ph, inclusion, mu, ntools, a.modes, a.increments, a.grid, out, path)
+                run_case(ph, inclusion, mu, ntools, a.modes, a.increments, a.grid, out, path, a.grid_start)
     print("wrote", path)
     return out
 

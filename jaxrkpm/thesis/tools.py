@@ -397,7 +397,7 @@ def projected_gradient(x, g, lo, hi) -> float:
 def optimize_placement(phantom, tools, inclusion: str = "none", increments: int = 15,
                        spec: ContactPaddle = ContactPaddle(), start=None, free: str = "all",
                        gtol: float = 1e-6, ftol: float = 1e-9, max_iterations: int = 40,
-                       tol: float = 1e-6, lag_sweeps: int = 0) -> Placement:
+                       tol: float = 1e-6, lag_sweeps: int = 0, grid: int = 0) -> Placement:
     """Bounded L-BFGS (scipy's L-BFGS-B) on the tools' controls minimising ``objective``
     (the squared final deviation relative to the no-tool one, with the continuation term),
     gradients through every increment. Converged when the projected gradient's largest
@@ -406,7 +406,8 @@ def optimize_placement(phantom, tools, inclusion: str = "none", increments: int 
     start position: the preload). The default start: each tool at the target's height half a
     spacing in (half as deep again, up to three times, where that insertion fails).
     ``lag_sweeps``: ``final_gradient``'s (0: the friction's settled pressures and normals held
-    in the gradient)."""
+    in the gradient). ``grid`` > 0: first ``grid_search`` with that many points per free
+    control, and start from its best point (so the optimum is no worse than the grid's)."""
     from scipy.optimize import minimize
     tools = check_tools(tools)
     if free not in ("all", "depth"):
@@ -415,6 +416,11 @@ def optimize_placement(phantom, tools, inclusion: str = "none", increments: int 
     x0 = (rest_control(phantom, tools, spec, depth=0.5 * phantom.spacing) if start is None
           else np.clip(np.asarray(start, float), lo, hi))
     mask = np.ones_like(lo, bool) if free == "all" else np.array([[False, True]] * len(tools))
+    if grid and start is None:
+        gx = grid_search(phantom, tools, inclusion, increments, spec, points=grid, free=free, start=x0, tol=tol)[0]
+        if gx is not None:
+            x0 = gx
+            start = gx
     scale = abs(no_tool_deviation(phantom, inclusion, increments)) or 1.0
     hist, best, seen = [], {}, {}
 
