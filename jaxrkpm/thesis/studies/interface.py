@@ -307,7 +307,7 @@ def needle_parser():
                         "(jaxrkpm.thesis.tools.DEFAULT_TOOLS) instead of one paddle at a Table 6.2 position; "
                         "static: pressed half a spacing in (or --indentation) at the target's height; "
                         "preload: their depths optimised; optimize: positions and depths optimised; dynamic: "
-                        "moved during insertion by a QP per correction")
+                        "moved during insertion by a QP per correction (default: none, one paddle)")
     return p
 
 
