@@ -15,6 +15,11 @@ from .control.sweep import (
     sweep as sweep,
     worker_settings as worker_settings,
 )
+from .control.friction import (
+    FrictionalSolve as FrictionalSolve,
+    LagStatus as LagStatus,
+    solve_frictional as solve_frictional,
+)
 from .control.tracking import (
     TrackResult as TrackResult,
     TrackStatus as TrackStatus,
@@ -44,6 +49,7 @@ from .io.output import (
     write_solution as write_solution,
 )
 from .mechanics.contact import (
+    Arc as Arc,
     Box as Box,
     Capsule as Capsule,
     Contact as Contact,

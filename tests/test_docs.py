@@ -174,7 +174,7 @@ def _all_of(path: Path) -> set:
     raise AssertionError(f"{path} has no __all__")
 
 
-THESIS_MODULES = {"cli", "contact_paddle", "data", "needle", "phantom3d", "rigsim", "studies"}
+THESIS_MODULES = {"cli", "contact_paddle", "data", "needle", "phantom3d", "rigsim", "studies", "tools"}
 
 
 @pytest.fixture(scope="module")

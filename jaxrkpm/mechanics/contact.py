@@ -1,7 +1,8 @@
 """Contact with rigid tools: a smooth barrier (incremental potential contact) as a term.
 
 A rigid tool is a shape given by its signed distance function ``sdf(y)`` in the tool's own
-frame (``HalfSpace``, ``Box`` with rounded edges, ``Sphere`` (a disc in 2D), ``Capsule``),
+frame (``HalfSpace``, ``Box`` with rounded edges, ``Sphere`` (a disc in 2D), ``Capsule``, ``Arc`` (a concave
+probe, 2D)),
 placed by a pose: a position c and a rotation R (2D: an angle; 3D: a rotation vector), so
 that a point x of space is at y = R^T (x - c) in the tool's frame and at the gap
 g(x) = sdf(R^T (x - c)) from the tool. The pose is a parameter of the solve
@@ -196,7 +197,44 @@ class Box:
         return _safe_norm(jnp.maximum(q, 0.0)) + jnp.minimum(jnp.max(q, -1), 0.0) - self.radius
 
 
-SHAPES = (HalfSpace, Sphere, Capsule, Box)
+@dataclass(frozen=True)
+class Arc:
+    """A concave probe (a cup): the points within ``thickness`` of the circular arc of
+    ``radius`` whose apex is the tool's origin and whose centre lies at -radius along the
+    tool's last axis, spanning ``half_angle`` (radians) either side of that axis; its concave
+    side faces -last axis (the body, for a tool placed as a paddle), so pressed in it wraps
+    the tissue under it (2D)."""
+
+    radius: float
+    half_angle: float
+    thickness: float
+
+    def __post_init__(self):
+        for k in ("radius", "half_angle", "thickness"):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not (np.isfinite(v) and v > 0):
+                raise ValueError(f"Arc.{k} must be a positive number, got {v!r}")
+        if self.half_angle >= np.pi / 2:
+            raise ValueError(f"Arc.half_angle must be below pi/2 (a cup, not a ring), got {self.half_angle!r}")
+
+    @property
+    def sag(self) -> float:
+        """How far the arc's ends stand below its apex along the last axis."""
+        return float(self.radius * (1.0 - np.cos(self.half_angle)))
+
+    def sdf(self, y):
+        if y.shape[-1] != 2:
+            raise ValueError(f"Arc is a 2D shape, got points of dimension {y.shape[-1]}")
+        z = jnp.asarray(y).at[..., 1].add(self.radius)          # about the arc's centre
+        phi = jnp.arctan2(z[..., 0], z[..., 1])     # from the last axis
+        on_arc = jnp.abs(phi) <= self.half_angle
+        ends = self.radius * jnp.array([[np.sin(self.half_angle), np.cos(self.half_angle)],
+                                        [-np.sin(self.half_angle), np.cos(self.half_angle)]])
+        to_end = jnp.minimum(_safe_norm(z - ends[0]), _safe_norm(z - ends[1]))
+        return jnp.where(on_arc, jnp.abs(_safe_norm(z) - self.radius), to_end) - self.thickness
+
+
+SHAPES = (HalfSpace, Sphere, Capsule, Box, Arc)
 
 
 def rotation(theta, dim: int):
@@ -469,7 +507,7 @@ class Contact(TermSpec):
     jaxrkpm.mechanics.contact): ``Contact(Sphere(0.5), position=(0, 1.6), gap=1e-3,
     pressure=1.0)``.
 
-    shape        ``HalfSpace``, ``Sphere``, ``Capsule`` or ``Box`` (in the tool's frame)
+    shape        ``HalfSpace``, ``Sphere``, ``Capsule``, ``Box`` or ``Arc`` (in the tool's frame)
     position     (d,) the tool's origin at load scale 0 (``params``: at load scale 1)
     rotation     its rotation at load scale 0: an angle (2D) or rotation vector (3D)
     gap          ghat: the barrier's range (the contact's distance tolerance)
@@ -502,7 +540,7 @@ class Contact(TermSpec):
 
     def __post_init__(self):
         if not isinstance(self.shape, SHAPES):
-            raise ValueError("Contact.shape must be a HalfSpace, Sphere, Capsule or Box, got "
+            raise ValueError("Contact.shape must be a HalfSpace, Sphere, Capsule, Box or Arc, got "
                              f"{type(self.shape).__name__}")
         for k in ("gap", "pressure", "slip"):
             v = getattr(self, k)

@@ -1,7 +1,7 @@
 # The public names of the thesis application, declared once (loaded lazily by __init__.py).
 from . import (cli as cli, contact_paddle as contact_paddle, data as data, needle as needle, phantom3d as phantom3d,
                rigsim as rigsim,
-               studies as studies, sweeps as sweeps)
+               studies as studies, sweeps as sweeps, tools as tools)
 from .data import (
     CP_2D as CP_2D,
     CP_3D as CP_3D,

@@ -275,17 +275,17 @@ def compress_parser():
     return p
 
 
-def _needle_options(command: str, inclusions) -> argparse.ArgumentParser:
+def _needle_options(command: str, inclusions, modes=("static", "dynamic", "optimize")) -> argparse.ArgumentParser:
     """The options the 2D and 3D needle studies share (their own ones are added after)."""
     p = _parser(command, f"jaxrkpm.thesis.studies.{command}", f"results/{command}/<mode>_<inclusion>")
-    p.add_argument("--mode", choices=("static", "dynamic", "optimize"), default="static")
+    p.add_argument("--mode", choices=modes, default="static")
     p.add_argument("--inclusion", choices=tuple(inclusions), default="none")
     return p
 
 
 def needle_parser():
     from jaxrkpm.thesis.data import INCLUSIONS, TABLE_6_2
-    p = _needle_options("needle", INCLUSIONS)
+    p = _needle_options("needle", INCLUSIONS, ("static", "dynamic", "optimize", "preload"))
     p.add_argument("--material", choices=("fung", "fung-barrier", "neo-hookean"), default="fung",
                    help="fung: the thesis' Fung (eq 6.1); fung-barrier: the same plus the volumetric barrier "
                         "kappa/2 (ln J)^2, kappa = Fung's shear modulus; neo-hookean: nearly incompressible "
@@ -302,7 +302,22 @@ def needle_parser():
                    help="shard the sweep over this many devices (default: all visible)")
     contact_options(p, "the position, default 3", "static: one particle spacing; dynamic: half a spacing; "
                                                   "optimize: 1.5 spacings")
+    p.add_argument("--tools", type=int, choices=(1, 2, 3), default=None,
+                   help="contact paddle model: this many push-only tools on the free skin "
+                        "(jaxrkpm.thesis.tools.DEFAULT_TOOLS) instead of one paddle at a Table 6.2 position; "
+                        "static: pressed half a spacing in (or --indentation) at the target's height; "
+                        "preload: their depths optimised; optimize: positions and depths optimised; dynamic: "
+                        "moved during insertion by a QP per correction (default: none, one paddle)")
     return p
+
+
+def tools_error(args: argparse.Namespace) -> str | None:
+    """A usage message where --tools or --mode preload is given without what they need."""
+    if args.tools is not None and args.paddle_model != "contact":
+        return "--tools applies to the contact paddle model only: add --paddle-model contact"
+    if args.mode == "preload" and args.tools is None:
+        return "--mode preload applies to several tools only: add --paddle-model contact --tools N"
+    return None
 
 
 def contact_options(p, paddle: str, indentation: str):

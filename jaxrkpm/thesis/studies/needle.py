@@ -401,6 +401,73 @@ def run_contact(phantom, a, out: Path) -> dict:
     return s
 
 
+def run_tools(phantom, a, out: Path) -> dict:
+    """The study of ``a.mode`` with ``a.tools`` push-only tools (``jaxrkpm.thesis.tools``):
+    the final deviation beside no tool, the contact checks, ``table.csv`` and the final state's
+    figure (each tool's outline and contact pressures)."""
+    from jaxrkpm.thesis import contact_paddle as cp
+    from jaxrkpm.thesis import tools as tl
+    spec = cp.ContactPaddle(mu=a.friction)
+    tools = tl.default_tools(a.tools)
+    free = tl.no_tool_deviation(phantom, a.inclusion, a.increments)
+    s = {"mode": a.mode, "paddle_model": "contact", "tools": a.tools, "friction": a.friction,
+         "inclusion": a.inclusion, "increments": a.increments, "sites": [f"{t.site}:{t.shape}" for t in tools],
+         "no_tool_deviation": free}
+    run = None
+    if a.mode == "static":
+        depth = 0.5 * phantom.spacing if a.indentation is None else min(a.indentation, tl.MAX_DEPTH * phantom.spacing)
+        c = tl.rest_control(phantom, tools, spec, depth=depth)
+        run = tl.insertion(phantom, tools, c, a.inclusion, a.increments, spec)
+        s.update(control=c.tolist(), final=run.final, status=run.status.name.lower(), message=run.status.message,
+                 contact_ok=run.contact_ok, deviation_per_increment=run.deviation.tolist())
+    elif a.mode in ("preload", "optimize"):
+        o = tl.optimize_placement(phantom, tools, a.inclusion, a.increments, spec,
+                                  free="depth" if a.mode == "preload" else "all")
+        run = o.run
+        s.update(control=o.control.tolist(), final=o.deviation, status=o.status.name.lower(), message=o.message,
+                 iterations=o.iterations, evaluations=o.evaluations, projected_gradient=o.projected_gradient,
+                 contact_ok=run.contact_ok, deviation_per_increment=run.deviation.tolist())
+    else:
+        r = tl.closed_loop(phantom, tools, a.inclusion, a.increments, spec)
+        s.update(control=r.control.tolist(), final=r.final, status=r.status.name.lower(), message=r.message,
+                 contact_ok=r.contact_ok, deviation_per_increment=r.deviation.tolist(),
+                 qp_status=[[q.name for q in qs] for qs in r.qp_status])
+    s["table"] = [{"case": a.inclusion, "tools": a.tools, "mode": a.mode, "mu": a.friction, "no_tool": free,
+                   "deviation": s["final"], "status": s["status"]}]
+    with open(out / "table.csv", "w") as f:
+        f.write("case,tools,mode,mu,no_tool,deviation,status\n")
+        for r_ in s["table"]:
+            f.write(",".join(str(r_[k]) for k in ("case", "tools", "mode", "mu", "no_tool", "deviation", "status")) + "\n")
+    if run is not None and run.steps:
+        model = tl.tools_model(phantom, tools, a.inclusion, spec)
+        sol, held = run.steps[-1]
+        params = tl.tool_params(phantom, tools, run.control, spec)
+        if held is not None:
+            params = {n: {**params[n], **held[n]} for n in params}
+        fig, ax = plot.plt.subplots(figsize=(6, 5), constrained_layout=True)
+        plot.deformed_particles(ax, np.asarray(model.body.X), np.asarray(model.particle_displacements(sol)), size=12)
+        pc = plot.contact_pressures(ax, model, sol, params)
+        if pc is not None:
+            fig.colorbar(pc, ax=ax, label="contact pressure", shrink=0.7)
+        ax.set_title(f"{a.tools} tool(s), {a.mode}, mu {a.friction:g}: final deviation {abs(s['final']):.2e} "
+                     f"(no tool {abs(free):.2e})", fontsize=9)
+        fig.savefig(out / f"tools_{a.mode}_{a.inclusion}.png", dpi=120)
+        plot.plt.close(fig)
+    return s
+
+
+def tools_result(s: dict) -> tuple[bool, str]:
+    """(goal reached, words) of a several-tools summary: every contact force compressive and
+    in the cone, and the tools' final deviation below the no-tool one."""
+    fin = s["final"]
+    better = fin is not None and np.isfinite(fin) and abs(fin) < abs(s["no_tool_deviation"])
+    words = (f"needle {s['mode']} ({s['inclusion']}, {s['tools']} push-only tool(s), mu {s['friction']:g}): "
+             f"deviation {abs(s['no_tool_deviation']):.4f} -> "
+             + ("none" if fin is None or not np.isfinite(fin) else f"{abs(fin):.2e}")
+             + f"; {s['status']}" + ("" if s["contact_ok"] else "; a contact force left the cone"))
+    return bool(better and s["contact_ok"]), words
+
+
 def contact_state(paddle, control, solution, lag, depths, deviation, title, uncorrected=None) -> dict:
     """What ``contact_figure`` draws of a contact run: its final state (paddle position,
     pose, Solution, friction lag) and its deviation per increment."""
@@ -537,6 +604,8 @@ def result(s: dict) -> tuple[bool, str]:
     and the best paddle reach full insertion (other paddles stopping early is a finding, and
     is said); dynamic: the target held at every increment; optimize: Adam converged."""
     mode, inc = s["mode"], s["inclusion"]
+    if "tools" in s:
+        return tools_result(s)
     if s.get("paddle_model") == "contact":
         return contact_result(s)
     if mode == "static":
@@ -580,9 +649,13 @@ def main(argv=None):
     from jaxrkpm.thesis.contact_paddle import max_indentation
     if wrong := interface.contact_error("needle", a, argv, phantom.spacing, max_indentation(phantom)):
         interface.needle_parser().error(wrong)
+    if wrong := interface.tools_error(a):
+        interface.needle_parser().error(wrong)
     results = interface.results("needle", a, a.out or f"results/needle/{a.mode}_{a.inclusion}")
     with results as out:
-        if a.paddle_model == "contact":
+        if a.tools is not None:
+            summary = run_tools(phantom, a, out)
+        elif a.paddle_model == "contact":
             summary = run_contact(phantom, a, out)
         elif a.mode == "static":
             summary = run_static(phantom, a.inclusion, a.increments, out, a.devices)
