@@ -11,6 +11,7 @@ import builtins
 import re
 import shutil
 import symtable
+import textwrap
 from pathlib import Path
 
 import pytest
@@ -42,7 +43,7 @@ def nav_pages() -> list:
 
 def blocks(page: str) -> list:
     """The runnable python blocks of a guide page, in order."""
-    return [code for skip, code in BLOCK.findall((GUIDE / page).read_text()) if not skip]
+    return [textwrap.dedent(code) for skip, code in BLOCK.findall((GUIDE / page).read_text()) if not skip]
 
 
 def undefined(code: str) -> set:

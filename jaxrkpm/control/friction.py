@@ -143,7 +143,9 @@ def solve_frictional(model, prescribed=None, *, params=None, initial=None, lag=N
                 now[n]["pressure"] > 0,
                 held[n]["pressure"] + relaxation * (now[n]["pressure"] - held[n]["pressure"]), 0.0)
             new[n] = {"pressure": p, "normal": now[n]["normal"], "anchor": anchor[n]}
-        again = model.solve(prescribed, params=with_lag(new), initial=sol, max_iter=max_iter, throw=False)
+        # a lag update is a fixed point at one pose, not a path: no ramp of the lagged quantities
+        again = model.solve(prescribed, params=with_lag(new), initial=sol._replace(params=None), max_iter=max_iter,
+                            throw=False)
         k += 1
         if int(again.status) != Status.CONVERGED:
             return FrictionalSolve(sol, own(res), held, res, LagStatus.SOLVE_FAILED, k, change, Status.of(again.status))

@@ -40,6 +40,7 @@ from ..mechanics.problem import Problem
 from ..model.model import Model
 from ..solvers.implicit import parameter_response, point_jacobian, response
 from ..solvers.iterate import iterate, when
+from ..solvers.linalg.quasi_newton import secant
 from ..solvers.newton import Chord, Newton, _count, _flag
 from ..solvers.path import LoadPath
 from ..solvers.results import Limits, Solution, Status, reached_equilibrium
@@ -137,8 +138,8 @@ class ControlledModel:
                              "control step); give params={name: {'mu': 0.0}} or a tool with mu=0")
         sf = model.shape_functions(np.atleast_2d(np.asarray(control_points, float)), gradients=False)
         linear = model.linear
-        if reuse and linear.modified_newton:
-            linear = linear.secant(memory)
+        if reuse:
+            linear = secant(linear, memory)
         newton = Newton(linear, reuse=reuse)
         return ControlledModel(problem, G, jnp.asarray(sf.idx), jnp.asarray(sf.psi), LoadPath(newton),
                                Chord(linear, reuse=reuse), tool=tool)

@@ -285,8 +285,10 @@ class Stepper:
             relaxed = now["pressure"] if held is None else np.where(
                 now["pressure"] > 0, held["pressure"] + LAG_RELAXATION * (now["pressure"] - held["pressure"]), 0.0)
             new = {"pressure": relaxed, "normal": now["normal"], "anchor": anchor}
-            again = m.solve(prescribed, params=self.params(control, new), initial=sol, max_iter=MAX_ITER,
-                            throw=False)
+            # a lag update is a fixed-point iteration at one pose, not a path: the re-solve starts
+            # from the converged state without ramping the lagged quantities (params=None)
+            again = m.solve(prescribed, params=self.params(control, new), initial=sol._replace(params=None),
+                            max_iter=MAX_ITER, throw=False)
             if int(again.status) != Status.CONVERGED:
                 break
             sol, held = again, new

@@ -13,6 +13,7 @@ import jaxrkpm as jr
 from jaxrkpm.internal import (BranchSwitch, Chord, DenseSolver, LinearSolver, LoadPath, Newton, QuasiNewton,
                               StableDescent, Tolerance, iterate)
 from jaxrkpm.solvers.linalg.krylov import KrylovSolver
+from jaxrkpm.solvers.linalg.quasi_newton import secant
 from jaxrkpm.solvers.linalg.sparse import SparseSolver
 from jaxrkpm.solvers.results import Limits
 from tests.problems import block
@@ -65,8 +66,8 @@ def test_every_linear_solver_declares_the_interface():
     assert DenseSolver().update("state", 1, 2) == "state"       # the default: nothing learnt
     # capabilities, not types: only the dense solver switches branches and learns secants
     assert DenseSolver.branch_switching and not SparseSolver.branch_switching
-    assert isinstance(DenseSolver().secant(4), QuasiNewton) and DenseSolver().secant(4).memory == 4
-    assert SparseSolver.secant is LinearSolver.secant is KrylovSolver.secant   # themselves
+    assert isinstance(secant(DenseSolver(), 4), QuasiNewton) and secant(DenseSolver(), 4).memory == 4
+    assert secant(EigenSolver(), 4) == EigenSolver()   # one that cannot learn stays itself
 
 
 def test_newton_and_chord_differ_by_one_flag(square):

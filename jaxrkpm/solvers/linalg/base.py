@@ -57,13 +57,6 @@ class LinearSolver:
     modified_newton: bool = False
     branch_switching: bool = False
 
-    def secant(self, memory: int) -> "LinearSolver":
-        """The solver whose kept factorisation learns from the secant pairs of later
-        corrections (quasi-Newton chord corrections of a control loop): itself where it
-        cannot."""
-        del memory
-        return self
-
     def empty(self, problem, dtype) -> Any:
         """A state of the right shapes that factorises nothing (a loop's initial carry)."""
         raise NotImplementedError

@@ -223,11 +223,6 @@ class DenseSolver(LinearSolver):
     modified_newton = True    # a factorisation serves later Newton iterations as it is
     branch_switching = True   # exact inertia, and small enough for the dense eigenpairs
 
-    def secant(self, memory: int) -> LinearSolver:
-        """L-BFGS on a kept inverse factor (``QuasiNewton``)."""
-        from .quasi_newton import QuasiNewton   # it wraps this class: imported on use
-        return QuasiNewton(DenseSolver(inverse=True), memory)
-
     def factor(self, K):
         """Cholesky factor of K_ff in the factorisation's precision, and whether it exists."""
         L = _mixed_cholesky(K) if self.mixed else _cholesky(K)

@@ -93,3 +93,10 @@ class QuasiNewton(LinearSolver):
         """A Newton step with the current tangent: a new factorisation, no pairs."""
         x, base, stab = self.base.newton_solve(state.base, problem, blocks, rhs, rtol)
         return x, self._fresh(base, problem, blocks.dtype), stab
+
+
+def secant(linear: LinearSolver, memory: int = 8) -> LinearSolver:
+    """The solver whose kept factorisation learns from the secant pairs of later corrections
+    (a control loop's quasi-Newton chords): L-BFGS on a kept dense inverse where ``linear``
+    serves modified Newton as it is, else ``linear`` itself."""
+    return QuasiNewton(DenseSolver(inverse=True), memory) if linear.modified_newton else linear
