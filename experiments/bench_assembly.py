@@ -27,21 +27,9 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import time
 from dataclasses import replace
 
 from experiments import records
-
-
-def timed(f, repeats):
-    import jax
-    out = jax.block_until_ready(f())
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(f())
-        times.append(time.perf_counter() - t0)
-    return records.stats(times), out
 
 
 def counts(term, pairs) -> dict:
@@ -73,12 +61,12 @@ def machine_rates(repeats) -> dict:
     rng = np.random.default_rng(0)
     a, b = (jnp.asarray(rng.standard_normal((1024, 1024))) for _ in range(2))
     mm = jax.jit(lambda a, b: a @ b)
-    t, _ = timed(lambda: mm(a, b), repeats)
+    t, _ = records.warm(lambda: mm(a, b), repeats)
     nb, segs = 2_000_000, 200_000
     blocks = jnp.asarray(rng.standard_normal((nb, 3, 3)))
     ids = jnp.asarray(rng.integers(0, segs, nb).astype(np.int32))
     seg = jax.jit(lambda x, i: jax.ops.segment_sum(x, i, num_segments=segs))
-    ts, _ = timed(lambda: seg(blocks, ids), repeats)
+    ts, _ = records.warm(lambda: seg(blocks, ids), repeats)
     return {"dgemm_flops_per_s": 2 * 1024 ** 3 / t["median"], "dgemm_s": t,
             "scatter_bytes_per_s": nb * (9 * 8 * 3 + 4) / ts["median"], "scatter_s": ts}
 
@@ -103,14 +91,14 @@ def case(n, integration, repeats, rates, half_part=None, block_budget=None) -> d
         term = replace(term, block_budget=block_budget)
     d = jnp.asarray(np.random.default_rng(0).standard_normal((body.n, 3)) * 0.01 * body.spacing)
     blocks = jax.jit(lambda t, d: t.blocks(d, 1.0, prob.pairs))
-    t_all, _ = timed(lambda: blocks(term, d), repeats)
+    t_all, _ = records.warm(lambda: blocks(term, d), repeats)
 
     def tangent(t, d):
         p = {**t.point, **t.tensors}
         axes = {**{k: 0 for k in t.point}, **{k: None for k in t.tensors}}
         return material_tangent(t.W, deformation_gradients(t.idx, t.dpsi, d), p, axes)
 
-    t_tan, _ = timed(lambda: jax.jit(tangent)(term, d), repeats)
+    t_tan, _ = records.warm(lambda: jax.jit(tangent)(term, d), repeats)
     c = counts(term, prob.pairs)
     floor = c["gemm_flops"] / rates["dgemm_flops_per_s"] + c["scatter_bytes"] / rates["scatter_bytes_per_s"]
     gemm_rate = c["gemm_flops"] / max(t_all["median"] - t_tan["median"], 1e-12)

@@ -33,7 +33,6 @@ import itertools
 import json
 import os
 import resource
-import statistics
 import subprocess
 import sys
 import time
@@ -46,16 +45,10 @@ SPREAD = {}   # label -> records.stats of the timings behind each median of a ca
 def timed(f, repeats, label=None):
     """Median wall time of ``f()`` over ``repeats`` warm calls (after one untimed call), and
     the last result; with ``label`` its spread goes to SPREAD (min, max, repeats)."""
-    import jax
-    out = jax.block_until_ready(f())
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(f())
-        times.append(time.perf_counter() - t0)
+    spread, out = records.warm(f, repeats)
     if label is not None:
-        SPREAD[label] = records.stats(times)
-    return statistics.median(times), out
+        SPREAD[label] = spread
+    return spread["median"], out
 
 
 def newton_iteration_parts(prob, linear, sol, repeats):

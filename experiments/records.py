@@ -64,6 +64,19 @@ def stats(times) -> dict:
     return {"median": statistics.median(times), "min": min(times), "max": max(times), "repeats": len(times)}
 
 
+def warm(f, repeats: int):
+    """(``stats`` of ``repeats`` warm calls of ``f()``, its last result): one untimed call first
+    (the compile), and every call waited for (JAX returns before it has computed)."""
+    import jax
+    out = jax.block_until_ready(f())
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(f())
+        times.append(time.perf_counter() - t0)
+    return stats(times), out
+
+
 def _git(*args: str) -> str | None:
     try:
         out = subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=30)
