@@ -15,8 +15,7 @@ of one assembly:
 
 and times, in the same process: the whole assembly (median of ``--repeats`` warm calls),
 its material-tangent part alone, and two references of this machine taken beside it: a
-float64 matrix product of the same flop count as one group's GEMMs made large (XLA's
-DGEMM rate on one core), and a segment sum of the same size as the assembly's scatter. The
+float64 matrix product (1024^3: XLA's own DGEMM rate with its threads on this machine), and a segment sum of the same size as the assembly's scatter. The
 record gives each assembly's achieved GEMM rate as a fraction of the measured DGEMM rate, and
 the time the flop and byte counts would take at the measured rates (``floor_s``) against the
 time measured. ``--half-part`` / ``--block-budget`` time other settings of the two knobs.
@@ -53,8 +52,8 @@ def counts(term, pairs) -> dict:
 
 
 def machine_rates(repeats) -> dict:
-    """XLA:CPU's float64 GEMM rate (a 1024^3 product: one core, BLAS-free XLA) and its
-    segment-sum throughput on (3, 3) blocks, measured here."""
+    """XLA:CPU's float64 GEMM rate (a 1024^3 product, with XLA's threads) and its segment-sum
+    throughput on (3, 3) blocks, measured here."""
     import jax
     import jax.numpy as jnp
     import numpy as np
