@@ -32,6 +32,9 @@ SLOW = {
                   "tests/model run them; every name the page uses is checked in the default set",
     "derivatives.md": "three derivatives through the solve, each compiled anew: tests/model and "
                       "tests/solvers compare them with finite differences",
+    "tools.md": "placement optimisation and closed loop of push-only tools over a full insertion: "
+                "tests/thesis/test_needle_tools.py runs them at one increment; every name the page uses "
+                "is checked in the default set",
 }
 FAST_BLOCKS = {"sweeps.md": 1}     # the blocks of a slow page that run in the default set too
 
