@@ -86,6 +86,6 @@ from .model.continuation import arc_length as arc_length, point_load as point_lo
 from .model.model import Model as Model, SolveError as SolveError
 from .solvers.continuation import EquilibriumPath as EquilibriumPath, PathStatus as PathStatus
 from .solvers.linalg.base import Stability as Stability
-from .solvers.results import Solution as Solution, Status as Status
+from .solvers.results import Solution as Solution, Status as Status, Stop as Stop
 
 __version__: str

@@ -13,7 +13,7 @@ import numpy as np
 from .branch import BranchSwitch
 from .iterate import iterate, when
 from .newton import Newton, _count, _flag, _positive
-from .results import CRITICAL_EIGS, Critical, Limits, Solution, Status
+from .results import CRITICAL_EIGS, Critical, Limits, Solution, Status, Stop
 
 
 class Path(NamedTuple):
@@ -186,8 +186,7 @@ class LoadPath:
         grow = jnp.where(it <= self.easy, self.growth, 1.0)
         dt_next = jnp.where(ok, jnp.minimum(dt * grow, path.dt0), dt / 2)
         wasted = s.wasted + jnp.where(ok, 0, it)
-        budget = self.failed_work * jnp.maximum(s.iterations + it - wasted, path.nominal) + 2 * path.max_iter
-        give_up = (~ok) & ((dt / 2 < path.dt_min * (1 - 1e-9)) | (wasted > budget))
+        give_up = (~ok) & ((dt / 2 < path.dt_min * (1 - 1e-9)) | self._spent(path, s.iterations + it, wasted))
         if self.switches:
             # the critical point is bracketed and no stable state of that load was found:
             # smaller steps would only bracket it again
@@ -195,6 +194,20 @@ class LoadPath:
         return PathState(jnp.where(ok, t1, t), dt_next, jnp.where(ok, v, u), jnp.where(give_up, st, 0),
                          s.iterations + it, s.steps + ok, s.cuts + (~ok), jnp.where(ok, rn_v, s.residual_norm),
                          s.unknown | (st == Status.STABILITY_UNKNOWN), linear, branch, crit, wasted)
+
+    def _spent(self, path: Path, iterations, wasted):
+        """Whether the failed attempts (``wasted`` of the ``iterations``) have spent their
+        work budget."""
+        budget = self.failed_work * jnp.maximum(iterations - wasted, path.nominal) + 2 * path.max_iter
+        return wasted > budget
+
+    def _stop(self, path: Path, s: PathState):
+        """Why the path ended (a Stop code), read from its last state as ``step`` decided it:
+        a failed step leaves the halved step in ``s.dt``."""
+        smallest = s.dt < path.dt_min * (1 - 1e-9)
+        cause = jnp.where(smallest, Stop.SMALLEST_STEP,
+                          jnp.where(self._spent(path, s.iterations, s.wasted), Stop.WORK_BUDGET, Stop.NO_STABLE_STATE))
+        return jnp.where(s.status > 0, cause, Stop.NONE).astype(jnp.int32)
 
     def _parameter_predictor(self, problem_a, problem_b, u, g, load):
         """(u + du, K_ff's factorisation) with K_ff du = -(r + dr/dp (p_b - p_a)) at u under
@@ -217,4 +230,4 @@ class LoadPath:
         status = jnp.where((s.status == 0) & s.unknown, Status.STABILITY_UNKNOWN, s.status)
         g, load = path.at(s.t)
         return Solution(s.u, g, load, status, s.t, s.iterations, s.steps, s.cuts, s.residual_norm, s.branch,
-                        s.critical, s.linear if self.keep_linear else None)
+                        s.critical, s.linear if self.keep_linear else None, stop=self._stop(path, s))

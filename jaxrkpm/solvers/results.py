@@ -13,37 +13,42 @@ from ..base.outcome import Outcome
 
 
 class Status(Outcome):
-    """Outcome of a solve (an int code inside jit; ``Status.of(sol.status)`` outside)."""
+    """Outcome of a solve (an int code inside jit; ``Status.of(sol.status)`` outside). A
+    failure is that of the last attempt; why the path stopped there (the smallest load step
+    allowed, or the failed attempts' work budget) is ``Solution.stop``."""
 
     CONVERGED = 0, "converged"
-    MAX_ITERATIONS = 1, ("Newton reached its iteration cap on the smallest load step allowed "
-                         "(or once the failed attempts had spent their work budget)")
-    NONFINITE = 2, ("non-finite residual or energy (NaN/inf) on the smallest load step allowed "
-                    "(or once the failed attempts had spent their work budget)")
-    INVERTED = 3, ("a step would invert the material (det F <= 0 at an integration point) "
-                   "even on the smallest load step allowed (or once the failed attempts had "
-                   "spent their work budget)")
-    LINE_SEARCH = 4, ("the line search found no decrease of energy or residual "
-                      "on the smallest load step allowed (or once the failed attempts had "
-                      "spent their work budget)")
+    MAX_ITERATIONS = 1, "Newton reached its iteration cap"
+    NONFINITE = 2, "non-finite residual or energy (NaN/inf)"
+    INVERTED = 3, "a step would invert the material (det F <= 0 at an integration point)"
+    LINE_SEARCH = 4, "the line search found no decrease of energy or residual"
     UNSTABLE_TANGENT = 5, ("the tangent K_ff is not positive definite at the equilibrium "
                            "reached (loss of stability: a limit or bifurcation point, buckling "
-                           "or loss of ellipticity passed), even on the smallest load step "
-                           "allowed (or once the failed attempts had spent their work budget); "
-                           "the path is stopped at the last stable state (solve with "
-                           "check_stability=False to follow the unstable branch)")
+                           "or loss of ellipticity passed); the path is stopped at the last "
+                           "stable state (solve with check_stability=False to follow the "
+                           "unstable branch)")
     STABILITY_UNKNOWN = 6, ("converged, but the linear solver could not tell whether K_ff is "
                             "positive definite (a factorisation with perturbed or permuted pivots, "
                             "or a Krylov solve that did not reach its tolerance): the state may lie "
                             "past a critical point")
-    LINEAR_SOLVE = 7, ("the iterative linear solver (solver='krylov') did not converge on the "
-                       "smallest load step allowed (or once the failed attempts had spent their "
-                       "work budget)")
+    LINEAR_SOLVE = 7, "the iterative linear solver (solver='krylov') did not converge"
 
     @property
     def equilibrium(self) -> bool:
         """An equilibrium was reached (converged, whatever the stability check said)."""
         return self in (Status.CONVERGED, Status.STABILITY_UNKNOWN)
+
+
+class Stop(Outcome):
+    """Why a load path stopped short of its end (``Solution.stop``): a failed attempt is cut
+    and retried until one of these ends the path."""
+
+    NONE = 0, "the path did not stop"
+    SMALLEST_STEP = 1, "on the smallest load step allowed (the initial step halved max_cuts times)"
+    WORK_BUDGET = 2, ("once the failed attempts had spent their work budget (LoadPath.failed_work "
+                      "x the useful Newton iterations)")
+    NO_STABLE_STATE = 3, ("at a critical point, where the branch switch found no stable state of "
+                          "that load")
 
 
 def reached_equilibrium(status):
@@ -127,7 +132,8 @@ class Solution(NamedTuple):
     started from this Solution and the implicit Jacobian at it use it instead of factorising
     again. ``params``: the problem's parameters at this state, where the solve keeps them (an
     eager ``Model.solve``; None otherwise): a solve started from this Solution with other
-    parameters (a tool's new pose) ramps them from these along its path."""
+    parameters (a tool's new pose) ramps them from these along its path. ``stop``: a ``Stop``
+    code, why a failed solve stopped where it did (``Solution.stopped`` as a member).""" 
 
     u: jax.Array
     g: jax.Array
@@ -142,6 +148,9 @@ class Solution(NamedTuple):
     critical: "Critical"  # the critical points this solve passed (fixed size, NaN where unfilled)
     linear: Any = None    # the linear solver's last state, where kept (LoadPath.keep_linear)
     params: Any = None    # the problem's parameters at this state, where kept (an eager Model.solve)
+    # a Stop code: why the path stopped (a concrete int32 by default: the same pytree and
+    # jit signature as a solve's)
+    stop: Any = np.int32(Stop.NONE)
 
     def __repr__(self) -> str:
         """The outcome and the shapes, not the arrays (the critical-point record is NaN where
@@ -165,14 +174,20 @@ class Solution(NamedTuple):
         return Status.of(self.status)
 
     @property
+    def stopped(self) -> Stop:
+        """Why the path stopped (a Stop member; NONE where it did not); one solve only."""
+        return Stop.of(self.stop)
+
+    @property
     def message(self) -> str:
         st = np.asarray(self.status)
         if st.ndim:
             bad = np.flatnonzero(st != 0)
             if not len(bad):
                 return f"all {st.size} solves converged"
+            why = Stop.of(np.broadcast_to(np.asarray(self.stop), st.shape).flat[bad[0]])
             return (f"{len(bad)} of {st.size} solves did not converge; first (#{bad[0]}): "
-                    + Status.of(st.flat[bad[0]]).message)
+                    + Status.of(st.flat[bad[0]]).message + ("" if why == Stop.NONE else f", stopped {why.message}"))
         s = Status.of(st)
         if s == Status.CONVERGED:
             where = ""
@@ -185,9 +200,10 @@ class Solution(NamedTuple):
         if s == Status.STABILITY_UNKNOWN:
             return (f"{s.name}: {s.message} (after {int(self.steps)} load steps, "
                     f"{int(self.iterations)} Newton iterations)")
+        why = self.stopped
         return (f"{s.name}: {s.message}; stopped at {100 * float(self.t):.1f}% of the increment "
-                f"after {int(self.steps)} steps and {int(self.cuts)} step cuts; the last converged "
-                f"state is kept")
+                f"after {int(self.steps)} steps and {int(self.cuts)} step cuts"
+                + ("" if why == Stop.NONE else f", {why.message}") + "; the last converged state is kept")
 
 
 def joined(first: Solution, rest: Solution) -> Solution:

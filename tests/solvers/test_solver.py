@@ -429,6 +429,24 @@ def test_failed_solve_reports_status_and_keeps_last_state(block9):
     assert float(info.value.solution.t) == pytest.approx(float(sol.t))
 
 
+def test_a_stopped_path_says_which_of_its_limits_stopped_it(block9):
+    """A failed attempt is cut and retried until the path stops on the smallest load step
+    allowed or once the failed attempts have spent their work budget: ``Solution.stopped``
+    and the message name the one that happened (both were one status message, "... on the
+    smallest step allowed (or once ... their work budget)")."""
+    _, _, model = block9
+    crush = {"right": jnp.array([-1.3, 0.0])}
+    smallest = model.solve(crush, max_iter=1, max_cuts=0, stable_branch=False, throw=False)
+    spent = model.solve(crush, steps=2, max_cuts=50, stable_branch=False, throw=False)
+    assert smallest.stopped == jr.Stop.SMALLEST_STEP and int(smallest.cuts) == 1
+    assert "on the smallest load step allowed" in smallest.message and "budget" not in smallest.message
+    # 50 halvings are never reached: the failed attempts' work ends the path first
+    assert spent.stopped == jr.Stop.WORK_BUDGET
+    assert "spent their work budget" in spent.message and "smallest" not in spent.message
+    good = model.solve({"right": jnp.array([-0.05, 0.0])})
+    assert good.stopped == model.initial().stopped == jr.Stop.NONE
+
+
 def test_bad_input_gives_clear_errors(block9):
     body, sets, model = block9
     with pytest.raises(ValueError, match="unknown essential set 'paddle'"):
