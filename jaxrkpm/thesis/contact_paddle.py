@@ -307,9 +307,10 @@ def check_not_buried(phantom, spec: ContactPaddle, control):
 
 
 def contact_insertion(phantom, paddle: int, control, inclusion: str = "none", increments: int = 15,
-                      spec: ContactPaddle = ContactPaddle()) -> ContactRun:
+                      spec: ContactPaddle = ContactPaddle(), progress: bool = True) -> ContactRun:
     """Press the contact paddle at position ``paddle`` to ``control`` = (indentation, shift...)
-    with the needle out, then insert the needle in ``increments`` (the paddle held there)."""
+    with the needle out, then insert the needle in ``increments`` (the paddle held there).
+    ``progress``: a bar of the increments on a terminal."""
     model = contact_model(phantom, inclusion, paddle, spec)
     st = Stepper(phantom, model, paddle, spec)
     d = model.dim
@@ -323,8 +324,11 @@ def contact_insertion(phantom, paddle: int, control, inclusion: str = "none", in
     sol, lag, res = st.step({"needle": np.zeros(d)}, control, None, None, steps=spec.press_steps)
     depths, dev, checks = [], [], []
     status = Status.of(sol.status) if res is None else Status.CONVERGED
+    bar = progress_bar(increments, desc=f"contact paddle {paddle} ({inclusion})", unit="increment",
+                       progress=progress and res is not None)
     if res is not None:
         for depth in phantom.depths(increments):
+            bar.update()
             new, new_lag, r = st.step({"needle": phantom.needle_at(depth)}, control, sol, lag)
             if r is None:
                 status = Status.of(new.status)
@@ -333,6 +337,7 @@ def contact_insertion(phantom, paddle: int, control, inclusion: str = "none", in
             depths.append(depth)
             dev.append(float(phantom.deviation_of(np.asarray(model.displacement(sol, target)[0]))))
             checks.append(check_contact(r, inward, spec.mu))
+    bar.close()
     return ContactRun(paddle, control, np.array(depths), np.array(dev), checks, status, sol, lag)
 
 
@@ -390,20 +395,26 @@ class ContactSweep:
         return out
 
 
-def glued_finals(phantom, inclusion: str, increments: int, paddles: Sequence[int]):
+def glued_finals(phantom, inclusion: str, increments: int, paddles: Sequence[int], progress: bool = True):
     """(P,) final deviations of the glued paddles (NaN where an increment failed) and the
     no-paddle final deviation, each by ``jaxrkpm.thesis.needle.static_state`` (warm-started
-    increments, as the contact paddle's insertion)."""
+    increments, as the contact paddle's insertion). ``progress``: a bar of the insertions
+    on a terminal."""
     from .needle import static_state
     target = np.atleast_2d(phantom.target)
 
     def final(p):
-        model, sol = static_state(phantom, inclusion, p, increments)
+        model, sol = static_state(phantom, inclusion, p, increments, progress=False)
         full = model.prescribed({"needle": phantom.needle_at(phantom.insertion)})
         if not np.allclose(np.asarray(sol.g), np.asarray(full)):
             return np.nan                 # an increment failed: it stopped short of full depth
         return float(phantom.deviation_of(np.asarray(model.displacement(sol, target)[0])))
-    return np.array([final(p) for p in paddles]), final(None)
+    finals = []
+    with progress_bar(len(paddles) + 1, desc=f"glued paddles ({inclusion})", unit="insertion", progress=progress) as bar:
+        for p in [*paddles, None]:          # None: the no-paddle insertion
+            finals.append(final(p))
+            bar.update()
+    return np.array(finals[:-1]), finals[-1]
 
 
 def contact_sweep(phantom, inclusion: str = "none", increments: int = 15, control=None,
@@ -419,10 +430,10 @@ def contact_sweep(phantom, inclusion: str = "none", increments: int = 15, contro
     runs = []
     with progress_bar(len(paddles) + 1, desc=f"contact sweep ({inclusion})", unit="paddle", progress=progress) as bar:
         for p in paddles:
-            runs.append(contact_insertion(phantom, p, control, inclusion, increments, spec))
+            runs.append(contact_insertion(phantom, p, control, inclusion, increments, spec, progress=progress))
             bar.update()
         bar.set_postfix_str("glued paddles and no paddle")
-        glued, free = glued_finals(phantom, inclusion, increments, paddles)
+        glued, free = glued_finals(phantom, inclusion, increments, paddles, progress=progress)
         bar.update()
     return ContactSweep(inclusion, float(spec.mu), control, runs, glued, free)
 
@@ -475,7 +486,8 @@ def lateral_jacobian(stepper: Stepper, prescribed, control, sol, lag):
 
 def dynamic_contact_paddle(phantom, paddle: int, inclusion: str = "none", increments: int = 15,
                            spec: ContactPaddle = ContactPaddle(), tol: float = 1e-4,
-                           max_corrections: int = 6, start=None, max_move: float = 0.25) -> DynamicContactRun:
+                           max_corrections: int = 6, start=None, max_move: float = 0.25,
+                           progress: bool = True) -> DynamicContactRun:
     """Move the contact paddle's pose during insertion to hold the target on the needle line.
 
     The paddle is pressed to ``start`` (default: touching, no shift); each increment the
@@ -486,7 +498,8 @@ def dynamic_contact_paddle(phantom, paddle: int, inclusion: str = "none", increm
     The paddle cannot pull: where pushing and friction cannot reach the
     needle line the loop ends NOT_HELD at that increment and goes on. A correction moves the
     pose by at most ``max_move`` spacings and is halved until it brings the target nearer the
-    line (the contact set changes along it: the linearisation holds only nearby)."""
+    line (the contact set changes along it: the linearisation holds only nearby).
+    ``progress``: a bar of the increments on a terminal."""
     model = contact_model(phantom, inclusion, paddle, spec)
     st = Stepper(phantom, model, paddle, spec)
     lo, hi = control_bounds(phantom, paddle)
@@ -505,7 +518,10 @@ def dynamic_contact_paddle(phantom, paddle: int, inclusion: str = "none", increm
     def lateral_error(s):
         return B @ np.asarray(model.displacement(s, target)[0])
     depths = phantom.depths(increments)
+    bar = progress_bar(len(depths), desc=f"dynamic contact paddle {paddle} ({inclusion})", unit="increment",
+                       progress=progress)
     for depth in depths:
+        bar.update()
         g = {"needle": phantom.needle_at(depth)}
         new, new_lag, r = st.step(g, c, sol, lag)
         if r is None:
@@ -545,6 +561,7 @@ def dynamic_contact_paddle(phantom, paddle: int, inclusion: str = "none", increm
             status = HoldStatus.NOT_HELD
             message = (f"|lateral deviation| {np.linalg.norm(e):.2e} >= {tol:g} from depth {depth:.4f} "
                        "(the push-only paddle cannot reach the needle line)")
+    bar.close()
     n = len(out["dev"])
     return DynamicContactRun(paddle, depths[:n], np.array(out["dev"]), np.array(out["pre"][:n]),
                              np.array(out["ctl"]).reshape(n, d), np.array(out["its"], int), out["chk"],
@@ -571,7 +588,7 @@ def final_deviation_and_gradient(phantom, paddle, control, inclusion, increments
     """(final lateral deviation, its gradient in the pose (d,), ContactRun): the path to the
     last increment selects the equilibrium; the derivative is the implicit one of the last
     increment's solve with the friction lag held."""
-    run = contact_insertion(phantom, paddle, control, inclusion, increments, spec)
+    run = contact_insertion(phantom, paddle, control, inclusion, increments, spec, progress=False)
     d = len(control)
     if not run.converged:
         return np.nan, np.full(d, np.nan), run

@@ -714,17 +714,21 @@ def dynamic_paddle(phantom: Phantom, paddle: int, inclusion: str = "none", incre
 
 
 def static_state(phantom: Phantom, inclusion: str = "none", paddle: int | None = None,
-                 increments: int = 15):
+                 increments: int = 15, progress: bool = True):
     """The equilibrium of one static configuration at full insertion, reached through the
     same increments as the sweep (each warm-started from the last): (model, Solution).
-    A failed increment stops there; the last converged state is returned."""
+    A failed increment stops there; the last converged state is returned. ``progress``: a
+    bar of the increments on a terminal."""
     model = phantom.model(inclusion, paddle)
     sol = model.initial()
-    for depth in phantom.depths(increments):
-        new = model.solve({"needle": phantom.needle_at(depth)}, initial=sol, throw=False)
-        if int(new.status) != Status.CONVERGED:
-            break
-        sol = new
+    name = "no paddle" if paddle is None else f"paddle {paddle}"
+    with progress_bar(increments, desc=f"insertion, {name} ({inclusion})", unit="increment", progress=progress) as bar:
+        for depth in phantom.depths(increments):
+            new = model.solve({"needle": phantom.needle_at(depth)}, initial=sol, throw=False)
+            bar.update()
+            if int(new.status) != Status.CONVERGED:
+                break
+            sol = new
     return model, sol
 
 

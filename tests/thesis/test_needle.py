@@ -180,10 +180,10 @@ def test_continuous_paddle_and_optimised_placement(phantom, sweeps):
 
 
 class _Terminal:
-    """A stderr that says it is a terminal and keeps what is written."""
+    """A stderr that says it is a terminal (or not: ``tty``) and keeps what is written."""
 
-    def __init__(self):
-        self.text = ""
+    def __init__(self, tty=True):
+        self.text, self.tty = "", tty
 
     def write(self, s):
         self.text += s
@@ -192,12 +192,48 @@ class _Terminal:
         pass
 
     def isatty(self):
-        return True
+        return self.tty
+
+
+class _Solved:
+    """A stand-in solve: converged, nothing moved."""
+    status, g = 0, np.zeros(1)
+
+
+class _Model:
+    """A stand-in model whose solves converge at once and move nothing."""
+    dim = 2
+
+    def initial(self):
+        return _Solved()
+
+    def solve(self, *a, **k):
+        return _Solved()
+
+    def displacement(self, sol, points):
+        return np.zeros((len(points), 2))
+
+    def jacobian(self, sol, name, points):
+        return np.eye(2)
+
+    def prescribed(self, values):
+        return np.ones(1)
+
+
+class _Stepper:
+    """A stand-in contact stepper: every step converges (no lag, no contact result)."""
+
+    def __init__(self, *a):
+        pass
+
+    def step(self, *a, **k):
+        return _Solved(), None, object()
 
 
 def test_long_calls_show_progress_on_a_terminal(phantom, monkeypatch):
-    """The phantom studies and the optimiser draw a bar with an estimate on a terminal and
-    are silent with progress=False (the insertions are stand-ins: the bars are what is tested)."""
+    """The phantom studies, the contact paddle's insertions and the optimisers draw a bar with
+    an estimate on a terminal, and are silent with progress=False and where stderr is no
+    terminal (a log or a pipe). The solves are stand-ins: the bars are what is tested."""
     from types import SimpleNamespace
     from jaxrkpm.thesis import contact_paddle as cp
 
@@ -208,20 +244,44 @@ def test_long_calls_show_progress_on_a_terminal(phantom, monkeypatch):
     monkeypatch.setattr(nd, "insert", fake_insert)
     monkeypatch.setattr(nd, "final_deviation_and_gradient",
                         lambda model, ph, q, depths: (0.01 * (1 + float(np.sum(q))), np.ones(np.shape(q)), Status.CONVERGED))
-    monkeypatch.setattr(cp, "contact_insertion", lambda *a, **k: None)
-    monkeypatch.setattr(cp, "glued_finals", lambda *a, **k: (np.zeros(5), 0.0))
+    monkeypatch.setattr(cp, "contact_model", lambda *a, **k: _Model())
+    monkeypatch.setattr(cp, "Stepper", _Stepper)
+    monkeypatch.setattr(cp, "check_contact", lambda *a: None)
     monkeypatch.setattr(cp, "final_deviation_and_gradient",
                         lambda ph, paddle, c, *a: (0.01 * (1 + float(np.sum(c))), np.ones(np.shape(c)), None))
+    stand_in = SimpleNamespace(model=lambda *a: _Model(), depths=phantom.depths, needle_at=phantom.needle_at,
+                               target=phantom.target, lateral=phantom.lateral, needle_direction=phantom.needle_direction,
+                               deviation_of=phantom.deviation_of, insertion=phantom.insertion)
+    monkeypatch.setattr(nd, "static_state", lambda ph, inc, p, n, progress=True: (_Model(), _Solved()))
     P = len(phantom.paddles)
     calls = {"static sweep (none)": (lambda **k: nd.static_sweep(phantom, "none", 3, **k), f"/{P + 2} ["),
              "optimize paddle (none)": (lambda **k: nd.optimize_paddle(phantom, "none", iterations=4, **k), "/4 ["),
+             "dynamic paddle 2 (none)": (lambda **k: nd.dynamic_paddle(stand_in, 2, "none", 3, **k), "/3 ["),
              "contact sweep (none)": (lambda **k: cp.contact_sweep(phantom, "none", 3, **k), f"/{P + 1} ["),
+             "contact paddle 2 (none)": (lambda **k: cp.contact_insertion(phantom, 2, [0.05, 0.0], "none", 3, **k),
+                                         "/3 ["),
+             "glued paddles (none)": (lambda **k: cp.glued_finals(phantom, "none", 3, [1, 2], **k), "/3 ["),
+             "dynamic contact paddle 3 (none)": (lambda **k: cp.dynamic_contact_paddle(phantom, 3, "none", 3, **k),
+                                                 "/3 ["),
              "optimize contact paddle 3": (lambda **k: cp.optimize_contact_paddle(phantom, 3, "none", 3,
                                                                                    iterations=4, **k), "/4 [")}
     for desc, (call, count) in calls.items():
-        for progress in (True, False):
-            err = _Terminal()
+        for progress, tty in ((True, True), (False, True), (True, False)):
+            err = _Terminal(tty)
             monkeypatch.setattr(sys, "stderr", err)
             call(progress=progress)
             monkeypatch.setattr(sys, "stderr", sys.__stderr__)
-            assert (desc in err.text and count in err.text) == progress, (desc, err.text)
+            assert (desc in err.text and count in err.text) == (progress and tty), (desc, progress, tty, err.text)
+
+
+def test_an_insertion_shows_its_increments(phantom, monkeypatch):
+    """``static_state``, one configuration's insertion (minutes on the 3D phantom), counts its
+    increments on a terminal."""
+    stand_in = type("StandIn", (), {"model": lambda self, *a: _Model(), "depths": staticmethod(phantom.depths),
+                                    "needle_at": staticmethod(phantom.needle_at)})()
+    for progress in (True, False):
+        err = _Terminal(True)
+        monkeypatch.setattr(sys, "stderr", err)
+        nd.static_state(stand_in, "none", 2, 4, progress=progress)
+        monkeypatch.setattr(sys, "stderr", sys.__stderr__)
+        assert ("insertion, paddle 2 (none)" in err.text and "/4 [" in err.text) == progress, err.text

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from ...base.progress import progress_bar
 from ...model.model import Model
 from ...solvers.results import Status
 
@@ -113,10 +114,25 @@ def region_index(points, regions) -> np.ndarray:
     return np.ravel_multi_index(tuple(cell.T), tuple(r))
 
 
+def _checked(rec: Recording, initial: dict, fit: tuple, steps: int) -> tuple:
+    """``fit``, once the calibration's input is checked (a ValueError naming what is wrong)."""
+    if len(rec) < 1:
+        raise ValueError("the recording is empty")
+    for k in fit:
+        if k not in initial:
+            raise ValueError(f"parameter {k!r} to fit has no initial value in {sorted(initial)}")
+    for k, v in initial.items():
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"initial {k} must be positive (log-parameters), got {v}")
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    return fit
+
+
 def calibrate(model: Model, rec: Recording, initial: dict, *, fit=("alpha", "beta"),
               regions=None, region_reg: float = 1.0, steps: int = 40, gtol: float = 1e-6,
               max_halvings: int = 30, cp_sigma: float = 5e-4, force_rel_sigma: float = 0.01,
-              solve_steps: int = 2) -> CalibrationResult:
+              solve_steps: int = 2, progress: bool = True) -> CalibrationResult:
     """Fit the material parameters named in ``fit`` (starting at ``initial``, which also
     holds any fixed ones) to the recording by L-BFGS (optax) on log-parameters: at most ``steps`` iterations,
     stopping when the gradient norm falls below ``gtol`` or no step lowers the loss.
@@ -130,18 +146,9 @@ def calibrate(model: Model, rec: Recording, initial: dict, *, fit=("alpha", "bet
     (Q,) fields). A uniform alpha, beta barely changes the kinematics (the control point
     moves almost the same whatever the level of the stiffness), so only a stiffness *map*
     can absorb an unmodelled inclusion; ``region_reg`` * mean(m_r^2) keeps the map
-    near uniform where the data say nothing."""
-    if len(rec) < 1:
-        raise ValueError("the recording is empty")
-    fit = tuple(fit)
-    for k in fit:
-        if k not in initial:
-            raise ValueError(f"parameter {k!r} to fit has no initial value in {sorted(initial)}")
-    for k, v in initial.items():
-        if not (np.isfinite(v) and v > 0):
-            raise ValueError(f"initial {k} must be positive (log-parameters), got {v}")
-    if steps < 1:
-        raise ValueError(f"steps must be >= 1, got {steps}")
+    near uniform where the data say nothing. ``progress``: a bar of the iterations on a
+    terminal."""
+    fit = _checked(rec, initial, tuple(fit), steps)
     fixed = {k: jnp.asarray(float(v)) for k, v in initial.items() if k not in fit}
     predict_all = _predictor(model, rec, solve_steps)
     cp_data, f_data = jnp.asarray(rec.cp), jnp.asarray(rec.force)
@@ -180,7 +187,10 @@ def calibrate(model: Model, rec: Recording, initial: dict, *, fit=("alpha", "bet
     (value, aux), grad = value_and_grad(theta)
     first = aux
     losses = [float(value)]
+    bar = progress_bar(int(steps), desc="calibrate", unit="iteration", progress=progress)
     for _ in range(int(steps)):
+        bar.update()
+        bar.set_postfix(loss=f"{float(value):.3g}")
         if float(optax.tree_utils.tree_norm(grad)) < gtol:
             break
         direction, new_state = update(grad, state, theta)
@@ -195,6 +205,7 @@ def calibrate(model: Model, rec: Recording, initial: dict, *, fit=("alpha", "bet
             break   # no descent along the L-BFGS direction: at the minimum to rounding
         theta, state, value, grad, aux = trial, new_state, v, g, a
         losses.append(float(value))
+    bar.close()
     final = {k: (float(v) if jnp.ndim(v) == 0 else np.asarray(v)) for k, v in params_of(theta).items()}
     stiffness_map = None if regions is None else np.exp(np.asarray(theta["_map"])).reshape(tuple(regions))
 

@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ... import Fung, Model
+from ...base.progress import progress_bar
 from ...model.model import SolveError
 from ...control.tracking import control_increment
 from ...base.outcome import Outcome
@@ -470,8 +471,9 @@ class ClosedLoop:
         self._go(np.zeros(2))
         return Recording(targets, np.array(cps), np.array(forces), CONTROL_POINT[None], self.force_scale_n)
 
-    def run(self, path) -> RigRun:
-        """Track ``path`` (W, 2) of control point displacements (model units) from rest."""
+    def run(self, path, progress: bool = True) -> RigRun:
+        """Track ``path`` (W, 2) of control point displacements (model units) from rest.
+        ``progress``: a bar of the waypoints on a terminal."""
         path = np.atleast_2d(np.asarray(path, float))
         if path.ndim != 2 or path.shape[1] != 2:
             raise ValueError(f"path must be (W, 2) control point displacements, got {np.shape(path)}")
@@ -481,11 +483,13 @@ class ClosedLoop:
         run.reached, run.final = -np.ones(W, int), -np.ones(W, int)
         self._record(run, 0)
         wp, it_wp, k = 0, 0, 0
+        bar = progress_bar(W, desc="rig run", unit="waypoint", progress=progress)
         while wp < W:
             e = path[wp] - run.measured[-1]
             if np.linalg.norm(e) * self.scale < s.tol_m:
                 run.reached[wp] = run.final[wp] = k
                 wp, it_wp = wp + 1, 0
+                bar.update()
                 continue
             if it_wp >= s.max_iter:
                 run.final[wp] = k
@@ -493,6 +497,7 @@ class ClosedLoop:
                     run.status = RigStatus.ITERATION_CAP
                     break
                 wp, it_wp = wp + 1, 0
+                bar.update()
                 continue
             J = self.ctrl.jacobian()
             step = np.asarray(control_increment(jnp.asarray(J + self.D), jnp.asarray(e), s.gain, s.clamp))
@@ -524,6 +529,7 @@ class ClosedLoop:
                 # secant on the Jacobian used for this step; D keeps what the model lacks
                 self.D = broyden_update(J + self.D, step, run.measured[-1] - before) - J
                 run.broyden_updates += 1
+        bar.close()
         if run.status == RigStatus.DONE and not np.all(run.reached >= 0):
             run.status = RigStatus.ITERATION_CAP
         if not run.message:

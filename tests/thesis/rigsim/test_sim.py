@@ -166,3 +166,43 @@ def test_rig_sim_cli_writes_summary_and_figures(tmp_path, loop):
     assert wps[2]["desired_mm"] == pytest.approx([0.0, 4.0])
     for name in ("summary.json", "history.npz", *s["figures"]):
         assert (tmp_path / name).stat().st_size > 0
+
+
+class _Terminal:
+    """A stderr that says it is a terminal and keeps what is written."""
+
+    def __init__(self):
+        self.text = ""
+
+    def write(self, s):
+        self.text += s
+
+    def flush(self):
+        pass
+
+    def isatty(self):
+        return True
+
+
+def test_the_loop_and_the_calibration_show_progress(loop, monkeypatch):
+    """A rig run counts its waypoints and the calibration its iterations on a terminal, and
+    both are silent with progress=False (the path is held at rest and the calibration's
+    solves are a stand-in: the bar is what is tested)."""
+    import importlib
+    import sys
+    import jax.numpy as jnp
+    cal = importlib.import_module("jaxrkpm.thesis.rigsim.calibrate")   # the package's calibrate is the function
+    monkeypatch.setattr(cal, "_predictor", lambda model, rec, steps: lambda p: (
+        p["beta"] * jnp.ones((1, 2)), p["beta"] * jnp.ones((1, 2)), jnp.array(0)))
+    rec = Recording([[0.1, 0.0]], [[0.01, 0.0]], [[0.5, 0.0]], CONTROL_POINT[None])
+    rest = np.zeros((2, 2))            # waypoints at rest: reached without a move
+    calls = {"rig run": (lambda **k: (loop.reset(), loop.run(rest, **k)), "/2 ["),
+             "calibrate": (lambda **k: cal.calibrate(None, rec, {"alpha": 1.0, "beta": 0.3}, fit=("beta",),
+                                                     steps=3, **k), "/3 [")}
+    for desc, (call, count) in calls.items():
+        for progress in (True, False):
+            err = _Terminal()
+            monkeypatch.setattr(sys, "stderr", err)
+            call(progress=progress)
+            monkeypatch.setattr(sys, "stderr", sys.__stderr__)
+            assert (desc in err.text and count in err.text) == progress, (desc, err.text)
