@@ -11,9 +11,13 @@ side, imports nothing of jaxrkpm but itself (``tests/rig/test_layering.py`` chec
 strictly); any layer above ``model`` may use it.
 
 Every import counts: module-level and inside functions, ``from . import x`` and absolute
-``jaxrkpm.x``, ``importlib.import_module`` / ``__import__`` with a literal name, the module paths written
-as strings in a module that imports by a computed name (the CLI's command table), and the lazy imports a ``.pyi`` stub declares
-(lazy_loader). The checks run on the source with ``ast``; nothing is imported."""
+``jaxrkpm.x``, ``importlib.import_module`` / ``__import__`` / a study's ``lazy`` with a literal
+name, the module paths written as strings in a module that imports by a computed name, and the
+lazy imports a ``.pyi`` stub declares (lazy_loader). The checks run on the source with ``ast``;
+nothing is imported.
+
+A command of ``jaxrkpm`` lives in one file: its study module declares it (``COMMAND =
+Command(...)``) and no other module names it (``test_a_command_is_named_only_by_its_study``)."""
 import ast
 from pathlib import Path
 
@@ -75,7 +79,7 @@ def imports_of(path: Path) -> set:
         elif isinstance(node, ast.Call):
             f = node.func
             name = f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", None)
-            if name in ("import_module", "__import__") and node.args:
+            if name in ("import_module", "__import__", "lazy") and node.args:
                 if isinstance(node.args[0], ast.Constant):
                     found.add(str(node.args[0].value))
                 else:
@@ -249,3 +253,129 @@ def test_tests_import_no_experiments_and_read_no_clock(path):
         elif isinstance(node, ast.Attribute) and node.attr in ("perf_counter", "process_time") \
                 or isinstance(node, ast.Attribute) and node.attr == "time" and getattr(node.value, "id", "") == "time":
             raise AssertionError(f"{path.name}:{node.lineno} reads a clock ({ast.unparse(node)})")
+
+
+# ------------------------------------------------------------------ one file per command
+STUDIES = PACKAGE / "thesis" / "studies"
+
+
+def _call_name(node: ast.Call) -> str | None:
+    f = node.func
+    return f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", None)
+
+
+def declared_commands(path: Path) -> list:
+    """(command name, problem or None) of every ``Command(...)`` in the source at ``path``: a
+    problem where it is not the module-level ``COMMAND`` of a study module or its name is not
+    a literal."""
+    tree = ast.parse(path.read_text(), str(path))
+    top = {id(node.value): node for node in tree.body if isinstance(node, ast.Assign)}
+    out = []
+    for node in ast.walk(tree):
+        if not (isinstance(node, ast.Call) and _call_name(node) == "Command"):
+            continue
+        name = node.args[0] if node.args else next((k.value for k in node.keywords if k.arg == "name"), None)
+        name = name.value if isinstance(name, ast.Constant) else None
+        assign = top.get(id(node))
+        targets = [getattr(t, "id", None) for t in assign.targets] if assign else []
+        problem = None
+        if path.parent != STUDIES or targets != ["COMMAND"]:
+            problem = "a Command is declared only as the module-level COMMAND of a module of thesis/studies"
+        elif name is None:
+            problem = "a command's name is a literal string"
+        out.append((name, problem))
+    return out
+
+
+REGISTERING = ("parser", "parse", "results", "identity", "command")   # calls that take a command's name
+
+
+def _module_level(tree: ast.Module):
+    """The nodes of a module's own statements, not inside its functions and classes."""
+    stack = [n for n in tree.body if not isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))]
+    while stack:
+        node = stack.pop()
+        yield node
+        stack.extend(ast.iter_child_nodes(node))
+
+
+def _registrations(tree: ast.Module):
+    """The string literals where a module would register a command by its name: anywhere at
+    module level (a table: COMMANDS, PARSERS, STUDIES), the first argument of a call that
+    takes a command's name (``interface.parser("track", ...)``), the first item of a tuple
+    returned (an experiment's ``("track", argv)``)."""
+    for node in _module_level(tree):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            yield node
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and _call_name(node) in REGISTERING and node.args:
+            yield node.args[0]
+        elif isinstance(node, ast.Return) and isinstance(node.value, ast.Tuple) and node.value.elts:
+            yield node.value.elts[0]
+
+
+def command_names_outside(path: Path, names: dict, studies: set) -> list:
+    """Where the source at ``path`` names a command that another module declares (``names``:
+    command -> its module's path; ``studies``: the dotted paths of the modules declaring one):
+    a study module's path anywhere, or the command's name where a module would register it
+    (:func:`_registrations`)."""
+    tree = ast.parse(path.read_text(), str(path))
+    mine = {n for n, p in names.items() if p == path}
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Constant) and node.value in studies and node.value != module_name(path):
+            found.append(f"{path.relative_to(ROOT)}:{node.lineno} names the study module {node.value}")
+    for node in _registrations(tree):
+        text = node.value if isinstance(node, ast.Constant) else None
+        if isinstance(text, str) and text in names and text not in mine:
+            found.append(f"{path.relative_to(ROOT)}:{node.lineno} names the command {text!r} "
+                         f"(declared in {names[text].relative_to(ROOT)})")
+    return sorted(set(found))
+
+
+def command_problems(root: Path) -> list:
+    """Every breach of one file per command in the package at ``root``."""
+    names, studies, problems = {}, set(), []
+    for path in sorted(root.rglob("*.py")):
+        for name, problem in declared_commands(path):
+            studies.add(module_name(path))
+            if problem:
+                problems.append(f"{path.relative_to(ROOT)}: {problem}")
+            elif name in names:
+                problems.append(f"{path.relative_to(ROOT)}: the command {name!r} is declared twice "
+                                f"(also in {names[name].relative_to(ROOT)})")
+            else:
+                names[name] = path
+    for path in sorted(root.rglob("*.py")):
+        problems += command_names_outside(path, names, studies)
+    return problems
+
+
+def test_a_command_is_named_only_by_its_study():
+    """Each command of ``jaxrkpm`` is declared once, by its study module's ``COMMAND``, and
+    registered nowhere else: no table of names or module paths in the CLI, reproduce or the
+    experiments list (they read the declarations)."""
+    problems = command_problems(PACKAGE)
+    assert not problems, "\n".join(problems)
+    assert sum(1 for p in STUDIES.glob("*.py") for _ in declared_commands(p)) >= 9
+
+
+def test_the_command_check_catches_a_table_of_commands(tmp_path):
+    global ROOT, STUDIES
+    studies = tmp_path / "jaxrkpm" / "thesis" / "studies"
+    studies.mkdir(parents=True)
+    (studies / "hello.py").write_text("COMMAND = Command('hello', 'says hello', p, m, r)\n")
+    (studies / "again.py").write_text("COMMAND = Command(name='hello', summary='again', parser=p, main=m, result=r)\n")
+    (studies / "table.py").write_text("STUDIES = {'hello': 'jaxrkpm.thesis.studies.hello'}\n"
+                                      "EXTRA = Command('bye', 'in a table', p, m, r)\n")
+    (tmp_path / "jaxrkpm" / "thesis" / "cli.py").write_text("COMMANDS = ['hello']\n")
+    saved = ROOT, STUDIES
+    try:
+        ROOT, STUDIES = tmp_path, studies
+        problems = command_problems(tmp_path / "jaxrkpm")
+    finally:
+        ROOT, STUDIES = saved
+    text = "\n".join(problems)
+    assert "declared twice" in text and "only as the module-level COMMAND" in text
+    assert "table.py:1 names the study module jaxrkpm.thesis.studies.hello" in text
+    assert "table.py:1 names the command 'hello'" in text and "cli.py:1 names the command 'hello'" in text

@@ -126,9 +126,9 @@ def test_readme_is_short_and_starts_with_the_two_commands():
 
 
 def test_readme_commands_table_lists_every_command():
-    from jaxrkpm.thesis.cli import COMMANDS
+    from jaxrkpm.thesis.cli import commands
     text = README.read_text()
-    for name in COMMANDS:
+    for name in commands():
         assert f"`jaxrkpm {name}" in text, f"the README's commands table misses `jaxrkpm {name}`"
 
 

@@ -14,6 +14,7 @@ import pytest
 
 from jaxrkpm.thesis import cli
 from jaxrkpm.thesis.studies import interface
+from jaxrkpm.thesis.studies.command import command, commands
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -26,13 +27,13 @@ def python(code: str, timeout: float = 60) -> subprocess.CompletedProcess:
 
 def test_help_of_every_command_without_jax():
     code = ("import sys\nfrom jaxrkpm.thesis import cli\n"
-            "codes = [cli.main(['--help'])] + [cli.main([c, '--help']) for c in cli.COMMANDS]\n"
+            "codes = [cli.main(['--help'])] + [cli.main([c, '--help']) for c in cli.commands()]\n"
             "print('CODES', codes, 'JAX', 'jax' in sys.modules)")
     p = python(code)
     assert p.returncode == 0, p.stderr
-    assert f"CODES {[0] * (len(cli.COMMANDS) + 1)} JAX False" in p.stdout
-    for name, (_, what) in cli.COMMANDS.items():
-        assert f"  {name}" in p.stdout and what in p.stdout          # top level: name + description
+    assert f"CODES {[0] * (len(commands()) + 1)} JAX False" in p.stdout
+    for name, declared in commands().items():
+        assert f"  {name}" in p.stdout and declared.summary in p.stdout   # top level: name + description
         assert f"usage: jaxrkpm {name} " in p.stdout                  # the right program name
     assert "exit codes:" in p.stdout and "output folder (--out) cannot be" in p.stdout
     assert "DESIGN.md" not in p.stdout and "as in the issue" not in p.stdout
@@ -80,15 +81,15 @@ def test_step_larger_than_the_range_is_a_usage_error(capsys):
     assert "--step 0.2 is larger than --max 0.1" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("command", list(cli.COMMANDS))
-def test_unwritable_output_is_exit_3_before_any_work(command, tmp_path, capsys):
+@pytest.mark.parametrize("name", list(commands()))
+def test_unwritable_output_is_exit_3_before_any_work(name, tmp_path, capsys):
     blocker = tmp_path / "a-file"
     blocker.write_text("")
     out = blocker / "results"                       # a folder under a file: cannot be made
-    extra = ["--path", "setpoint", "--n", "3"] if command == "track" else []
-    assert cli.main([command, *extra, "--out", str(out)]) == interface.EXIT_OUTPUT
+    extra = ["--path", "setpoint", "--n", "3"] if name == "track" else []
+    assert cli.main([name, *extra, "--out", str(out)]) == interface.EXIT_OUTPUT
     err = capsys.readouterr().err
-    assert err.strip() == f"jaxrkpm {command}: error: cannot write to {out}/: Not a directory"
+    assert err.strip() == f"jaxrkpm {name}: error: cannot write to {out}/: Not a directory"
 
 
 def test_one_summary_line_and_the_exit_code_of_a_missed_goal(tmp_path, monkeypatch, capsys):
@@ -111,8 +112,8 @@ def test_one_summary_line_and_the_exit_code_of_a_missed_goal(tmp_path, monkeypat
 def test_parser_choices_are_the_studies_own():
     from jaxrkpm.thesis.studies import compress, rig_sim
 
-    def choices(command, option):
-        return next(a.choices for a in interface.PARSERS[command]()._actions if option in a.option_strings)
+    def choices(name, option):
+        return next(a.choices for a in command(name).parser()._actions if option in a.option_strings)
     assert tuple(choices("compress", "--mode")) == tuple(compress.MODES)
     assert tuple(choices("compress", "--material")) == tuple(compress.MATERIALS)
     assert tuple(choices("rig-sim", "--path")) == tuple(rig_sim.RIG_PATHS)
@@ -150,8 +151,8 @@ def test_rig_budget_cap_is_explained():
 
 # ------------------------------------------------------------------ report.md of reproduce
 def test_report_has_a_verdict_per_row_and_each_note_once():
-    from jaxrkpm.thesis.studies import experiments, reproduce
-    entries = {e.id: e for e in reproduce.ENTRIES}
+    from jaxrkpm.thesis.studies import compress, experiments, reproduce
+    entries = {e.id: e for e in experiments.entries()}
     comp = {"fold_estimate": 0.44, "max_compression": 0.43}
     assert entries["compress_straight_gauss"].judge(comp) == ("agrees", "limit")
     assert entries["compress_straight_gauss"].judge({**comp, "fold_estimate": 0.19}) == ("differs", "limit point")
@@ -175,7 +176,7 @@ def test_report_has_a_verdict_per_row_and_each_note_once():
     md = reproduce.report_md(rows, quick=False, total_s=60)
     assert "| verdict |" in md
     assert "| ours 0 | agrees in kind (scheme) [1] |" in md and "| ours 1 | agrees in kind (scheme) [1] |" in md
-    assert "| ours 2 | differs (limit point) [2] |" in md and md.count(experiments.LIMIT) == 1
+    assert "| ours 2 | differs (limit point) [2] |" in md and md.count(compress.LIMIT) == 1
     assert md.count(experiments.COLL) == 1 and f"1. {experiments.COLL}" in md
     assert "Verdicts: agrees 0, agrees in kind 2, differs 1." in md
     ok, words = reproduce.result({"experiments": rows, "total_wall_s": 60})
@@ -275,10 +276,10 @@ def test_sizes_past_the_memory_are_refused_before_allocating(capsys):
         one_line_usage(capsys, [command, "--devices", many], f"argument --devices: {many} asked, but JAX sees")
 
 
-@pytest.mark.parametrize("command", list(cli.COMMANDS))
-def test_an_empty_out_is_refused(command, capsys):
-    one_line_usage(capsys, [command, "--out", ""], "argument --out: must name a folder, got ''")
-    one_line_usage(capsys, [command, "--out", "  "], "argument --out: must name a folder")
+@pytest.mark.parametrize("name", list(commands()))
+def test_an_empty_out_is_refused(name, capsys):
+    one_line_usage(capsys, [name, "--out", ""], "argument --out: must name a folder, got ''")
+    one_line_usage(capsys, [name, "--out", "  "], "argument --out: must name a folder")
 
 
 def test_an_option_of_the_other_dimension_is_refused_not_ignored(capsys):
@@ -355,15 +356,16 @@ def test_studies_that_fail_say_so():
 
 
 def test_every_option_shows_its_default():
-    for command, make in interface.PARSERS.items():
-        p = make()
+    from jaxrkpm.thesis.studies import track
+    for name, declared in commands().items():
+        p = declared.parser()
         formatter = p._get_formatter()
         for action in p._actions:
             if not action.option_strings or action.nargs == 0:    # -h and on/off flags
                 continue
             text = formatter._get_help_string(action)
-            assert "default" in text, f"jaxrkpm {command} {action.option_strings[0]}: {text!r}"
-    text = interface.track_parser().format_help()
+            assert "default" in text, f"jaxrkpm {name} {action.option_strings[0]}: {text!r}"
+    text = track.parser().format_help()
     assert "(default 2000)" in " ".join(text.split()) and "(default 0.05)" in text
 
 
@@ -472,7 +474,7 @@ def test_sweep_checks_where_it_runs_before_writing(tmp_path, monkeypatch, capsys
     monkeypatch.setattr("jaxrkpm.control.sweep.read_sweep", lambda *a, **k: __import__("pyarrow").table(
         {"id": [0], "paddle": [1], "inclusion": ["right"], "stiffness_ratio": [1.0], "final_deviation": [0.1],
          "status": ["CONVERGED"]}))
-    monkeypatch.setattr(interface, "unreachable", lambda address: None)
+    monkeypatch.setattr(sweep, "unreachable", lambda address: None)
     assert cli.main(["sweep", "--paddles", "1", "2", "--workers", "2", "--out", str(out)]) == 0
     assert cli.main(["sweep", "--paddles", "1", "2", "--out", str(out)]) == 0            # in process: the same run
     assert cli.main(["sweep", "--paddles", "1", "2", "--executor", "tcp://h:1", "--out", str(out)]) == 0
@@ -490,9 +492,9 @@ def test_help_names_no_internal_reference_and_bounds_the_gain(capsys):
     """Every command's help speaks to a user (no "the issue's" bound); rig-sim's gain is a
     fraction of the error (a gain of 100 ran long and reached almost nothing)."""
     import re
-    for command in interface.PARSERS:
-        text = interface.PARSERS[command]().format_help()
-        assert not re.search(r"\bissue", text, re.I), (command, text)
+    for name, declared in commands().items():
+        text = declared.parser().format_help()
+        assert not re.search(r"\bissue", text, re.I), (name, text)
     one_line_usage(capsys, ["rig-sim", "--gain", "100"], "--gain", "(0, 1]", "got 100")
     assert interface.parse("rig-sim", ["--gain", "1"]).gain == 1.0
 
@@ -553,3 +555,84 @@ def test_reuse_over_a_corrupt_report_is_a_named_error(tmp_path, capsys):
     (out / "report.json").write_text(json.dumps({"experiments": [{"no id": 1}]}))
     with pytest.raises(interface.OutputError, match="KeyError"):
         reproduce.main(["--quick", "--reuse", "--out", str(out)])
+
+
+# ------------------------------------------------------------------ a command is one file
+HELLO = '''"""A test's study: it counts to --times (the whole command is this one file)."""
+import json
+
+from jaxrkpm.thesis.studies import interface
+from jaxrkpm.thesis.studies.command import Command
+from jaxrkpm.thesis.studies.experiments import AGREES, Entry
+
+
+def parser():
+    p = interface.parser("hello", __doc__, "results/hello")
+    p.add_argument("--times", type=interface.number(int, 1, 3), default=2)
+    p.check(lambda a, given: "--times 3 is one too many" if a.times == 3 else None)
+    return p
+
+
+def main(argv=None):
+    a = parser().parse_args(argv)
+    results = interface.results("hello", a)
+    with results as out:
+        s = {"count": list(range(a.times))}
+        (out / "summary.json").write_text(json.dumps(s))
+        results.finish(s, *result(s), a.json)
+    return s
+
+
+def result(s):
+    return True, f"counted to {len(s['count'])}"
+
+
+def entries():
+    return [Entry("hello_twice", "-", "-", lambda out, quick: ("hello", ["--out", str(out)]),
+                  lambda s: f"counted to {len(s['count'])}", quick=True, judge=lambda s: (AGREES, "count"))]
+
+
+COMMAND = Command("hello", "a test's study: it counts", parser, main, result, order=85, reproduce=entries,
+                  interrupted="it counted nothing")
+'''
+
+
+def test_a_command_is_added_by_one_file(tmp_path, monkeypatch, capsys):
+    """A study module dropped into the package's path is a command: in ``jaxrkpm --help``
+    (before reproduce, by its order), with its parser and its checks, runnable, and its
+    experiment in reproduce's choices and report. Nothing else was edited."""
+    from jaxrkpm.thesis import studies
+    from jaxrkpm.thesis.studies import experiments
+    (tmp_path / "hello_study.py").write_text(HELLO)
+    monkeypatch.setattr(studies, "__path__", [*studies.__path__, str(tmp_path)])
+    try:
+        assert cli.main(["--help"]) == interface.EXIT_OK
+        listed = [line.split()[0] for line in capsys.readouterr().out.split("commands:\n")[1].split("\n\n")[0]
+                  .splitlines()]
+        assert listed[-3:] == ["sweep", "hello", "reproduce"]
+        assert cli.main(["hello", "--help"]) == interface.EXIT_OK
+        assert "usage: jaxrkpm hello" in capsys.readouterr().out
+        one_line_usage(capsys, ["hello", "--times", "4"], "argument --times: must be an integer in [1, 3], got 4")
+        one_line_usage(capsys, ["hello", "--times", "3"], "--times 3 is one too many")
+        assert cli.main(["hello", "--out", str(tmp_path / "h")]) == interface.EXIT_OK
+        assert capsys.readouterr().out.strip().endswith("counted to 2")
+        assert "hello_twice" in command("reproduce").parser().format_help()
+        assert [e.id for e in experiments.entries()][-2:] == ["cantilever", "hello_twice"]
+        assert cli.main(["reproduce", "--only", "hello_twice", "--out", str(tmp_path / "rep")]) == interface.EXIT_OK
+        row, = json.loads((tmp_path / "rep" / "report.json").read_text())["experiments"]
+        assert (row["id"], row["ours"], row["verdict"]) == ("hello_twice", "counted to 2", "agrees")
+    finally:
+        sys.modules.pop("jaxrkpm.thesis.studies.hello_study", None)
+        studies.__dict__.pop("hello_study", None)
+
+
+def test_two_studies_declaring_one_name_are_refused(tmp_path, monkeypatch):
+    from jaxrkpm.thesis import studies
+    (tmp_path / "hello_again.py").write_text(HELLO.replace('"hello"', '"track"'))
+    monkeypatch.setattr(studies, "__path__", [*studies.__path__, str(tmp_path)])
+    try:
+        with pytest.raises(ValueError, match="two study modules declare the command 'track'"):
+            commands()
+    finally:
+        sys.modules.pop("jaxrkpm.thesis.studies.hello_again", None)
+        studies.__dict__.pop("hello_again", None)

@@ -155,10 +155,12 @@ def test_cli_tools_options():
     from jaxrkpm.thesis.studies import interface
     from jaxrkpm.thesis.studies import needle as study
     a = interface.parse("needle", ["--paddle-model", "contact", "--tools", "2", "--mode", "preload"])
-    assert a.tools == 2 and interface.tools_error(a) is None
-    assert "contact" in interface.tools_error(interface.parse("needle", ["--tools", "1"]))
-    preload = interface.parse("needle", ["--paddle-model", "contact", "--mode", "preload"])
-    assert "--tools" in interface.tools_error(preload)
+    assert a.tools == 2 and study.tools_error(a) is None
+    assert "contact" in study.tools_error(type(a)(**{**vars(a), "paddle_model": "glued"}))
+    assert "--tools" in study.tools_error(type(a)(**{**vars(a), "tools": None}))
+    for wrong in (["--tools", "1"], ["--paddle-model", "contact", "--mode", "preload"]):
+        with pytest.raises(SystemExit):           # the parser runs the check
+            interface.parse("needle", wrong)
     s = {"mode": "static", "inclusion": "none", "tools": 1, "friction": 0.3, "no_tool_deviation": 0.0688,
          "final": 0.0688, "status": "converged", "contact_ok": True}
     assert not study.result(s)[0]

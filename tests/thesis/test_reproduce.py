@@ -36,7 +36,7 @@ def cli_run(argv):
 def test_quick_report_rows_and_figures(quick):
     out, rep = quick
     ids = [r["id"] for r in rep["experiments"]]
-    assert ids == [e.id for e in reproduce.ENTRIES if e.quick]
+    assert ids == [e.id for e in reproduce.entries() if e.quick]
     md = (out / "report.md").read_text()
     for r in rep["experiments"]:
         assert r["status"] == "ok", r["ours"]

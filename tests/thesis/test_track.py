@@ -27,7 +27,7 @@ def setpoint_run(setpoint, tmp_path_factory):
 
 
 def test_cli_registers_track():
-    assert cli.COMMANDS["track"][0] == "jaxrkpm.thesis.studies.track"
+    assert cli.commands()["track"] is T.COMMAND and T.COMMAND.main is T.main
 
 
 def test_planar_model_is_the_design_setup(setpoint):

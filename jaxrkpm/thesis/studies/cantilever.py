@@ -9,8 +9,13 @@ from pathlib import Path
 import numpy as np
 
 import jaxrkpm as jr
-from jaxrkpm.io import plot
 from jaxrkpm.thesis.studies import interface
+from jaxrkpm.thesis.studies.command import Command, lazy
+from jaxrkpm.thesis.studies.experiments import AGREES, DIFFERS, Entry
+
+plot = lazy("jaxrkpm.io.plot")
+
+LEVELS_MAX = 6                  # refinements: h = 1/4 .. 1/128 (257 x 129 particles)
 
 
 def exact(X, L, D, P, E, nu):
@@ -70,8 +75,15 @@ def result(s: dict) -> tuple[bool, str]:
     return min(s["rates"]) > 1.8, words
 
 
+def parser() -> interface.Parser:
+    p = interface.parser("cantilever", __doc__, "results/cantilever")
+    p.add_argument("--levels", type=interface.number(int, 2, LEVELS_MAX), default=3,
+                   help=f"refinement levels, h = 1/4, 1/8, ...; 2..{LEVELS_MAX} (1/128: 257 x 129 particles)")
+    return p
+
+
 def main(argv=None):
-    a = interface.parse("cantilever", argv)
+    a = parser().parse_args(argv)
     results = interface.results("cantilever", a)
     with results as out:
         s = convergence(tuple(0.25 / 2**k for k in range(a.levels)))
@@ -79,3 +91,28 @@ def main(argv=None):
         figure(out, s)
         results.finish(s, *result(s), a.json)
     return s
+
+
+# ------------------------------------------------------------------ the experiment of reproduce
+def _run(out: Path, quick: bool) -> tuple[str, list]:
+    return "cantilever", ["--levels", "2" if quick else "3", "--out", str(out)]
+
+
+def _ours(s):
+    return ("relative L2 errors " + ", ".join(f"{e:.2e}" for e in s["relative_l2_error"])
+            + "; rates " + ", ".join(f"{r:.2f}" for r in s["rates"]))
+
+
+def _judge(s):
+    """Not in the thesis: checked against the analytic solution's second-order rate."""
+    return (AGREES, "analytic") if min(s["rates"]) > 1.8 else (DIFFERS, "rate")
+
+
+def entries() -> list:
+    return [Entry("cantilever", "- (verification, not in the thesis)", "-", _run, _ours, quick=True, judge=_judge,
+                  note="Timoshenko beam, plane stress SVK, small load: the error must fall at least as h^2 "
+                       "(linear RK basis)")]
+
+
+COMMAND = Command("cantilever", "Timoshenko cantilever: error and convergence rate (verification)",
+                  parser, main, result, order=60, reproduce=entries)

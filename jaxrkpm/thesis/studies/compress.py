@@ -32,19 +32,24 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 import jaxrkpm as jr
-from jaxrkpm.io import plot
-from jaxrkpm.solvers.minimise import stable_beyond
-from jaxrkpm.mechanics.strain import deformation_gradients
-from jaxrkpm.thesis.studies import interface
 from jaxrkpm.thesis.data import PADDLE_HALF_WIDTH
-from jaxrkpm.thesis.scenarios import planar_square
+from jaxrkpm.thesis.studies import interface
+from jaxrkpm.thesis.studies.command import Command, lazy
+from jaxrkpm.thesis.studies.experiments import AGREES, COLL, DIFFERS, IN_KIND, Entry
+
+jax = lazy("jax")
+jnp = lazy("jax.numpy")
+plot = lazy("jaxrkpm.io.plot")
+minimise = lazy("jaxrkpm.solvers.minimise")
+strain = lazy("jaxrkpm.mechanics.strain")
+scenarios = lazy("jaxrkpm.thesis.scenarios")
 
 # 2D: a force per unit thickness, in the units of the material constants times a length
 FORCE_UNITS = "model units: force per unit thickness"
@@ -76,7 +81,7 @@ def setup(n: int = 9, integration: str = "gauss", material: str = "fung",
           half_width: float = PADDLE_HALF_WIDTH):
     """The compressed square: :func:`jaxrkpm.thesis.scenarios.planar_square` with the paddle on the
     right-edge particles with |y - 0.5| <= ``half_width`` (the same physical segment at every n)."""
-    return planar_square(n, integration, MATERIALS[material](), paddle=half_width)
+    return scenarios.planar_square(n, integration, MATERIALS[material](), paddle=half_width)
 
 
 def _diagnostics(model):
@@ -93,12 +98,12 @@ def _diagnostics(model):
 
     @jax.jit
     def diag(prob, u, g):
-        strain = prob.term("strain")
+        term = prob.term("strain")
         K = prob.tangent(u, g)
-        F = deformation_gradients(strain.idx, strain.dpsi, prob.coefficients(u, g))
-        axes = ({k: 0 for k in strain.point}, {k: None for k in strain.tensors})
+        F = strain.deformation_gradients(term.idx, term.dpsi, prob.coefficients(u, g))
+        axes = ({k: 0 for k in term.point}, {k: None for k in term.tensors})
         C = jax.vmap(lambda F, p, t: jax.hessian(psi)(F, {**p, **t}), in_axes=(0, axes[0], None))(
-            F, strain.point, strain.tensors)                                # (Q, d, d, d, d)
+            F, term.point, term.tensors)                                    # (Q, d, d, d, d)
         A = jnp.einsum("qijkl,nj,nl->qnik", C, normals, normals)
         ac = jnp.min(jnp.linalg.eigvalsh(A))
         return jnp.linalg.eigvalsh(K)[0], jnp.min(jnp.linalg.det(F)), ac
@@ -128,7 +133,7 @@ def end_of_stable_path(model, sol, c_from: float, paddle_to, parts: int = 10) ->
     (d,). Tells a Newton failure (stable states go on) from the end of the stable path (the
     first minimisation past it runs into det F = 0: a collapse, or ends on no stable state)."""
     c_to = float(-np.asarray(paddle_to)[0])
-    end = stable_beyond(model.problem(), sol, model.prescribed({"paddle": jnp.asarray(paddle_to)}, base=sol.g),
+    end = minimise.stable_beyond(model.problem(), sol, model.prescribed({"paddle": jnp.asarray(paddle_to)}, base=sol.g),
                         fraction=1.0 / parts)
     out = {"compression": c_from + end["reached"] * (c_to - c_from), **{k: v for k, v in end.items()}}
     if end["full"]:
@@ -143,94 +148,127 @@ def end_of_stable_path(model, sol, c_from: float, paddle_to, parts: int = 10) ->
     return out
 
 
-def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_compression: float = 0.9,
-        step: float = 0.01, through: bool = False, material: str = "fung", keep_states: bool = True,
-        half_width: float = PADDLE_HALF_WIDTH):
-    """Step the paddle until failure. Returns (summary dict, model, states) where states maps
-    compression -> particle displacements (N, d); the critical modes are in
-    summary["critical_points"][i]["mode"] (dropped before the summary is written)."""
-    if mode not in MODES:
-        raise ValueError(f"unknown mode {mode!r}: choose one of {list(MODES)}")
-    model = setup(n, integration, material, half_width)
-    direction = np.array(MODES[mode])
-    diag = _diagnostics(model)
-    prob = model.problem()
-    sol = model.initial()
-    lam0, _, ac0 = (float(v) for v in diag(prob, sol.u, sol.g))
-    rows, states, crits = [], {0.0: np.zeros_like(model.body.X)}, []
-    reason, first_unstable, limit = "reached the requested maximum compression", None, None
-    stable_end = None
-    first_nonelliptic = None
-    k_max = int(round(max_compression / step))
-    bar = interface.progress(range(1, k_max + 1), desc=f"compress {mode} {integration}", unit="step")
-    # the stable-branch solve passes critical points itself; --through follows the primary
-    # branch with the check off (the study's own smallest eigenvalue below tells stability)
-    options = {"check_stability": False} if through else {"stable_branch": True}
-    for k in bar:
-        bar.set_postfix_str(f"{100 * k * step:.0f}%")
-        c = k * step
+@dataclass
+class Walk:
+    """What the compression gathers step by step: a row per step, the states kept
+    (compression -> particle displacements), the critical points passed, and why and where it
+    stopped."""
+
+    rows: list = field(default_factory=list)
+    states: dict = field(default_factory=dict)
+    crits: list = field(default_factory=list)
+    reason: str = "reached the requested maximum compression"
+    first_unstable: float | None = None
+    first_nonelliptic: float | None = None
+    limit: dict | None = None
+    stable_end: dict | None = None
+
+
+@dataclass
+class Compression:
+    """One compression run's fixed pieces: the model and its diagnostics (``_diagnostics``),
+    the paddle's direction and step, the rest values of the smallest tangent and acoustic
+    eigenvalues, and the solve's options."""
+
+    model: Any
+    direction: Any
+    step: float
+    through: bool
+    keep_states: bool
+    diag: Any = None
+    prob: Any = None
+    lam0: float = 1.0
+    ac0: float = 1.0
+
+    def __post_init__(self):
+        self.diag, self.prob = _diagnostics(self.model), self.model.problem()
+        rest = self.model.initial()
+        self.lam0, _, self.ac0 = (float(v) for v in self.diag(self.prob, rest.u, rest.g))
+
+    @property
+    def options(self) -> dict:
+        # the stable-branch solve passes critical points itself; --through follows the primary
+        # branch with the check off (the study's own smallest eigenvalue below tells stability)
+        return {"check_stability": False} if self.through else {"stable_branch": True}
+
+    def solve(self, k: int, sol):
+        """(the warm-started solve to step k's compression, its wall time)."""
         t0 = time.perf_counter()
-        new = model.solve({"paddle": jnp.asarray(c * direction)}, initial=sol, throw=False, **options)
+        new = self.model.solve({"paddle": jnp.asarray(k * self.step * self.direction)}, initial=sol, throw=False,
+                               **self.options)
         new.u.block_until_ready()
-        dt = time.perf_counter() - t0
+        return new, time.perf_counter() - t0
+
+    def failed(self, walk: Walk, new, k: int, dt: float) -> None:
+        """Step k failed: the tangent at the last converged sub-step, why the path stopped
+        and (on the stable branch) where the stable states end."""
+        step, c = self.step, k * self.step
         status = jr.Status(int(new.status))
-        if status != jr.Status.CONVERGED:
-            # the solver keeps the last converged sub-step: look at the tangent there
-            c_part = (k - 1) * step + float(new.t) * step
-            lam_p, det_p, _ = (float(v) for v in diag(prob, new.u, new.g))
-            crits += critical_points(model, new, (k - 1) * step, step, lam0)
-            limit = {"compression": c_part, "min_eig_rel": lam_p / lam0, "min_detF": det_p}
-            reason = (f"Newton failure in the step to {100 * c:.0f}% ({status.name}); at the last "
-                      f"converged sub-step, {100 * c_part:.2f}%, the smallest tangent eigenvalue is "
-                      f"{lam_p / lam0:.3f} x its rest value and the smallest det F {det_p:.3f}")
-            if not through:   # from the last stable state (--through keeps unstable ones)
-                stable_end = end_of_stable_path(model, new, c_part, c * direction)
-                reason += "; " + stable_end["words"]
-            rows.append({"compression": c, "status": status.name, "time_s": dt,
-                         "t_reached": float(new.t), "last_converged_compression": c_part,
-                         "min_eig_rel_there": lam_p / lam0, "min_detF_there": det_p})
-            break
-        crits += critical_points(model, new, (k - 1) * step, step, lam0)
-        sol = new
-        lam, detmin, ac = (float(v) for v in diag(prob, sol.u, sol.g))
+        # the solver keeps the last converged sub-step: look at the tangent there
+        c_part = (k - 1) * step + float(new.t) * step
+        lam_p, det_p, _ = (float(v) for v in self.diag(self.prob, new.u, new.g))
+        walk.crits += critical_points(self.model, new, (k - 1) * step, step, self.lam0)
+        walk.limit = {"compression": c_part, "min_eig_rel": lam_p / self.lam0, "min_detF": det_p}
+        stopped = new.stopped.message.split(" (")[0]
+        walk.reason = (f"Newton failure in the step to {100 * c:.0f}% ({status.name}, stopped {stopped}); at the "
+                       f"last converged sub-step, {100 * c_part:.2f}%, the smallest tangent eigenvalue is "
+                       f"{lam_p / self.lam0:.3f} x its rest value and the smallest det F {det_p:.3f}")
+        if not self.through:   # from the last stable state (--through keeps unstable ones)
+            walk.stable_end = end_of_stable_path(self.model, new, c_part, c * self.direction)
+            walk.reason += "; " + walk.stable_end["words"]
+        walk.rows.append({"compression": c, "status": status.name, "stopped": stopped, "time_s": dt,
+                          "t_reached": float(new.t), "last_converged_compression": c_part,
+                          "min_eig_rel_there": lam_p / self.lam0, "min_detF_there": det_p})
+
+    def converged(self, walk: Walk, sol, k: int, dt: float) -> bool:
+        """Step k converged: its row and state; True where the material inverted there (the
+        run stops)."""
+        step, c, model = self.step, k * self.step, self.model
+        walk.crits += critical_points(model, sol, (k - 1) * step, step, self.lam0)
+        lam, detmin, ac = (float(v) for v in self.diag(self.prob, sol.u, sol.g))
         f = np.asarray(model.reaction(sol, "paddle")).tolist()
-        rows.append({"compression": c, "status": status.name, "time_s": dt,
-                     "newton_iterations": int(sol.iterations), "load_steps": int(sol.steps),
-                     "critical_points": int(sol.branch),
-                     "reaction": f, "min_eig": lam, "min_eig_rel": lam / lam0,
-                     "min_detF": detmin, "min_acoustic_rel": ac / ac0})
-        if keep_states:
-            states[round(c, 6)] = np.asarray(model.particle_displacements(sol))
-        if ac <= 0 and first_nonelliptic is None:
-            first_nonelliptic = c
+        walk.rows.append({"compression": c, "status": jr.Status(int(sol.status)).name, "time_s": dt,
+                          "newton_iterations": int(sol.iterations), "load_steps": int(sol.steps),
+                          "critical_points": int(sol.branch),
+                          "reaction": f, "min_eig": lam, "min_eig_rel": lam / self.lam0,
+                          "min_detF": detmin, "min_acoustic_rel": ac / self.ac0})
+        if self.keep_states:
+            walk.states[round(c, 6)] = np.asarray(model.particle_displacements(sol))
+        if ac <= 0 and walk.first_nonelliptic is None:
+            walk.first_nonelliptic = c
         if detmin <= 0:
-            reason = f"det F <= 0 at an integration point at {100 * c:.0f}%"
+            walk.reason = f"det F <= 0 at an integration point at {100 * c:.0f}%"
+            return True
+        if lam <= 0 and walk.first_unstable is None:
+            walk.first_unstable = c     # only with --through: the stable-branch solve keeps stable states
+        return False
+
+
+def walk_to_failure(comp: Compression, k_max: int, desc: str) -> Walk:
+    """Step the paddle from rest, k = 1..k_max, until a step fails or the material inverts."""
+    walk = Walk(states={0.0: np.zeros_like(comp.model.body.X)})
+    sol = comp.model.initial()
+    bar = interface.progress(range(1, k_max + 1), desc=desc, unit="step")
+    for k in bar:
+        bar.set_postfix_str(f"{100 * k * comp.step:.0f}%")
+        new, dt = comp.solve(k, sol)
+        if jr.Status(int(new.status)) != jr.Status.CONVERGED:
+            comp.failed(walk, new, k, dt)
             break
-        if lam <= 0 and first_unstable is None:
-            first_unstable = c     # only with --through: the stable-branch solve keeps stable states
+        sol = new
+        if comp.converged(walk, sol, k, dt):
+            break
     bar.close()
-    if crits:
-        first_unstable = crits[0]["compression"] if first_unstable is None else min(first_unstable,
-                                                                                    crits[0]["compression"])
-    ok = [r for r in rows if r["status"] == "CONVERGED"]
+    if walk.crits:
+        first = walk.crits[0]["compression"]
+        walk.first_unstable = first if walk.first_unstable is None else min(walk.first_unstable, first)
+    return walk
+
+
+def _series(ok: list) -> dict:
+    """The converged steps' columns."""
     times = [r["time_s"] for r in ok]
-    stable = [r["compression"] for r in ok if r["min_eig"] > 0]
-    summary = {
-        "mode": mode, "direction_per_unit": direction.tolist(), "integration": integration,
-        "particles": [n, n], "paddle_particles": int(len(model.set_indices("paddle"))),
-        "paddle_half_width": half_width,
-        "material": model.material.describe(), "step": step,
-        "integration_points": len(model.volume.weights),
-        "branch": "primary (check_stability=False)" if through else "stable",
-        "max_compression": ok[-1]["compression"] if ok else 0.0,
-        "max_stable_compression": max(stable) if stable else 0.0,
-        "reason": reason,
-        "limit_state": limit,
-        "stable_path_end": stable_end,
-        "first_unstable_compression": first_unstable,
-        "critical_points": crits,
-        "first_loss_of_ellipticity": first_nonelliptic,
-        "min_eig_at_rest": lam0,
+    return {
         "compression": [r["compression"] for r in ok],
         "reaction": [r["reaction"] for r in ok],
         "min_eig": [r["min_eig"] for r in ok],
@@ -241,9 +279,47 @@ def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_comp
         "time_per_step_s": times,
         "median_step_s_excl_first": float(np.median(times[1:])) if len(times) > 1 else None,
         "first_step_s_incl_compile": times[0] if times else None,
-        "steps": rows,
     }
-    return summary, model, states
+
+
+def summarize(comp: Compression, walk: Walk, mode: str, integration: str, n: int, half_width: float) -> dict:
+    """The run's summary (summary.json)."""
+    model = comp.model
+    ok = [r for r in walk.rows if r["status"] == "CONVERGED"]
+    stable = [r["compression"] for r in ok if r["min_eig"] > 0]
+    return {
+        "mode": mode, "direction_per_unit": comp.direction.tolist(), "integration": integration,
+        "particles": [n, n], "paddle_particles": int(len(model.set_indices("paddle"))),
+        "paddle_half_width": half_width,
+        "material": model.material.describe(), "step": comp.step,
+        "integration_points": len(model.volume.weights),
+        "branch": "primary (check_stability=False)" if comp.through else "stable",
+        "max_compression": ok[-1]["compression"] if ok else 0.0,
+        "max_stable_compression": max(stable) if stable else 0.0,
+        "reason": walk.reason,
+        "limit_state": walk.limit,
+        "stable_path_end": walk.stable_end,
+        "first_unstable_compression": walk.first_unstable,
+        "critical_points": walk.crits,
+        "first_loss_of_ellipticity": walk.first_nonelliptic,
+        "min_eig_at_rest": comp.lam0,
+        **_series(ok),
+        "steps": walk.rows,
+    }
+
+
+def run(mode: str = "straight", integration: str = "gauss", n: int = 9, max_compression: float = 0.9,
+        step: float = 0.01, through: bool = False, material: str = "fung", keep_states: bool = True,
+        half_width: float = PADDLE_HALF_WIDTH):
+    """Step the paddle until failure. Returns (summary dict, model, states) where states maps
+    compression -> particle displacements (N, d); the critical modes are in
+    summary["critical_points"][i]["mode"] (dropped before the summary is written)."""
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}: choose one of {list(MODES)}")
+    comp = Compression(setup(n, integration, material, half_width), np.array(MODES[mode]), step, through,
+                       keep_states)
+    walk = walk_to_failure(comp, int(round(max_compression / step)), f"compress {mode} {integration}")
+    return summarize(comp, walk, mode, integration, n, half_width), comp.model, walk.states
 
 
 def mode_figures(out: Path, summary, model, tag: str) -> None:
@@ -387,7 +463,8 @@ def stop_words(s: dict) -> str:
     failed = steps[-1] if steps and steps[-1].get("status") != "CONVERGED" else None
     if failed is None:
         return s["reason"].split(";")[0]
-    words = f"stopped in the step to {100 * failed['compression']:.0f}% ({failed['status']})"
+    why = f", stopped {failed['stopped']}" if failed.get("stopped") else ""
+    words = f"stopped in the step to {100 * failed['compression']:.0f}% ({failed['status']}{why})"
     if end:
         words += (f", stable states end at {100 * end['compression']:.2f}%"
                   + (" (the material collapses: det F -> 0)" if end.get("collapse") else "")
@@ -410,27 +487,137 @@ def result(s: dict) -> tuple[bool, str]:
     return s["max_compression"] > 0, words
 
 
-def main(argv=None):
-    a = interface.parse("compress", argv)
-    p = interface.compress_parser()
+COMPRESSION_STEPS_MAX = 1_000   # compression steps (--max / --step), a solve each
+
+
+def _steps(a, given):
     if a.step > a.max:
-        p.error(f"--step {a.step:g} is larger than --max {a.max:g}")
-    if round(a.max / a.step) > interface.COMPRESSION_STEPS_MAX:
-        p.error(f"--max {a.max:g} / --step {a.step:g} makes {round(a.max / a.step):,} compression steps, more than "
-                f"{interface.COMPRESSION_STEPS_MAX:,} (a solve each): take a larger --step")
-    if too_big := interface.memory_error("--n", a.n, a.n * a.n, side=lambda k: k * k):
-        p.error(too_big)
-    tag = (f"{a.mode}_{a.integration}_{a.n}" + ("" if a.material == "fung" else f"_{a.material}")
-           + ("" if a.paddle_half_width == PADDLE_HALF_WIDTH else "_edge" if a.paddle_half_width >= 0.5
-              else f"_hw{a.paddle_half_width:g}"))
-    results = interface.results("compress", a, a.out or f"results/compress/{tag}")
+        return f"--step {a.step:g} is larger than --max {a.max:g}"
+    if round(a.max / a.step) > COMPRESSION_STEPS_MAX:
+        return (f"--max {a.max:g} / --step {a.step:g} makes {round(a.max / a.step):,} compression steps, more "
+                f"than {COMPRESSION_STEPS_MAX:,} (a solve each): take a larger --step")
+    return None
+
+
+def parser() -> interface.Parser:
+    p = interface.parser("compress", __doc__, "results/compress/<mode>_<integration>_<n>[...]")
+    p.add_argument("--mode", choices=tuple(MODES), default="straight")
+    p.add_argument("--integration", choices=("gauss", "scni", "mscni"), default="gauss")
+    p.add_argument("--n", type=interface.number(int, 3), default=9,
+                   help="particles per side (bounded by the memory available)")
+    p.add_argument("--max", type=interface.number(float, 0, 1, low_open=True, high_open=True), default=0.9,
+                   help="largest compression tried (fraction of the width)")
+    p.add_argument("--step", type=interface.number(float, 0, 0.5, low_open=True), default=0.01,
+                   help=f"compression step (fraction of the width; at most {COMPRESSION_STEPS_MAX} steps to --max)")
+    p.add_argument("--material", choices=tuple(MATERIALS), default="fung",
+                   help="fung: the thesis' Fung (eq 5.2, Table 5.2); fung-barrier: the same plus the volumetric "
+                        "barrier kappa/2 (ln J)^2, kappa = Fung's shear modulus 509 (compressed points cannot "
+                        "fold flat); neo-hookean: nearly incompressible neo-Hookean tissue, nu = 0.45, mu = 509; "
+                        "neohookean: the compressible control (lam = 766, mu = 508)")
+    p.add_argument("--paddle-half-width", type=interface.number(float, 0, 0.5, low_open=True),
+                   default=PADDLE_HALF_WIDTH,
+                   help="paddle = right-edge particles with |y - 0.5| <= this (0.5: the whole edge, "
+                        "a homogeneous compression without punch corners)")
+    p.add_argument("--through", action="store_true",
+                   help="follow the primary branch past the loss of positive definiteness (stability "
+                        "check off) until the solve fails, instead of the stable branch")
+    p.check(_steps)
+    p.check(interface.memory_check("--n", lambda k: k * k))
+    return p
+
+
+def tag(a) -> str:
+    """The run's name: mode, integration, size, and the material and paddle where not the
+    thesis'."""
+    paddle = ("" if a.paddle_half_width == PADDLE_HALF_WIDTH else "_edge" if a.paddle_half_width >= 0.5
+              else f"_hw{a.paddle_half_width:g}")
+    return f"{a.mode}_{a.integration}_{a.n}" + ("" if a.material == "fung" else f"_{a.material}") + paddle
+
+
+def main(argv=None):
+    a = parser().parse_args(argv)
+    name = tag(a)
+    results = interface.results("compress", a, a.out or f"results/compress/{name}")
     with results as out:
         summary, model, states = run(a.mode, a.integration, a.n, a.max, a.step, a.through, a.material,
                                      half_width=a.paddle_half_width)
         summary["fold_estimate"] = fold_estimate(summary)
         summary["material_uniaxial_limits"] = uniaxial_limits(a.material)
-        mode_figures(out, summary, model, tag)
+        mode_figures(out, summary, model, name)
         (out / "summary.json").write_text(json.dumps(summary, indent=2))
-        figures(out, summary, model, states, tag)
+        figures(out, summary, model, states, name)
         results.finish(summary, *result(summary), a.json)
     return summary
+
+
+# ------------------------------------------------------------------ the experiments of reproduce
+LIMIT_TOLERANCE = 0.05   # compression limits within 5 points of the width agree
+
+LIMIT = ("our compression stops at a limit point of the equilibrium path (the free tangent's smallest "
+         "eigenvalue reaches zero under the three-particle paddle: a structural instability); the thesis' "
+         "Gauss breakdown lies near the material's own homogeneous uniaxial limit, which 'ours' also gives")
+
+
+def _run(mode, integration):
+    """(out dir, quick) -> ("compress", its options): the experiment's command line."""
+    def run(out: Path, quick: bool) -> tuple[str, list]:
+        argv = ["--mode", mode, "--integration", integration, "--out", str(out)]
+        if quick:
+            argv += ["--n", "5", "--max", "0.03"]
+        return "compress", argv
+    return run
+
+
+def _ours(s):
+    txt = f"last converged 1% step {100 * s['max_compression']:.0f}%"
+    if s.get("fold_estimate") is not None:
+        txt += f"; limit point (tangent eigenvalue -> 0) extrapolated at {100 * s['fold_estimate']:.1f}%"
+    if s.get("first_loss_of_ellipticity") is not None:
+        txt += f"; material loses strong ellipticity from {100 * s['first_loss_of_ellipticity']:.0f}%"
+    txt += f" ({s.get('reason', '?').split(';')[0]})"
+    lim = s.get("material_uniaxial_limits")
+    if lim and lim.get("force_peak") is not None:
+        txt += (f"; the material's own homogeneous uniaxial limit: force peak at {100 * lim['force_peak']:.1f}%, "
+                f"ellipticity lost at {100 * lim['ellipticity_loss']:.1f}%")
+    return txt
+
+
+def _judge(breakdown, scheme):
+    """Our limit (the extrapolated fold, else the last converged step) against the thesis'
+    ``breakdown``; SCNI rows compare with the thesis' collocation, another scheme."""
+    def judge(s):
+        ours = s["fold_estimate"] if s.get("fold_estimate") is not None else s["max_compression"]
+        if abs(ours - breakdown) <= LIMIT_TOLERANCE:
+            return (AGREES if scheme == "gauss" else IN_KIND), "limit"
+        return DIFFERS, ("scheme" if scheme != "gauss" else "limit point")
+    return judge
+
+
+def _pct(fraction):
+    return f"{100 * fraction:.0f}%"
+
+
+def entries() -> list:
+    """Section 5.2's breakdowns: straight and shear, Gauss and SCNI (the thesis' collocation)."""
+    from jaxrkpm.thesis.data import COMPRESSION_BREAKDOWN as BREAK
+    return [
+        Entry("compress_straight_gauss", "Figs 5.10-5.12",
+              f'"at {_pct(BREAK["straight", "gauss"])} for the straight compression"',
+              _run("straight", "gauss"), _ours, quick=True, note=LIMIT,
+              judge=_judge(BREAK["straight", "gauss"], "gauss")),
+        Entry("compress_shear_gauss", "Figs 5.13-5.16",
+              f'"the model begins to breakdown at {_pct(BREAK["shear", "gauss"])} '
+              'for the shear compression" (Fig 5.16 shows 58%, 59%)', _run("shear", "gauss"), _ours,
+              note=LIMIT, judge=_judge(BREAK["shear", "gauss"], "gauss")),
+        Entry("compress_straight_scni", "Fig 5.17",
+              f'"The simulations break down at {_pct(BREAK["straight", "collocated"])} '
+              f'and {_pct(BREAK["shear", "collocated"])} respectively" '
+              f'(straight: {_pct(BREAK["straight", "collocated"])})',
+              _run("straight", "scni"), _ours, note=COLL, judge=_judge(BREAK["straight", "collocated"], "scni")),
+        Entry("compress_shear_scni", "Fig 5.18", f"shear: {_pct(BREAK['shear', 'collocated'])} (same sentence)",
+              _run("shear", "scni"), _ours, note=COLL, judge=_judge(BREAK["shear", "collocated"], "scni")),
+    ]
+
+
+COMMAND = Command("compress", "compression to failure, Gauss vs nodal integration (Figs 5.10-5.18)",
+                  parser, main, result, order=10, reproduce=entries)

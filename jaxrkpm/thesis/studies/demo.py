@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from jaxrkpm.thesis.studies import interface, track
+from jaxrkpm.thesis.studies.command import Command
 
 
 def run(out: Path, path: str = "box", integration: str = "gauss", **kw) -> dict:
@@ -22,10 +23,18 @@ def run(out: Path, path: str = "box", integration: str = "gauss", **kw) -> dict:
 result = track.result   # (every waypoint reached, the result in words)
 
 
+def parser() -> interface.Parser:
+    return interface.parser("demo", __doc__, "results/demo")
+
+
 def main(argv=None):
-    a = interface.parse("demo", argv)
+    a = parser().parse_args(argv)
     results = interface.results("demo", a)
     with results as out:
         s = run(out)
         results.finish(s, *result(s), a.json)
     return s
+
+
+COMMAND = Command("demo", "the thesis' box path tracked on the 9x9 Fung square (Table 5.3)", parser, main, result,
+                  order=0)

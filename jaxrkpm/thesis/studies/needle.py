@@ -24,12 +24,15 @@ import time
 from pathlib import Path
 
 import numpy as np
-from matplotlib.patches import Patch
 
-from jaxrkpm.io import plot
-from jaxrkpm.thesis import needle as nd
-from jaxrkpm.thesis.studies import interface
 from jaxrkpm.thesis.data import INCLUSIONS, NEEDLE
+from jaxrkpm.thesis.studies import interface
+from jaxrkpm.thesis.studies.command import Command, lazy
+from jaxrkpm.thesis.studies.experiments import DIFFERS, IN_KIND, Entry
+
+patches = lazy("matplotlib.patches")
+plot = lazy("jaxrkpm.io.plot")
+nd = lazy("jaxrkpm.thesis.needle")
 
 
 def _inclusion_box(inclusion):
@@ -149,10 +152,10 @@ def static_figures(phantom, sw, summary, out: Path):
     idx = np.arange(1, P + 1)
     ok = [all(s == "converged" for s in row) for row in summary["status"]]
     a1.bar(idx, np.abs(sw.final), color=["C0" if o else "0.6" for o in ok])
-    handles = [Patch(color="C0", label="reached full insertion")]
+    handles = [patches.Patch(color="C0", label="reached full insertion")]
     if not all(ok):
         why = ", ".join(sorted({s for row in summary["status"] for s in row if s != "converged"}))
-        handles.append(Patch(color="0.6", label=f"stopped early ({why}): the deviation\n"
+        handles.append(patches.Patch(color="0.6", label=f"stopped early ({why}): the deviation\n"
                                                 "at its last converged increment"))
     handles.append(a1.axhline(abs(summary["no_paddle_deviation"]), color="r", ls="--", label="no paddle"))
     if sw.inclusion == "none":
@@ -641,16 +644,103 @@ def optimize_result(s: dict, what: str, where: str, unit: str) -> tuple[bool, st
     return ok, words
 
 
-def main(argv=None):
-    a = interface.parse("needle", argv)
-    if too_many := interface.devices_error(a.devices):
-        interface.needle_parser().error(too_many)
-    phantom = nd.Phantom(material_law=a.material)
+# ------------------------------------------------------------------ the command line
+CONTACT_FRICTION = 0.3
+CONTACT_ONLY = ("friction", "indentation")   # options that only the contact paddle reads
+
+
+def needle_options(command: str, description: str, inclusions, modes=("static", "dynamic", "optimize")):
+    """A parser with the options the 2D and 3D needle studies share (their own ones are added
+    after)."""
+    p = interface.parser(command, description, f"results/{command}/<mode>_<inclusion>")
+    p.add_argument("--mode", choices=modes, default="static")
+    p.add_argument("--inclusion", choices=tuple(inclusions), default="none")
+    p.check(lambda a, given: interface.devices_error(a.devices))
+    return p
+
+
+def contact_options(p, paddle: str, indentation: str, deepest) -> None:
+    """The contact paddle's options of the needle studies (``paddle``, ``indentation``: what
+    --paddle picks and the default indentation of each mode, in words) and their check:
+    ``deepest(args)``, the run's phantom's particle spacing and deepest indentation
+    (``jaxrkpm.thesis.contact_paddle.max_indentation``)."""
+    p.add_argument("--paddle-model", choices=("glued", "contact"), default="glued",
+                   help="glued: the paddle holds its particles (pulls and pushes; the thesis' results); "
+                        "contact: a rigid box pressed against the boundary that only pushes, and drags by "
+                        "friction (static: pressed --indentation in; dynamic and optimize: its pose is the "
+                        f"control, from --indentation; --paddle picks {paddle})")
+    p.add_argument("--friction", type=interface.number(float, 0), default=CONTACT_FRICTION,
+                   help=f"contact paddle: Coulomb friction coefficient mu (>= 0; default {CONTACT_FRICTION:g})")
+    p.add_argument("--indentation", type=interface.number(float, 0), default=None,
+                   help="contact paddle: how far it is pressed in, at most two particle spacings (static: "
+                        f"its pose; dynamic and optimize: the start; default {indentation})")
+
+    @p.check
+    def contact(a, given):
+        """A contact option with the glued paddle (which has neither friction nor an
+        indentation), or an indentation past the deepest, is refused."""
+        wrong = [o for o in CONTACT_ONLY if o in given] if a.paddle_model == "glued" else []
+        if wrong:
+            return (f"{', '.join('--' + o for o in wrong)} {'applies' if len(wrong) == 1 else 'apply'} to the "
+                    "contact paddle only: add --paddle-model contact, or leave "
+                    f"{'it' if len(wrong) == 1 else 'them'} out (the glued paddle holds its particles)")
+        if a.indentation is None:        # the phantom is made only where an indentation is given
+            return None
+        spacing, deep = deepest(a)
+        if a.indentation > deep:
+            return (f"argument --indentation: must be a number in [0, {deep:g}] (two particle spacings at "
+                    f"spacing {spacing:g}: the contact paddle's travel), got {a.indentation:g}")
+        return None
+
+
+def tools_error(a, given=()) -> str | None:
+    """A usage message where --tools or --mode preload is given without what they need."""
+    if a.tools is not None and a.paddle_model != "contact":
+        return "--tools applies to the contact paddle model only: add --paddle-model contact"
+    if a.mode == "preload" and a.tools is None:
+        return "--mode preload applies to several tools only: add --paddle-model contact --tools N"
+    return None
+
+
+def _deepest(a) -> tuple:
     from jaxrkpm.thesis.contact_paddle import max_indentation
-    if wrong := interface.contact_error("needle", a, argv, phantom.spacing, max_indentation(phantom)):
-        interface.needle_parser().error(wrong)
-    if wrong := interface.tools_error(a):
-        interface.needle_parser().error(wrong)
+    phantom = nd.Phantom(material_law=a.material)
+    return phantom.spacing, max_indentation(phantom)
+
+
+def parser() -> interface.Parser:
+    from jaxrkpm.thesis.data import TABLE_6_2
+    number = interface.number
+    p = needle_options("needle", __doc__, INCLUSIONS, ("static", "dynamic", "optimize", "preload"))
+    p.add_argument("--material", choices=("fung", "fung-barrier", "neo-hookean"), default="fung",
+                   help="fung: the thesis' Fung (eq 6.1); fung-barrier: the same plus the volumetric barrier "
+                        "kappa/2 (ln J)^2, kappa = Fung's shear modulus; neo-hookean: nearly incompressible "
+                        "neo-Hookean tissue, nu = 0.45, with Fung's small-strain shear modulus")
+    p.add_argument("--increments", type=number(int, 1, interface.INCREMENTS_MAX), default=15,
+                   help=f"insertion increments up to 15%%, 1..{interface.INCREMENTS_MAX}")
+    p.add_argument("--paddle", type=number(int, 1, len(TABLE_6_2)), default=None,
+                   help="dynamic mode: paddle to move (default: the most controllable)")
+    p.add_argument("--start", type=number(float, 1, len(TABLE_6_2)), default=None,
+                   help="optimize mode: starting position q (default: the best discrete paddle)")
+    p.add_argument("--iterations", type=number(int, 1, interface.ADAM_MAX), default=30,
+                   help=f"optimize mode: Adam iterations, 1..{interface.ADAM_MAX}")
+    p.add_argument("--devices", type=number(int, 1, interface.DEVICES_MAX), default=None,
+                   help="shard the sweep over this many devices (default: all visible)")
+    contact_options(p, "the position, default 3", "static: one particle spacing; dynamic: half a spacing; "
+                                                  "optimize: 1.5 spacings", _deepest)
+    p.add_argument("--tools", type=int, choices=(1, 2, 3), default=None,
+                   help="contact paddle model: this many push-only tools on the free skin "
+                        "(jaxrkpm.thesis.tools.DEFAULT_TOOLS) instead of one paddle at a Table 6.2 position; "
+                        "static: pressed half a spacing in (or --indentation) at the target's height; "
+                        "preload: their depths optimised; optimize: positions and depths optimised; dynamic: "
+                        "moved during insertion by a QP per correction (default: none, one paddle)")
+    p.check(tools_error)
+    return p
+
+
+def main(argv=None):
+    a = parser().parse_args(argv)
+    phantom = nd.Phantom(material_law=a.material)
     results = interface.results("needle", a, a.out or f"results/needle/{a.mode}_{a.inclusion}")
     with results as out:
         if a.tools is not None:
@@ -666,3 +756,93 @@ def main(argv=None):
         (out / "summary.json").write_text(json.dumps(summary, indent=2))
         results.finish(summary, *result(summary), a.json)
     return summary
+
+
+# ------------------------------------------------------------------ the experiments of reproduce
+PHANTOM_NOTE = ("phantom of Fig 6.1 with the bottom edge right of the needle entry immobile, lattice "
+                "spacing 0.1, support 2.5 spacings; the thesis' absolute numbers depend on its unstated "
+                "support and boundary details, so compare in kind")
+
+
+def _run(mode, inclusion):
+    """(out dir, quick) -> ("needle", its options): the experiment's command line."""
+    def run(out: Path, quick: bool) -> tuple[str, list]:
+        return "needle", (["--mode", mode, "--inclusion", inclusion, "--out", str(out)]
+                          + (["--increments", "3"] if quick else []))
+    return run
+
+
+def _ours_static(s):
+    dev = ", ".join(f"{d:+.4f}" for d in s["deviation"])
+    failed = [i + 1 for i, row in enumerate(s["status"]) if any(x != "converged" for x in row)]
+    txt = (f"no paddle {s['no_paddle_deviation']:.4f}; final deviation per paddle 1-5: {dev}; "
+           f"best {s['best']} ({s['best_reduction']:.0f}x less than no paddle)")
+    if failed:
+        txt += f"; paddles {failed} invert the material (det F <= 0) before full depth"
+    return txt
+
+
+def _ours_dynamic(s):
+    ctrl = ", ".join(f"{c:.2f}" for c in s["controllability"])
+    return (f"delta x_min per paddle 1-5: {ctrl} (most controllable {s['best']}); closed loop on paddle "
+            f"{s['paddle']}: max |x deviation| {s['max_deviation']:.1e}, paddle travel "
+            f"{s['paddle_travel']:.4f}, {s['status']}")
+
+
+def _ours_optimize(s):
+    o = s["optimum"]
+    return (f"continuous paddle q = {o['q']:.3f} (arc length {o['arc_length']:.3f}): final deviation "
+            f"{o['deviation']:+.2e}, {s['improvement_over_discrete']:.1f}x below the best discrete paddle "
+            f"{s['best_discrete']} ({s['best_discrete_deviation']:+.2e}); {s['status']}")
+
+
+def _judge_static(inclusion):
+    """The best paddle and a 10x-100x reduction: in kind (the phantom's details are unstated)."""
+    def judge(s):
+        if s["best"] != NEEDLE["best_static"][inclusion]:
+            return DIFFERS, "phantom"
+        return (IN_KIND, "phantom") if s["best_reduction"] >= 10 else (DIFFERS, "reduction")
+    return judge
+
+
+def _judge_dynamic(inclusion):
+    ctrl = NEEDLE["controllability"][inclusion]
+    thesis_best = ctrl.index(min(ctrl)) + 1
+
+    def judge(s):
+        return (IN_KIND, "phantom") if s["best"] == thesis_best else (DIFFERS, "phantom")
+    return judge
+
+
+def _xmin(inclusion):
+    """Table 6.3's delta x_min per paddle, as quoted (two decimals)."""
+    return ", ".join(f"{v:.2f}" for v in NEEDLE["controllability"][inclusion])
+
+
+def entries() -> list:
+    """Chapter 6: the static sweeps (Figs 6.2-6.5), the controllability and the closed loop
+    (Table 6.3), and the continuous paddle (beyond the thesis)."""
+    best = NEEDLE["best_static"]
+    return [
+        Entry("needle_static_none", "Figs 6.2-6.3 (Table 6.2)",
+              f'"{NEEDLE["no_paddle_deviation"]}" with no paddle at 15%; best static paddle '
+              f"{best['none']}; a paddle cuts the deviation 10x to 100x",
+              _run("static", "none"), _ours_static, note=PHANTOM_NOTE, judge=_judge_static("none")),
+        Entry("needle_static_right", "Fig 6.4 (section 6.3.1)",
+              f"inclusion right of the target: best paddle {best['right']}",
+              _run("static", "right"), _ours_static, note=PHANTOM_NOTE, judge=_judge_static("right")),
+        Entry("needle_static_left", "Fig 6.5 (section 6.3.1)",
+              f"inclusion left of the target: best paddle {best['left']}",
+              _run("static", "left"), _ours_static, note=PHANTOM_NOTE, judge=_judge_static("left")),
+        Entry("needle_dynamic_none", "Table 6.3, Fig 6.6", f"delta x_min {_xmin('none')} "
+              f"(minimum at paddle {NEEDLE['most_controllable']})", _run("dynamic", "none"),
+              _ours_dynamic, note=PHANTOM_NOTE, judge=_judge_dynamic("none")),
+        Entry("needle_dynamic_right", "Table 6.3", f"delta x_min {_xmin('right')} (inclusion right)",
+              _run("dynamic", "right"), _ours_dynamic, note=PHANTOM_NOTE, judge=_judge_dynamic("right")),
+        Entry("needle_optimize_none", "- (beyond the thesis; Table 6.2 positions as a continuum)",
+              "-", _run("optimize", "none"), _ours_optimize, note=PHANTOM_NOTE),
+    ]
+
+
+COMMAND = Command("needle", "chapter 6: needle insertion, static/dynamic/optimised paddle", parser, main, result,
+                  order=40, reproduce=entries)

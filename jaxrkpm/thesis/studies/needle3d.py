@@ -29,23 +29,27 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxrkpm.thesis import needle as nd
-from jaxrkpm.io import output
-from jaxrkpm.io import plot
-from jaxrkpm.thesis.phantom3d import Phantom3D, ellipsoid_point
 from jaxrkpm.thesis.studies import interface
-from jaxrkpm.mechanics.contact import contact_forces
-from jaxrkpm.thesis.studies.needle import (contact_legend, contact_params, contact_result, contact_state,
-                                           deviation_panel, glued_curves, optimize_result, paddle_pose,
-                                           tool_outline)
+from jaxrkpm.thesis.studies.command import Command, lazy
+from jaxrkpm.thesis.studies.needle import (contact_legend, contact_options, contact_params, contact_result,
+                                           contact_state, deviation_panel, glued_curves, needle_options,
+                                           optimize_result, paddle_pose, tool_outline)
+
+nd = lazy("jaxrkpm.thesis.needle")
+output = lazy("jaxrkpm.io.output")
+plot = lazy("jaxrkpm.io.plot")
+phantom3d = lazy("jaxrkpm.thesis.phantom3d")
+contact = lazy("jaxrkpm.mechanics.contact")
+
+INCREMENTS_3D_MAX = 100         # insertion increments (each a 3D solve of every patch)
 
 
-def object_size(phantom: Phantom3D) -> float:
+def object_size(phantom: phantom3d.Phantom3D) -> float:
     """The phantom's largest extent (its long axis, 2a): the scale of the hold bound."""
     return float(2 * max(phantom.semi_axes[:2]))
 
 
-def draw_deformed(ax, phantom: Phantom3D, model, sol, title: str, vmax=None, patch=None):
+def draw_deformed(ax, phantom: phantom3d.Phantom3D, model, sol, title: str, vmax=None, patch=None):
     """Deformed particles, the x-z view (the needle runs along x, the base is z = 0), with the
     needle particles, the patch and the target marked."""
     X = model.body.X
@@ -66,7 +70,7 @@ def draw_deformed(ax, phantom: Phantom3D, model, sol, title: str, vmax=None, pat
     return sc
 
 
-def skin_map(ax, phantom: Phantom3D, values, label: str, log=True, best=None, best_label="best patch"):
+def skin_map(ax, phantom: phantom3d.Phantom3D, values, label: str, log=True, best=None, best_label="best patch"):
     """Patch centres seen from above (x-y), coloured by ``values`` (one per patch); ``best``
     (1-based) ringed and named ``best_label`` in the legend."""
     c = phantom.paddles
@@ -225,7 +229,7 @@ def run_optimize(phantom, inclusion, increments, out: Path, iterations=12, stiff
     summary = {
         "mode": "optimize", "inclusion": inclusion, "increments": increments, "particles": phantom.body.n,
         "optimum": {"theta": float(opt.q[0]), "phi": float(opt.q[1]), "deviation": opt.deviation,
-                    "point": np.asarray(ellipsoid_point(phantom.semi_axes, *opt.q)).tolist()},
+                    "point": np.asarray(phantom3d.ellipsoid_point(phantom.semi_axes, *opt.q)).tolist()},
         "best_discrete": best, "best_discrete_deviation": best_dev,
         "best_discrete_coordinates": start.tolist(),
         "spring_paddle_at_best_discrete": opt.start_deviation,
@@ -237,7 +241,7 @@ def run_optimize(phantom, inclusion, increments, out: Path, iterations=12, stiff
     fig, (a1, a2) = plot.plt.subplots(1, 2, figsize=(12, 4.6), layout="constrained")
     skin_map(a1, phantom, np.abs(sw.final), f"|lateral deviation| (discrete patches, {plot.UNITS})", best=best)
     h = opt.history
-    path = np.array([np.asarray(ellipsoid_point(phantom.semi_axes, *q)) for q in h[:, :2]])
+    path = np.array([np.asarray(phantom3d.ellipsoid_point(phantom.semi_axes, *q)) for q in h[:, :2]])
     a1.plot(path[:, 0], path[:, 1], "o-", color="C3", ms=3, label="Adam iterates")
     a1.plot(*path[np.argmin(np.abs(h[:, 2])), :2], "*", color="C3", ms=14, label="optimum")
     a1.legend(fontsize=7, loc="lower left")
@@ -319,7 +323,7 @@ def contact_figure(path: Path, phantom, model, params, spec, state, curves) -> s
     Returns the file name."""
     from jaxrkpm.thesis import contact_paddle as cp
     sol = state["solution"]
-    res = contact_forces(model, sol, cp.NAME, params)
+    res = contact.contact_forces(model, sol, cp.NAME, params)
     on = np.asarray(res.active)
     pts, pr, f = np.asarray(res.points)[on], np.asarray(res.pressure)[on], np.asarray(res.point_force)[on]
     vmax = float(pr.max()) if len(pr) else 1.0
@@ -406,18 +410,52 @@ def result(s: dict) -> tuple[bool, str]:
     return optimize_result(s, "needle3d optimize", f"{n} particles, patch at theta {o['theta']:.3f}, phi {o['phi']:.3f}", "patch")
 
 
-def main(argv=None):
-    a = interface.parse("needle3d", argv)
-    if too_many := interface.devices_error(a.devices):
-        interface.needle3d_parser().error(too_many)
-    phantom = Phantom3D(spacing=a.spacing, material_law=a.material)
-    patches = len(phantom.patch_coordinates)          # the angle grid: no mesh needed yet
-    if a.paddle is not None and a.paddle > patches:   # refused before any folder is made
-        interface.needle3d_parser().error(f"argument --paddle: must be an integer in [1, {patches}] "
-                                          f"(the candidate patches), got {a.paddle}")
+def _patch_in_range(a, given):
+    """--paddle names one of the candidate patches (the angle grid: no mesh needed)."""
+    if a.paddle is None:
+        return None
+    patches = len(phantom3d.Phantom3D(spacing=a.spacing, material_law=a.material).patch_coordinates)
+    if a.paddle > patches:
+        return f"argument --paddle: must be an integer in [1, {patches}] (the candidate patches), got {a.paddle}"
+    return None
+
+
+def _deepest(a) -> tuple:
     from jaxrkpm.thesis.contact_paddle import max_indentation
-    if wrong := interface.contact_error("needle3d", a, argv, phantom.spacing, max_indentation(phantom)):
-        interface.needle3d_parser().error(wrong)
+    phantom = phantom3d.Phantom3D(spacing=a.spacing, material_law=a.material)
+    return phantom.spacing, max_indentation(phantom)
+
+
+def parser() -> interface.Parser:
+    from jaxrkpm.thesis.data import INCLUSIONS_3D
+    number = interface.number
+    p = needle_options("needle3d", __doc__, INCLUSIONS_3D)
+    p.add_argument("--material", choices=("neo-hookean", "neohookean", "fung", "fung-barrier"),
+                   default="neo-hookean",
+                   help="neo-hookean (default): nearly incompressible neo-Hookean tissue, mu = 1, nu = 0.45; "
+                        "neohookean: compressible neo-Hookean, lam = 4, mu = 1 (nu = 0.4, the default before); "
+                        "fung: chapter 6's Fung with the 3D Table 5.2 pattern; fung-barrier: the same plus the "
+                        "volumetric barrier kappa/2 (ln J)^2")
+    p.add_argument("--spacing", type=number(float, 0.05, 0.4), default=0.2,
+                   help="mesh size of the phantom (0.3: 231 particles; 0.2: 390; 0.1: 1,332)")
+    p.add_argument("--increments", type=number(int, 1, INCREMENTS_3D_MAX), default=4,
+                   help=f"insertion increments, 1..{INCREMENTS_3D_MAX}")
+    p.add_argument("--paddle", type=interface.COUNT, default=None,
+                   help="dynamic mode: patch to move, 1..the number of patches (default: the most controllable); "
+                        "contact paddle: its patch in every mode (default: the best glued patch)")
+    p.add_argument("--tol", type=interface.POSITIVE, default=1e-5, help="dynamic mode: |lateral deviation| to hold")
+    p.add_argument("--iterations", type=number(int, 1, interface.ADAM_MAX), default=12,
+                   help=f"optimize mode: Adam iterations, 1..{interface.ADAM_MAX}")
+    p.add_argument("--devices", type=number(int, 1, interface.DEVICES_MAX), default=None,
+                   help="shard the sweep over this many devices (default: one)")
+    p.check(_patch_in_range)
+    contact_options(p, "the patch, default the best glued one", "a tenth of a particle spacing", _deepest)
+    return p
+
+
+def main(argv=None):
+    a = parser().parse_args(argv)
+    phantom = phantom3d.Phantom3D(spacing=a.spacing, material_law=a.material)
     results = interface.results("needle3d", a, a.out or f"results/needle3d/{a.mode}_{a.inclusion}")
     with results as out:
         stages = interface.progress(total=2, desc=f"needle3d {a.mode} {a.inclusion}", unit="stage")
@@ -438,3 +476,7 @@ def main(argv=None):
         (out / "summary.json").write_text(json.dumps(summary, indent=2))
         results.finish(summary, *result(summary), a.json)
     return summary
+
+
+COMMAND = Command("needle3d", "chapter 6 lifted to 3D: a half-ellipsoid phantom from a mesh, paddle patches on its "
+                              "skin", parser, main, result, order=50)

@@ -14,7 +14,6 @@ the others still run (exit code 1).
 from __future__ import annotations
 
 import contextlib
-import importlib
 import io
 import json
 import time
@@ -23,17 +22,8 @@ from pathlib import Path
 
 from jaxrkpm.base.programs import release_compiled_programs
 from jaxrkpm.thesis.studies import interface
-from jaxrkpm.thesis.studies.experiments import AGREES, DIFFERS, ENTRIES, IN_KIND, Entry
-
-
-# what ``jaxrkpm reproduce`` keeps when interrupted (the CLI's last line)
-ON_INTERRUPT = ("the experiments finished so far are kept in DIR/<id>/; the same command with --reuse "
-                "reads them instead of running them again")
-
-# the studies an experiment runs (their ``main(argv)``, the command line's options)
-STUDIES = {"track": "jaxrkpm.thesis.studies.track", "compress": "jaxrkpm.thesis.studies.compress",
-           "cantilever": "jaxrkpm.thesis.studies.cantilever", "rig-sim": "jaxrkpm.thesis.studies.rig_sim",
-           "needle": "jaxrkpm.thesis.studies.needle"}
+from jaxrkpm.thesis.studies.command import Command, command
+from jaxrkpm.thesis.studies.experiments import AGREES, DIFFERS, IN_KIND, Entry, entries
 
 
 def run_entry(e: Entry, root: Path, quick: bool, reuse: bool = False) -> dict:
@@ -48,10 +38,10 @@ def run_entry(e: Entry, root: Path, quick: bool, reuse: bool = False) -> dict:
             s = json.loads((out / "summary.json").read_text())
             row["reused"] = True
         else:
-            command, argv = e.run(out, quick)
+            study, argv = e.run(out, quick)
             # reproduce's own folder was claimed for this run: its experiments replace theirs
             with contextlib.redirect_stdout(log):
-                s = importlib.import_module(STUDIES[command]).main(argv + ["--overwrite"])
+                s = command(study).main(argv + ["--overwrite"])
         if s is None:   # scripts that only write their summary
             s = json.loads((out / "summary.json").read_text())
         row.update(status="ok", ours=e.ours(s))
@@ -126,20 +116,31 @@ def result(rep: dict) -> tuple[bool, str]:
     return not failed, words
 
 
+def parser() -> interface.Parser:
+    known = [e.id for e in entries()]
+    p = interface.parser("reproduce", __doc__, "results/reproduce")
+    p.add_argument("--quick", action="store_true", help="small subset at reduced sizes (smoke test)")
+    p.add_argument("--only", nargs="+", default=None, metavar="ID",
+                   help=f"run only these (default: all): {', '.join(known)}")
+    p.add_argument("--reuse", action="store_true",
+                   help="read DIR/<id>/summary.json where it exists instead of re-running (resume / rebuild)")
+
+    @p.check
+    def known_ids(a, given):
+        bad = [i for i in a.only or () if i not in known]
+        return f"unknown experiment id(s) {bad}; choose from {sorted(known)}" if bad else None
+    return p
+
+
 def main(argv=None):
-    a = interface.parse("reproduce", argv)
-    known = {e.id for e in ENTRIES}
-    if a.only:
-        bad = [i for i in a.only if i not in known]
-        if bad:
-            interface.reproduce_parser().error(f"unknown experiment id(s) {bad}; choose from {sorted(known)}")
-    entries = [e for e in ENTRIES if (e.id in a.only if a.only else (e.quick or not a.quick))]
+    a = parser().parse_args(argv)
+    chosen = [e for e in entries() if (e.id in a.only if a.only else (e.quick or not a.quick))]
     results = interface.results("reproduce", a, staged=False, ignore=("only", "reuse"))
     earlier = {}
     if a.reuse and (Path(a.out) / "report.json").exists():   # keep the timings of the runs reused
         earlier = earlier_rows(Path(a.out) / "report.json")
     with results as root:
-        rep = run_all(a, entries, root, earlier)
+        rep = run_all(a, chosen, root, earlier)
         results.finish(rep, *result(rep), a.json)
     return rep
 
@@ -175,3 +176,8 @@ def run_all(a, entries, root: Path, earlier: dict) -> dict:
     (root / "report.json").write_text(json.dumps(rep, indent=2))
     (root / "report.md").write_text(report_md(rows, a.quick, total))
     return rep
+
+
+COMMAND = Command("reproduce", "every experiment above; report.md with a verdict per row", parser, main, result,
+                  order=90, interrupted="the experiments finished so far are kept in DIR/<id>/; the same command "
+                                        "with --reuse reads them instead of running them again")

@@ -28,11 +28,14 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxrkpm.io import plot
-from jaxrkpm.thesis.rigsim.calibrate import calibrate
-from jaxrkpm.thesis.rigsim.sim import ClosedLoop, Inclusion, PhysicalObject, RigRun, RigSettings, Vision, planar_object
-from jaxrkpm.thesis.studies import interface
 from jaxrkpm.thesis.data import PATHS, RIG_MODEL_BETA, RIG_SETTLE_MM
+from jaxrkpm.thesis.studies import interface
+from jaxrkpm.thesis.studies.command import Command, lazy
+from jaxrkpm.thesis.studies.experiments import DIFFERS, IN_KIND, Entry
+
+plot = lazy("jaxrkpm.io.plot")
+sim = lazy("jaxrkpm.thesis.rigsim.sim")
+calibration = lazy("jaxrkpm.thesis.rigsim.calibrate")
 
 RIG_PATHS = ("setpoint", "box")
 MODEL_ALPHA, MODEL_BETA = 1.0, RIG_MODEL_BETA   # section 5.3.2: beta tuned by hand
@@ -41,11 +44,11 @@ PROBE = np.array([[a, b] for a in (0.0, 0.06, 0.12) for b in (0.0, 0.06, 0.12) i
 
 
 def build(physical_n=17, noise=2.0, seed=0, gain=0.7, tol_mm=0.3, max_iter=30, transport="tcp"):
-    ctrl = planar_object(9, MODEL_ALPHA, MODEL_BETA)
-    phys = PhysicalObject(physical_n, alpha=MODEL_ALPHA, beta=2 * MODEL_BETA, inclusion=Inclusion())
-    vision = Vision(noise_std=noise, seed=seed)
-    settings = RigSettings(gain=gain, tol_m=tol_mm * 1e-3, max_iter=max_iter)
-    return ClosedLoop(ctrl, phys, vision, settings, transport=transport)
+    ctrl = sim.planar_object(9, MODEL_ALPHA, MODEL_BETA)
+    phys = sim.PhysicalObject(physical_n, alpha=MODEL_ALPHA, beta=2 * MODEL_BETA, inclusion=sim.Inclusion())
+    vision = sim.Vision(noise_std=noise, seed=seed)
+    settings = sim.RigSettings(gain=gain, tol_m=tol_mm * 1e-3, max_iter=max_iter)
+    return sim.ClosedLoop(ctrl, phys, vision, settings, transport=transport)
 
 
 def _stats(x):
@@ -53,7 +56,7 @@ def _stats(x):
     return {"mean": float(np.nanmean(x)), "max": float(np.nanmax(x))}
 
 
-def describe(run: RigRun, wall_s: float) -> dict:
+def describe(run: sim.RigRun, wall_s: float) -> dict:
     phys, cam, mis = run.physical_error_mm, run.camera_error_mm, run.mismatch_mm
     return {"status": run.status.name, "message": run.message, "iterations": run.iterations,
             "wall_s": round(wall_s, 2), "broyden_updates": run.broyden_updates,
@@ -65,7 +68,7 @@ def describe(run: RigRun, wall_s: float) -> dict:
                           for w in range(len(run.desired))]}
 
 
-def execute(loop: ClosedLoop, path, variants, budget: int):
+def execute(loop: sim.ClosedLoop, path, variants, budget: int):
     """Run every variant in tracking and budget mode; returns {variant: {mode: RigRun}} and
     the summaries. ``variants``: name -> (controller params or None, broyden flag)."""
     base = loop.settings
@@ -74,8 +77,8 @@ def execute(loop: ClosedLoop, path, variants, budget: int):
     for name, (params, broyden) in variants.items():
         loop.set_controller_params(params)
         runs[name], out[name] = {}, {}
-        for mode, st in (("tracking", RigSettings(**{**base.__dict__, "broyden": broyden})),
-                         ("budget", RigSettings(**{**base.__dict__, "broyden": broyden, "gain": 1.0,
+        for mode, st in (("tracking", sim.RigSettings(**{**base.__dict__, "broyden": broyden})),
+                         ("budget", sim.RigSettings(**{**base.__dict__, "broyden": broyden, "gain": 1.0,
                                                    "max_iter": budget, "advance_on_cap": True}))):
             bar.set_postfix_str(f"{name} {mode}")
             loop.settings = st
@@ -98,7 +101,7 @@ def _mm(a, scale):
     return np.asarray(a) * scale * 1e3
 
 
-def fig_paths(run: RigRun, name: str, out: Path):
+def fig_paths(run: sim.RigRun, name: str, out: Path):
     """Figs 5.36-5.39: desired vs recorded (camera) vs true physical vs simulated model."""
     plt = plot.plt
     a = run.arrays()
@@ -136,7 +139,7 @@ def fig_paths(run: RigRun, name: str, out: Path):
     plot.save(fig, out / "cp_paths.png")
 
 
-def fig_errors(run: RigRun, name: str, tol_mm: float, out: Path):
+def fig_errors(run: sim.RigRun, name: str, tol_mm: float, out: Path):
     """Figs 5.33/5.34: error per iteration, and the per-waypoint error split."""
     plt = plot.plt
     a = run.arrays()
@@ -196,7 +199,7 @@ def fig_compare(runs: dict, out: Path):
     plot.save(fig, out / "compare.png")
 
 
-def fig_forces(run: RigRun, name: str, out: Path):
+def fig_forces(run: sim.RigRun, name: str, out: Path):
     """Figs 5.40/5.41: the robot's force reading per iteration and in space."""
     plt = plot.plt
     F = run.arrays()["force_n"]
@@ -263,7 +266,7 @@ def run(out: Path, path: str = "box", calibrate_model: bool = False, broyden: bo
             fit.update()
             fit.set_postfix_str("L-BFGS fit")
             t = time.perf_counter()
-            cal = calibrate(loop.ctrl.model, rec, {"alpha": MODEL_ALPHA, "beta": MODEL_BETA},
+            cal = calibration.calibrate(loop.ctrl.model, rec, {"alpha": MODEL_ALPHA, "beta": MODEL_BETA},
                             fit=("beta",), regions=(3, 3), steps=60)
             summary["calibration"] = {
                 "probe_paddle": rec.paddle.tolist(), "fit": ["beta", "3x3 stiffness map"],
@@ -330,17 +333,75 @@ def result(s: dict) -> tuple[bool, str]:
     return ok, f"rig-sim {s['path']}: " + " | ".join(parts)
 
 
-def main(argv=None):
-    a = interface.parse("rig-sim", argv)
-    p = interface.rig_sim_parser()
+SEED_MAX = 2 ** 32 - 1          # NumPy's seeds are unsigned 32-bit words
+
+
+def _waypoints(a, given):
     n_path = len(PATHS[a.path])
     if a.waypoints is not None and a.waypoints > n_path:
-        p.error(f"argument --waypoints: the {a.path} path has {n_path} waypoints, got {a.waypoints}")
-    if too_big := interface.memory_error("--physical-n", a.physical_n, a.physical_n ** 2, side=lambda k: k * k):
-        p.error(too_big)
+        return f"argument --waypoints: the {a.path} path has {n_path} waypoints, got {a.waypoints}"
+    return None
+
+
+def parser() -> interface.Parser:
+    number = interface.number
+    p = interface.parser("rig-sim", __doc__, "results/rig_sim/<path>")
+    p.add_argument("--path", choices=RIG_PATHS, default="box")
+    p.add_argument("--calibrate", action="store_true", help="fit beta + a 3x3 stiffness map to a probe first")
+    p.add_argument("--broyden", action="store_true", help="online Broyden Jacobian correction")
+    p.add_argument("--physical-n", type=number(int, 5), default=17,
+                   help="particles per side of the physical object (bounded by the memory available)")
+    p.add_argument("--noise", type=number(float, 0, 255), default=2.0, help="pixel noise std (grey levels, 0..255)")
+    p.add_argument("--seed", type=number(int, 0, SEED_MAX), default=0, help="noise seed, 0..2^32-1")
+    p.add_argument("--gain", type=number(float, 0, 1, low_open=True), default=0.7,
+                   help="the fraction of the camera error each iteration corrects, in (0, 1] (above 1 every "
+                        "step overshoots its waypoint and the loop oscillates)")
+    p.add_argument("--tol-mm", type=interface.POSITIVE, default=0.3, help="camera tolerance per waypoint (mm)")
+    p.add_argument("--max-iter", type=number(int, 1, 10_000), default=30,
+                   help="iterations per waypoint (tracking), 1..10000")
+    p.add_argument("--budget", type=number(int, 1, 10_000), default=1,
+                   help="iterations per waypoint (budget mode), 1..10000")
+    p.add_argument("--transport", choices=("tcp", "inprocess"), default="tcp")
+    p.add_argument("--waypoints", type=interface.COUNT, default=None,
+                   help="only the first N waypoints (default: all; at most the path's)")
+    p.add_argument("--no-figures", action="store_true")
+    p.check(_waypoints)
+    p.check(interface.memory_check("--physical-n", lambda k: k * k))
+    return p
+
+
+def main(argv=None):
+    a = parser().parse_args(argv)
     results = interface.results("rig-sim", a, a.out or f"results/rig_sim/{a.path}")
     with results as out:
         s = run(out, a.path, a.calibrate, a.broyden, a.physical_n, a.noise, a.seed, a.gain, a.tol_mm,
                 a.max_iter, a.budget, a.transport, a.waypoints, not a.no_figures)
         results.finish(s, *result(s), a.json)
     return s
+
+
+# ------------------------------------------------------------------ the experiment of reproduce
+def _run(out: Path, quick: bool) -> tuple[str, list]:
+    return "rig-sim", ["--path", "setpoint", "--out", str(out)]
+
+
+def _ours(s):
+    r = s["runs"]["uncorrected"]["tracking"]
+    return (f"uncorrected: physical error at the waypoints max {r['physical_error_mm']['max']:.2f} mm "
+            f"(mean {r['physical_error_mm']['mean']:.2f} mm), {r['iterations']} iterations, {r['status']}")
+
+
+def _judge(s):
+    r = s["runs"]["uncorrected"]["tracking"]
+    return (IN_KIND, "simulated") if r["physical_error_mm"]["max"] <= RIG_SETTLE_MM else (DIFFERS, "error")
+
+
+def entries() -> list:
+    return [Entry("rig_sim_setpoint", "Figs 5.33, 5.35", '"the physical control point is shown to settle within '
+                  f'a error margin of {RIG_SETTLE_MM:g} millimeter of the target"', _run, _ours,
+                  note="simulated rig (stereo vision, TCP robot link, a physical object the model does not know)",
+                  judge=_judge)]
+
+
+COMMAND = Command("rig-sim", "the simulated rig of section 5.3.2: vision, robot link, an object the model does "
+                             "not know", parser, main, result, order=30, reproduce=entries)

@@ -21,6 +21,7 @@ import sys
 import numpy as np
 
 from jaxrkpm.thesis.studies import interface
+from jaxrkpm.thesis.studies.command import Command
 
 
 # what ``jaxrkpm sweep`` keeps when interrupted (the CLI's last line)
@@ -51,17 +52,17 @@ def main(argv=None) -> dict:
     paddles = args.paddles or list(range(1, len(TABLE_6_2) + 1))
     count = math.prod(len(x) for x in (paddles, args.ratios, args.inclusions, args.alphas, args.betas))
     if count > interface.SWEEP_MAX:
-        interface.PARSERS["sweep"]().error(f"the options make {count:,} configurations, more than "
-                                           f"{interface.SWEEP_MAX:,}: split the sweep")
+        parser().error(f"the options make {count:,} configurations, more than {interface.SWEEP_MAX:,}: "
+                       "split the sweep")
     # where the chunks run is checked before the folder is claimed: a wrong address writes nothing
     if args.workers or args.executor:
         import importlib.util
         if importlib.util.find_spec("distributed") is None:
-            interface.PARSERS["sweep"]().error(
+            parser().error(
                 f"--{'workers' if args.workers else 'executor'} runs the chunks on Dask, which is not installed: "
                 "pip install 'dask[distributed]' (or leave the option out to run in this process)")
-    if args.executor and (why := interface.unreachable(args.executor)):
-        interface.PARSERS["sweep"]().error(f"--executor: {why}")
+    if args.executor and (why := unreachable(args.executor)):
+        parser().error(f"--executor: {why}")
     # where the chunks run does not change the results: not part of the run's identity
     results = interface.results("sweep", args, staged=False, ignore=("executor", "workers"))
     from jaxrkpm.control.sweep import SweepFolderError, SweepInUseError, read_sweep
@@ -125,3 +126,80 @@ def result(summary: dict) -> tuple[bool, str]:
         words += (f"; smallest |final deviation| {abs(b['final_deviation']):.2e} at paddle {b['paddle']}, "
                   f"{b['inclusion']} x {b['stiffness_ratio']:g}")
     return rows == summary["configurations"] and not bad, words
+
+
+# ------------------------------------------------------------------ the command line
+def parser() -> interface.Parser:
+    import argparse
+    from jaxrkpm.thesis.data import INCLUSIONS, TABLE_6_2
+    number, positive = interface.number, interface.POSITIVE
+    p = interface.parser("sweep", __doc__, "results/sweep")
+    p.add_argument("--paddles", type=number(int, 1, len(TABLE_6_2)), nargs="+", default=None,
+                   help=f"paddle positions of Table 6.2, 1..{len(TABLE_6_2)} (default: all)")
+    p.add_argument("--ratios", type=positive, nargs="+", default=[100.0], help="inclusion stiffness ratios")
+    p.add_argument("--inclusions", choices=tuple(INCLUSIONS), nargs="+", default=["right"])
+    p.add_argument("--alphas", type=positive, nargs="+", default=[1.0], help="Fung alpha values")
+    p.add_argument("--betas", type=positive, nargs="+", default=[1.0], help="Fung beta values")
+    p.add_argument("--increments", type=number(int, 1, interface.INCREMENTS_MAX), default=15,
+                   help=f"insertion increments, 1..{interface.INCREMENTS_MAX}")
+    p.add_argument("--insertion", type=number(float, 0, 0.5, low_open=True), default=0.15,
+                   help="needle depth at full insertion (fraction of the phantom's height)")
+    count = number(int, 1, interface.SWEEP_CHUNK_MAX)
+
+    def chunk_size(text: str):
+        if text == "auto":
+            return text
+        try:
+            return count(text)
+        except argparse.ArgumentTypeError as e:
+            raise argparse.ArgumentTypeError(str(e).replace(", got", " or auto, got")) from None
+    p.add_argument("--chunk-size", type=chunk_size, default=20,
+                   help=f"configurations per batched call (one file each), 1..{interface.SWEEP_CHUNK_MAX}, or "
+                        "auto: measured on the first configurations (throughput per chunk size; a rerun keeps the "
+                        "size the sweep started with)")
+    p.add_argument("--jacobians", action="store_true", help="keep every increment's paddle Jacobian")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--executor", type=scheduler_address, default=None, metavar="ADDRESS",
+                       help="a Dask scheduler's address (tcp://host:8786): run the chunks on that cluster "
+                            "(default: in this process)")
+    where.add_argument("--workers", type=number(int, 1, 256), default=None,
+                       help="run the chunks on a local Dask cluster of this many worker processes, 1..256 "
+                            "(default: in this process)")
+    return p
+
+
+SCHEDULER_SCHEMES = ("tcp", "tls", "ucx", "ws", "wss")     # Dask's network protocols with a host and port
+
+
+def scheduler_address(text: str) -> str:
+    """A Dask scheduler's address, checked for its form (``tcp://host:8786``); whether one
+    answers there is checked before any work (:func:`unreachable`)."""
+    import argparse
+    from urllib.parse import urlsplit
+    try:
+        parts = urlsplit(text)
+        port = parts.port
+    except ValueError:
+        port, parts = None, None
+    if parts is None or parts.scheme not in SCHEDULER_SCHEMES or not parts.hostname or port is None:
+        raise argparse.ArgumentTypeError(f"a Dask scheduler's address is SCHEME://HOST:PORT with SCHEME one of "
+                                         f"{', '.join(SCHEDULER_SCHEMES)} (e.g. tcp://localhost:8786), got {text!r}")
+    return text
+
+
+def unreachable(address: str, timeout: float = 5.0) -> str | None:
+    """Why nothing answers at the scheduler ``address`` (None where something does): checked
+    before a sweep claims its folder, so that a wrong address ends at once, having written
+    nothing."""
+    import socket
+    from urllib.parse import urlsplit
+    parts = urlsplit(address)
+    try:
+        with socket.create_connection((parts.hostname, parts.port), timeout=timeout):
+            return None
+    except OSError as e:
+        return f"no Dask scheduler answers at {address} ({e.strerror or e}): start one (dask scheduler) or fix the address"
+
+
+COMMAND = Command("sweep", "2D needle sweeps to disk: paddle x inclusion x stiffness, resumable Parquet, in process "
+                           "or on a Dask cluster", parser, main, result, order=70, interrupted=ON_INTERRUPT)

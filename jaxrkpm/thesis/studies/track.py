@@ -22,20 +22,23 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 
 import jaxrkpm as jr
-from jaxrkpm.io import output
-from jaxrkpm.io import plot
-from jaxrkpm.control.tracking import TrackResult, path_deviation, track, waypoint_table
-from jaxrkpm.thesis.studies import interface
 from jaxrkpm.thesis.data import CP_2D, CP_3D, CUBE_MAX_ERROR, PATHS, TRACKING_MINUTES
-from jaxrkpm.thesis.scenarios import cube, cube_path, planar_square
+from jaxrkpm.thesis.studies import interface
+from jaxrkpm.thesis.studies.command import Command, lazy
+from jaxrkpm.thesis.studies.experiments import AGREES, COLL, DIFFERS, IN_KIND, Entry
+
+jnp = lazy("jax.numpy")
+output = lazy("jaxrkpm.io.output")
+plot = lazy("jaxrkpm.io.plot")
+tracking = lazy("jaxrkpm.control.tracking")
+scenarios = lazy("jaxrkpm.thesis.scenarios")
 
 PATH_NAMES_2D = tuple(PATHS)
 PATH_3D = "table5.1"
-UNITS = plot.UNITS
+REPEATS_MAX = 100               # timed warm runs
 
 
 # --------------------------------------------------------------------------- models
@@ -43,7 +46,7 @@ def planar_model(n: int = 9, integration: str = "gauss", alpha: float = 1.0, bet
                  solver: str = "auto") -> jr.Model:
     """The chapter-5 tracking model: :func:`jaxrkpm.thesis.scenarios.planar_square` with Fung(alpha,
     beta) and the paddle on the three right-edge particles nearest (1, 0.5)."""
-    return planar_square(n, integration, jr.Fung(alpha=alpha, beta=beta), paddle="three", solver=solver)
+    return scenarios.planar_square(n, integration, jr.Fung(alpha=alpha, beta=beta), paddle="three", solver=solver)
 
 
 @dataclass
@@ -91,10 +94,10 @@ def build(path: str | None = None, dim: int = 2, integration: str = "gauss", mod
     if scheme == "reduced-to-refined":
         if model != "refined":
             raise ValueError("--scheme reduced-to-refined needs --model refined (the plant)")
-        ctrl, plant = cube("reduced", integration, alpha), cube("refined", integration, alpha)
+        ctrl, plant = scenarios.cube("reduced", integration, alpha), scenarios.cube("refined", integration, alpha)
     else:
-        ctrl, plant = cube(model, integration, alpha), None
-    return Experiment(f"cube-{model}-{scheme}-{integration}", 3, path, cube_path(),
+        ctrl, plant = scenarios.cube(model, integration, alpha), None
+    return Experiment(f"cube-{model}-{scheme}-{integration}", 3, path, scenarios.cube_path(),
                       ctrl, CP_3D, plant, model, scheme)
 
 
@@ -110,19 +113,19 @@ def execute(exp: Experiment, *, gain=0.05, clamp=0.01, tol=1e-4, max_iter=2000, 
     kw = dict(plant=exp.plant, gain=gain, clamp=clamp, max_iter=max_iter, max_steps=max_steps,
               window=window)
     t0 = time.perf_counter()
-    track(exp.model, exp.path, "paddle", exp.cp, tol=1e30, **kw)
+    tracking.track(exp.model, exp.path, "paddle", exp.cp, tol=1e30, **kw)
     compile_s = time.perf_counter() - t0
     warm = []
     for _ in range(max(1, repeats)):
         t0 = time.perf_counter()
-        res = track(exp.model, exp.path, "paddle", exp.cp, tol=tol, **kw)
+        res = tracking.track(exp.model, exp.path, "paddle", exp.cp, tol=tol, **kw)
         warm.append(time.perf_counter() - t0)
     w = float(np.median(warm))
     return res, {"wall_s": w, "compile_s": compile_s, "first_run_s": compile_s + warm[0],
                  "warm_runs_s": warm}
 
 
-def snapshot_waypoints(exp: Experiment, res: TrackResult) -> list[int]:
+def snapshot_waypoints(exp: Experiment, res: tracking.TrackResult) -> list[int]:
     """Waypoints to draw: all six of Table 5.1 in 3D; about five evenly spaced in 2D
     (the corners of the box)."""
     W = len(res.desired)
@@ -131,7 +134,7 @@ def snapshot_waypoints(exp: Experiment, res: TrackResult) -> list[int]:
     return [i for i in pick if res.reached[i] >= 0]
 
 
-def snapshots(exp: Experiment, res: TrackResult, which: list[int]):
+def snapshots(exp: Experiment, res: tracking.TrackResult, which: list[int]):
     """Re-solve the measured model at the manipulation point recorded when each waypoint was
     reached (sequentially, each warm-started from the previous: the same branch as the
     tracking run). Returns [(waypoint, iteration, Solution)], plus the final state if the
@@ -147,7 +150,7 @@ def snapshots(exp: Experiment, res: TrackResult, which: list[int]):
     return out
 
 
-def write_mesh_outputs(exp: Experiment, res: TrackResult, out: Path) -> dict:
+def write_mesh_outputs(exp: Experiment, res: tracking.TrackResult, out: Path) -> dict:
     """ParaView / PyVista files of the run (jaxrkpm.io.output): ``final.vtu``, the measured model's
     last state, and ``series.pvd``, one frame per reached waypoint (plus the final state if the
     run stopped early), re-solved as in :func:`snapshots`, time = the control step."""
@@ -160,10 +163,10 @@ def write_mesh_outputs(exp: Experiment, res: TrackResult, out: Path) -> dict:
     return {"vtu": "final.vtu", "series": "series.pvd", "series_frames": len(frames)}
 
 
-def summarize(exp: Experiment, res: TrackResult, timing: dict, settings: dict, snaps=()) -> dict:
+def summarize(exp: Experiment, res: tracking.TrackResult, timing: dict, settings: dict, snaps=()) -> dict:
     m, plant = exp.model, exp.measured
-    dev = path_deviation(res)
-    rows = waypoint_table(res)
+    dev = tracking.path_deviation(res)
+    rows = tracking.waypoint_table(res)
     shape = lambda mod: [int(len(np.unique(np.round(mod.body.X[:, a], 9)))) for a in range(mod.dim)]
     s = {
         "experiment": exp.name, "dim": exp.dim, "path": exp.path_name,
@@ -237,8 +240,8 @@ def fig_cp_path(exp, res, out):
         seen[key] = seen.get(key, []) + [str(w + 1)]
     for (x, y), names in seen.items():
         a.annotate(",".join(names), (x, y), textcoords="offset points", xytext=(6, 5), fontsize=8)
-    a.set_xlabel(f"{_labels(d)[0]}" + (" displacement" if d == 2 else " position") + f" ({UNITS})")
-    a.set_ylabel(f"{_labels(d)[1]}" + (" displacement" if d == 2 else " position") + f" ({UNITS})")
+    a.set_xlabel(f"{_labels(d)[0]}" + (" displacement" if d == 2 else " position") + f" ({plot.UNITS})")
+    a.set_ylabel(f"{_labels(d)[1]}" + (" displacement" if d == 2 else " position") + f" ({plot.UNITS})")
     a.set_aspect("equal", adjustable="datalim")
     a.grid(alpha=0.3)
     a.legend(fontsize=8, loc="best")
@@ -251,7 +254,7 @@ def fig_cp_path(exp, res, out):
         b.plot(it, res.cp[:, c], color=colors[c], lw=1.5, label=f"{names[c]} achieved")
         b.step(it, target[:, c], where="post", color=colors[c], ls="--", lw=1, label=f"{names[c]} desired")
     b.set_xlabel("iteration")
-    b.set_ylabel(f"control point displacement ({UNITS})")
+    b.set_ylabel(f"control point displacement ({plot.UNITS})")
     b.grid(alpha=0.3)
     b.legend(fontsize=8, ncol=d)
     b.set_title("control point coordinates per iteration")
@@ -272,7 +275,7 @@ def fig_cp_error(exp, res, tol, out):
     for k in res.reached[res.reached > 0]:
         ax.axvline(k, color="0.8", lw=0.6, zorder=0)
     ax.set_xlabel("iteration (vertical lines: a waypoint reached)")
-    ax.set_ylabel(f"control point error ({UNITS})")
+    ax.set_ylabel(f"control point error ({plot.UNITS})")
     ax.set_title(f"control point error per iteration; max error at the waypoints "
                  f"{res.max_waypoint_error:.2e}\n{_title(exp, res)}", fontsize=10)
     ax.grid(alpha=0.3, which="both")
@@ -294,8 +297,8 @@ def fig_mp_path(exp, res, out):
         if k >= 0:
             a.annotate(str(w + 1), (M[k, i], M[k, j]), textcoords="offset points", xytext=(5, 4), fontsize=8)
     a.plot([0], [0], "k+", ms=10, label="start")
-    a.set_xlabel(f"paddle {_labels(d)[0]} displacement ({UNITS})")
-    a.set_ylabel(f"paddle {_labels(d)[1]} displacement ({UNITS})")
+    a.set_xlabel(f"paddle {_labels(d)[0]} displacement ({plot.UNITS})")
+    a.set_ylabel(f"paddle {_labels(d)[1]} displacement ({plot.UNITS})")
     a.set_aspect("equal", adjustable="datalim")
     a.grid(alpha=0.3)
     a.legend(fontsize=8)
@@ -304,7 +307,7 @@ def fig_mp_path(exp, res, out):
     for c in range(d):
         b.plot(it, M[:, c], lw=1.5, label="xyz"[c])
     b.set_xlabel("iteration")
-    b.set_ylabel(f"paddle displacement ({UNITS})")
+    b.set_ylabel(f"paddle displacement ({plot.UNITS})")
     b.grid(alpha=0.3)
     b.legend(fontsize=8)
     b.set_title("manipulation point coordinates per iteration")
@@ -342,7 +345,7 @@ def fig_deformed_2d(exp, res, snaps, out):
         ax.set_ylim(lo[1] - 0.06, hi[1] + 0.06)
     for ax in list(axes.flat)[n:]:
         ax.axis("off")
-    fig.colorbar(sc, ax=axes.ravel().tolist(), label=f"|u| ({UNITS})", shrink=0.85)
+    fig.colorbar(sc, ax=axes.ravel().tolist(), label=f"|u| ({plot.UNITS})", shrink=0.85)
     fig.legend(*axes.flat[0].get_legend_handles_labels(), loc="outside lower center", ncol=5, fontsize=9)
     fig.suptitle(_title(exp, res))
     fig.savefig(out / "deformed.png", dpi=120)
@@ -426,7 +429,7 @@ def fig_layers_3d(exp, res, snaps, out, sub: int = 4):
     fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=9)
     fig.subplots_adjust(left=0.0, right=0.9, bottom=0.06, top=0.9, wspace=0.02, hspace=0.08)
     sm = cm.ScalarMappable(norm=norm, cmap=cmap)
-    fig.colorbar(sm, cax=fig.add_axes([0.92, 0.25, 0.015, 0.5]), label=f"|u| ({UNITS})")
+    fig.colorbar(sm, cax=fig.add_axes([0.92, 0.25, 0.015, 0.5]), label=f"|u| ({plot.UNITS})")
     fig.suptitle(_title(exp, res) + f"\nlayers z = const ({nz} layers) coloured by |u|")
     fig.savefig(out / "layers.png", dpi=110)
     plt.close(fig)
@@ -446,7 +449,7 @@ def _title(exp, res):
     return f"{what} - {res.status.name}"
 
 
-def figures(exp: Experiment, res: TrackResult, snaps, out: Path, tol: float) -> list[str]:
+def figures(exp: Experiment, res: tracking.TrackResult, snaps, out: Path, tol: float) -> list[str]:
     fig_cp_path(exp, res, out)
     fig_cp_error(exp, res, tol, out)
     fig_mp_path(exp, res, out)
@@ -526,27 +529,63 @@ ONLY_2D = ("n", "beta")              # options of the 2D square only
 ONLY_3D = ("model", "scheme")         # options of the 3D cube only
 
 
-def main(argv=None):
-    a = interface.parse("track", argv)
-    p = interface.track_parser()
-    given = interface.given("track", argv)
+def _other_dimension(a, given):
+    """An option of the other dimension would be ignored: refused."""
     wrong = [o for o in (ONLY_3D if a.dim == 2 else ONLY_2D) if o in given]
-    if wrong:                         # an option of the other dimension would be ignored
-        other = 3 if a.dim == 2 else 2
-        p.error(f"{', '.join('--' + o for o in wrong)} {'applies' if len(wrong) == 1 else 'apply'} to "
-                f"--dim {other} only (this run is --dim {a.dim})")
-    model, scheme = a.model or "reduced", a.scheme or "self"
-    n, beta = a.n or 9, a.beta or 1.0
-    if scheme == "reduced-to-refined" and (a.dim != 3 or model != "refined"):
-        p.error("--scheme reduced-to-refined needs --dim 3 --model refined")
+    if wrong:
+        return (f"{', '.join('--' + o for o in wrong)} {'applies' if len(wrong) == 1 else 'apply'} to "
+                f"--dim {3 if a.dim == 2 else 2} only (this run is --dim {a.dim})")
+    return None
+
+
+def _path_of_the_dimension(a, given):
+    if (a.scheme or "self") == "reduced-to-refined" and (a.dim != 3 or (a.model or "reduced") != "refined"):
+        return "--scheme reduced-to-refined needs --dim 3 --model refined"
     if a.dim == 3 and a.path not in (None, PATH_3D):
-        p.error(f"--dim 3 tracks Table 5.1 (--path {PATH_3D})")
+        return f"--dim 3 tracks Table 5.1 (--path {PATH_3D})"
     if a.dim == 2 and a.path == PATH_3D:
-        p.error("--path table5.1 is the 3D cube's (--dim 3)")
-    if a.dim == 2 and (too_big := interface.memory_error("--n", n, n * n, side=lambda k: k * k)):
-        p.error(too_big)
+        return "--path table5.1 is the 3D cube's (--dim 3)"
+    return None
+
+
+def parser() -> interface.Parser:
+    from jaxrkpm.thesis.data import CUBES
+    p = interface.parser("track", __doc__, "results/track/<experiment>")
+    p.add_argument("--path", choices=[*PATHS, PATH_3D], default=None,
+                   help="2D: " + "|".join(PATHS) + " (default box); 3D: table5.1 (default)")
+    p.add_argument("--integration", choices=("gauss", "scni", "mscni"), default="gauss")
+    p.add_argument("--dim", type=int, choices=(2, 3), default=2)
+    p.add_argument("--model", choices=tuple(CUBES), default=None,
+                   help="3D only: the cube's discretisation (default reduced)")
+    p.add_argument("--scheme", choices=("self", "reduced-to-refined"), default=None,
+                   help="3D refined only: Jacobian from the model itself or from the reduced model (default self)")
+    p.add_argument("--n", type=interface.number(int, 3), default=None,
+                   help="2D only: particles per side (default 9, the thesis'; bounded by the memory available)")
+    p.add_argument("--alpha", type=interface.POSITIVE, default=1.0, help="material alpha (Fung 2D, eq 5.1 in 3D)")
+    p.add_argument("--beta", type=interface.POSITIVE, default=None, help="2D only: Fung beta (default 1)")
+    p.add_argument("--gain", type=interface.POSITIVE, default=0.05)
+    p.add_argument("--clamp", type=interface.POSITIVE, default=0.01, help="largest paddle increment per component")
+    p.add_argument("--tol", type=interface.POSITIVE, default=1e-4, help="control point tolerance per waypoint")
+    p.add_argument("--max-iter", type=interface.iterations(), default=2000, help="iterations per waypoint, 1..1e6")
+    p.add_argument("--max-steps", type=interface.iterations(), default=20000, help="iterations in all, 1..1e6")
+    p.add_argument("--window", type=interface.iterations(), default=300,
+                   help="iterations without progress before giving up, 1..1e6")
+    p.add_argument("--repeats", type=interface.number(int, 1, REPEATS_MAX), default=1,
+                   help=f"timed warm runs (wall_s: their median), 1..{REPEATS_MAX}")
+    p.add_argument("--no-figures", action="store_true")
+    p.add_argument("--no-mesh", action="store_true", help="skip final.vtu and series.pvd (ParaView)")
+    p.check(_other_dimension)
+    p.check(_path_of_the_dimension)
+    p.check(interface.memory_check("--n", lambda k: k * k, when=lambda a: a.dim == 2))
+    return p
+
+
+def main(argv=None):
+    p = parser()
+    a = p.parse_args(argv)
     try:
-        exp = build(a.path, a.dim, a.integration, model, scheme, n, a.alpha, beta)
+        exp = build(a.path, a.dim, a.integration, a.model or "reduced", a.scheme or "self", a.n or 9, a.alpha,
+                    a.beta or 1.0)
     except ValueError as e:
         p.error(f"cannot build the model: {e}")
     results = interface.results("track", a, a.out or f"results/track/{exp.name}")
@@ -556,3 +595,104 @@ def main(argv=None):
                 mesh_output=not a.no_mesh, experiment=exp)
         results.finish(s, *result(s), a.json)
     return s
+
+
+# ------------------------------------------------------------------ the experiments of reproduce
+def _run(path=None, integration="gauss", dim=2, model="reduced", scheme="self"):
+    """(out dir, quick) -> ("track", its options): the experiment's command line."""
+    def run(out: Path, quick: bool) -> tuple[str, list]:
+        argv = ["--dim", str(dim), "--integration", integration, "--out", str(out)]
+        if path:
+            argv += ["--path", path]
+        if dim == 3:
+            argv += ["--model", model, "--scheme", scheme]
+        elif quick:
+            argv += ["--n", "5"]
+        return "track", argv
+    return run
+
+
+def _ours(s):
+    return (f"{s['waypoints_reached']}/{s['waypoints_total']} waypoints to 1e-4, max waypoint error "
+            f"{s['max_waypoint_error']:.2e}, {s['iterations']} iterations; "
+            f"{s['wall_s']:.1f} s warm ({s['first_run_s']:.1f} s with compile) = "
+            f"{s['wall_s'] / 60:.3f} min")
+
+
+def _ours_vs(minutes):
+    """Tracking row with the speed-up against the thesis' reported minutes (warm run)."""
+    def fmt(s):
+        return _ours(s) + f" (thesis / ours: {60 * minutes / max(s['wall_s'], 1e-9):,.0f}x)"
+    return fmt
+
+
+def _ours_3d(s):
+    return (f"max error at the waypoints {s['max_waypoint_error']:.2e} "
+            f"({s['waypoints_reached']}/{s['waypoints_total']} reached), max path deviation "
+            f"{s['max_path_deviation']:.4f}; {s['wall_s']:.1f} s warm")
+
+
+def _judge(scheme="gauss"):
+    """Every waypoint within the tolerance: the thesis' result (with SCNI for its
+    collocation: the same result by another scheme)."""
+    def judge(s):
+        if s["waypoints_reached"] != s["waypoints_total"]:
+            return DIFFERS, "stopped"
+        return (AGREES if scheme == "gauss" else IN_KIND), ("tolerance" if scheme == "gauss" else "scheme")
+    return judge
+
+
+def _judge_3d(max_error):
+    def judge(s):
+        if s["waypoints_reached"] != s["waypoints_total"]:
+            return DIFFERS, "stopped"
+        return (AGREES, "error") if s["max_waypoint_error"] <= max_error else (DIFFERS, "error")
+    return judge
+
+
+GAUSS_TIME = "{m} minutes (section 5.3.2, Gaussian Quadrature)"
+
+
+def _entries_2d(MIN) -> list:
+    return [
+        Entry("track_setpoint_gauss", "Fig 5.19", '"within 0.0001 of the desired position"; '
+              + GAUSS_TIME.format(m=MIN["gauss"]["setpoint"]), _run("setpoint"),
+              _ours_vs(MIN["gauss"]["setpoint"]), quick=True, judge=_judge()),
+        Entry("track_setpoint_scni", "Fig 5.20",
+              f'"The Collocated model time was approximately {MIN["collocated"]["setpoint"]} minutes"',
+              _run("setpoint", "scni"), _ours_vs(MIN["collocated"]["setpoint"]), note=COLL, judge=_judge("scni")),
+        Entry("track_box_gauss", "Figs 5.21-5.22 (Table 5.3)", GAUSS_TIME.format(m=MIN["gauss"]["box"]),
+              _run("box"), _ours_vs(MIN["gauss"]["box"]), judge=_judge()),
+        Entry("track_figure8_gauss", "Figs 5.23-5.24 (Table 5.4)", GAUSS_TIME.format(m=MIN["gauss"]["figure8"]),
+              _run("figure8"), _ours_vs(MIN["gauss"]["figure8"]), judge=_judge()),
+        Entry("track_line_gauss", "Figs 5.25-5.26 (Table 5.5)", "tracked (no time given)",
+              _run("line"), _ours, judge=_judge()),
+        Entry("track_box_scni", "Figs 5.27-5.28 (Table 5.3)",
+              f'"the Collocated model took {MIN["collocated"]["box"]} ... minutes"',
+              _run("box", "scni"), _ours_vs(MIN["collocated"]["box"]), note=COLL, judge=_judge("scni")),
+        Entry("track_figure8_scni", "Figs 5.29-5.30 (Table 5.4)", f'"... and {MIN["collocated"]["figure8"]} minutes"',
+              _run("figure8", "scni"), _ours_vs(MIN["collocated"]["figure8"]), note=COLL, judge=_judge("scni")),
+        Entry("track_line_scni", "Figs 5.31-5.32 (Table 5.5)", "tracked (no time given)",
+              _run("line", "scni"), _ours, note=COLL, judge=_judge("scni")),
+    ]
+
+
+def _entries_3d(ERR) -> list:
+    return [
+        Entry("track3d_reduced", "Fig 5.2 (Table 5.1)", f'"{ERR["reduced"]} for the reduced model object" '
+              "(maximum absolute error)", _run(dim=3, model="reduced"), _ours_3d, judge=_judge_3d(ERR["reduced"])),
+        Entry("track3d_refined", "Fig 5.6 (Table 5.1)", f'"{ERR["refined"]} for the refined model object"',
+              _run(dim=3, model="refined"), _ours_3d, judge=_judge_3d(ERR["refined"])),
+        Entry("track3d_reduced_to_refined", "Figs 5.6-5.8 (Table 5.1)", f'"{ERR["refined"]} for the refined model '
+              'object" (Jacobian from the reduced model)', _run(dim=3, model="refined", scheme="reduced-to-refined"),
+              _ours_3d, judge=_judge_3d(ERR["refined"])),
+    ]
+
+
+def entries() -> list:
+    """The 2D paths of section 5.3.2 (Gauss and SCNI) and the 3D cube of Table 5.1."""
+    return _entries_2d(TRACKING_MINUTES) + _entries_3d(CUBE_MAX_ERROR)
+
+
+COMMAND = Command("track", "chapter-5 Jacobian path tracking: 2D paths, the 3D cube of Table 5.1",
+                  parser, main, result, order=20, reproduce=entries)
