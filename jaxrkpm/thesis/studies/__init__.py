@@ -1,7 +1,7 @@
 """The thesis studies behind the ``jaxrkpm`` console script: thin drivers (arguments ->
 scenario of :mod:`jaxrkpm.thesis` -> run -> ``summary.json`` + figures), one module per
-command, each with ``main(argv)``, runnable as ``python -m jaxrkpm.thesis.studies.<name>``, and
-its declaration ``COMMAND`` (:mod:`.command`: its name, parser, run, experiments).
+command, each with ``main(argv)`` and its declaration ``COMMAND`` (:mod:`.command`: its name,
+parser, run, experiments).
 
 :mod:`.demo` (the box path on the 9x9 square), :mod:`.compress` (section 5.2 compression to
 failure), :mod:`.track` (chapter-5 tracking, 2D and the 3D cube), :mod:`.rig_sim` (the

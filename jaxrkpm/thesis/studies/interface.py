@@ -371,6 +371,38 @@ def _earlier(out: Path) -> dict:
         return {}
 
 
+def _earlier_run(out: Path, ignore) -> dict:
+    """The record of the run whose results ``out`` holds ({} where none), without the options
+    ``ignore`` names (a record of a version that kept them)."""
+    earlier = _earlier(out) if out.is_dir() else {}
+    if isinstance(earlier.get("options"), dict):
+        earlier = {**earlier, "options": {k: v for k, v in earlier["options"].items() if k not in ignore}}
+    return earlier
+
+
+def _refuse_other_results(out: Path, run: dict, earlier: dict) -> None:
+    """An OutputError where ``out`` holds files no jaxrkpm run wrote, or another run's results."""
+    if not earlier:
+        raise OutputError(f"{out}/ already holds files that no jaxrkpm run wrote: choose another --out, "
+                          "or pass --overwrite to write over them")
+    if {k: earlier.get(k) for k in ("command", "options")} != run:
+        mine, theirs = _options_text(run), _options_text(earlier)
+        raise OutputError(f"{out}/ holds the results of another run ({theirs}; this run: {mine}): "
+                          "choose another --out, or pass --overwrite to replace them")
+
+
+def _check_writable(out: Path) -> None:
+    """An OutputError where no file can be written where ``out`` is (or will be) made."""
+    parent = next((p for p in [out, *out.parents] if p.exists()), Path("."))
+    if not parent.is_dir():
+        raise OutputError(f"cannot write to {out}/: Not a directory")
+    try:
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as e:
+        _fail(out, e)
+
+
 def results(command: str, args: argparse.Namespace, out=None, staged: bool = True, ignore=()) -> Results:
     """Claim the results folder ``out`` (default ``args.out``) for this run before any work:
     an :class:`OutputError` (exit 3) if it is a file, cannot be made, or holds another run's
@@ -380,27 +412,13 @@ def results(command: str, args: argparse.Namespace, out=None, staged: bool = Tru
     run = identity(command, args, ignore)
     if out.exists() and not out.is_dir():
         raise OutputError(f"cannot write to {out}/: it is a file")
-    earlier = _earlier(out) if out.is_dir() else {}
-    if isinstance(earlier.get("options"), dict):   # a record of a version that kept the ignored options
-        earlier = {**earlier, "options": {k: v for k, v in earlier["options"].items() if k not in ignore}}
+    earlier = _earlier_run(out, ignore)
     replaces = bool(earlier) and {k: earlier.get(k) for k in ("command", "options")} != run
-    if out.is_dir() and any(out.iterdir()) and not getattr(args, "overwrite", False):
-        if not earlier:
-            raise OutputError(f"{out}/ already holds files that no jaxrkpm run wrote: choose another --out, "
-                              "or pass --overwrite to write over them")
-        if {k: earlier.get(k) for k in ("command", "options")} != run:
-            mine, theirs = _options_text(run), _options_text(earlier)
-            raise OutputError(f"{out}/ holds the results of another run ({theirs}; this run: {mine}): "
-                              "choose another --out, or pass --overwrite to replace them")
-    parent = next((p for p in [out, *out.parents] if p.exists()), Path("."))
-    if not parent.is_dir():
-        raise OutputError(f"cannot write to {out}/: Not a directory")
-    try:
-        with tempfile.TemporaryFile(dir=parent):
-            pass
-    except OSError as e:
-        _fail(out, e)
-    return Results(out, run, staged, replaces and bool(getattr(args, "overwrite", False)))
+    overwrite = bool(getattr(args, "overwrite", False))
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        _refuse_other_results(out, run, earlier)
+    _check_writable(out)
+    return Results(out, run, staged, replaces and overwrite)
 
 
 def also_written(out: Path, name: str):
