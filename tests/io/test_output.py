@@ -285,3 +285,15 @@ def test_read_series_names_a_garbage_index(tmp_path):
         output.read_series(other)
     with pytest.raises(ValueError, match="does not exist"):
         output.read_series(tmp_path / "missing.pvd")
+
+
+def test_the_particle_plot_says_what_its_colours_mean():
+    """``deformed_particles`` draws a colour bar of |u| (a figure without one left the colours
+    unexplained), none with ``colorbar=False`` (axes that share one)."""
+    X = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    u = np.array([[0.0, 0.0], [0.1, 0.0], [0.0, 0.2]])
+    for colorbar, bars in ((True, ["|u| (model units)"]), (False, [])):
+        fig, ax = plot.plt.subplots()
+        plot.deformed_particles(ax, X, u, colorbar=colorbar)
+        assert [a.get_ylabel() for a in fig.axes[1:]] == bars
+        plot.plt.close(fig)
