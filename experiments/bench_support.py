@@ -116,7 +116,7 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--n", type=int, nargs="*", default=[6, 8, 10], help="particles per edge")
     p.add_argument("--support", type=float, nargs="*", default=[1.51, 2.01], help="kernel supports (x spacing)")
-    p.add_argument("--integration", nargs="*", default=["gauss", "scni"], choices=["gauss", "scni", "mscni"])
+    p.add_argument("--integration", nargs="*", default=["gauss", "scni", "mscni"], choices=["gauss", "scni", "mscni"])
     p.add_argument("--solver", nargs="*", default=["auto"], choices=["auto", "dense", "sparse"])
     p.add_argument("--repeats", type=int, default=3)
     records.add_arguments(p)
