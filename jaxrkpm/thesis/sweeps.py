@@ -3,7 +3,7 @@
 :class:`NeedleSweep`) or of the 3D half-ellipsoid phantom (paddle patch, inclusion, stiffness
 ratio, the tissue's constants; :class:`NeedleSweep3D`), evaluated a chunk at a time by the
 batched insertion (``needle.insert``: every configuration x every increment in one compiled
-call) and written by :func:`jaxrkpm.control.sweep.sweep` (Parquet, resumable, in process or on
+call) and written by :func:`jaxrkpm.sweep` (Parquet, resumable, in process or on
 a Dask cluster); and tracking sweeps over the object's material and the control gains
 (:class:`TrackSweep`).
 """
@@ -15,11 +15,11 @@ from typing import Sequence
 
 import numpy as np
 
-from ..control.sweep import sweep
 from ..control.tracking import TrackStatus, track
 from ..model.model import Model
 from ..mechanics.materials import Fung
 from ..solvers.results import Status
+from ..sweeps.runner import sweep
 from .data import CP_2D, INCLUSIONS, INCLUSIONS_3D, PATHS
 from .needle import Phantom, controllability, inclusion_field, insert
 from .phantom3d import MATERIAL_VALUES, Phantom3D
@@ -369,8 +369,8 @@ def needle_sweep(out, configurations=None, *, increments: int = 15, chunk_size: 
     """The 2D needle sweep of ``configurations`` (default :func:`paddle_configurations`)
     into the folder ``out``: :class:`NeedleSweep` (``options``: its own and the phantom's)
     padded to ``chunk_size`` members (``"auto"``: measured, see
-    :func:`jaxrkpm.control.sweep.choose_chunk_size`), through
-    :func:`jaxrkpm.control.sweep.sweep`; a rerun resumes. Returns its ``SweepSummary``;
+    :func:`jaxrkpm.choose_chunk_size`), through
+    :func:`jaxrkpm.sweep`; a rerun resumes. Returns its ``SweepSummary``;
     ``read_sweep(out)`` gives the table."""
     evaluate = NeedleSweep(increments, **options)
     return sweep(paddle_configurations() if configurations is None else configurations, evaluate, out,

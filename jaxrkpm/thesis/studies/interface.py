@@ -33,6 +33,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from jaxrkpm.sweeps import limits as sweep_limits
+
 EXIT_OK, EXIT_GOAL, EXIT_USAGE, EXIT_OUTPUT = 0, 1, 2, 3
 EXIT_INTERRUPTED = 130          # the shell's code for a run ended by Ctrl-C (128 + SIGINT)
 EXIT_CODES = {
@@ -51,8 +53,8 @@ ITERATIONS_MAX = 1_000_000      # control / Newton iterations: each one is a sol
 INCREMENTS_MAX = 1_000          # needle increments: each is a solve of every paddle (thesis: 15)
 ADAM_MAX = 10_000               # Adam iterations of the paddle optimisers
 DEVICES_MAX = 4096
-SWEEP_CHUNK_MAX = 65_536        # configurations per chunk of a sweep (jaxrkpm.control.sweep.MAX_CHUNK)
-SWEEP_MAX = 10_000_000          # configurations of a sweep (jaxrkpm.control.sweep.MAX_CONFIGURATIONS)
+SWEEP_CHUNK_MAX = sweep_limits.MAX_CHUNK          # configurations per chunk of a sweep
+SWEEP_MAX = sweep_limits.MAX_CONFIGURATIONS      # configurations of a sweep
 # peak memory per particle of a 2D model (experiments/bench_memory_2d.py: building, solving and
 # differentiating the planar square at 65 x 65 particles, sparse path, compile included); sizes
 # past the memory available are refused before anything is allocated

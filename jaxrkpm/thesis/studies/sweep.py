@@ -65,7 +65,7 @@ def main(argv=None) -> dict:
         parser().error(f"--executor: {why}")
     # where the chunks run does not change the results: not part of the run's identity
     results = interface.results("sweep", args, staged=False, ignore=("executor", "workers"))
-    from jaxrkpm.control.sweep import SweepFolderError, SweepInUseError, read_sweep
+    from jaxrkpm.sweeps.storage import SweepFolderError, SweepInUseError, read_sweep
     from jaxrkpm.thesis import sweeps
     with results as out:
         if results.replaces:              # --overwrite over another sweep: start afresh
