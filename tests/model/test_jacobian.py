@@ -203,7 +203,7 @@ def test_tracking_step_reuses_one_factorisation(planar):
         g1 = s.g + jnp.einsum("a,abi->bi", dmp, side.G)
         return side.chord.solve(prob, s.u, s.g, g1, s.load, s.load, st, max_iter=7), g1
 
-    (u, status, its, rn, _), g1 = chord(side.problem, sol, state, jnp.array([0.004, -0.003]))
+    (u, status, its, rn, *_), g1 = chord(side.problem, sol, state, jnp.array([0.004, -0.003]))
     ref = model.solve_g(g1, initial=sol, loads=sol.load)
     assert Status.of(status) == Status.CONVERGED and 2 <= int(its) <= 7
     assert np.abs(np.asarray(u - ref.u)).max() < 1e-10
