@@ -7,8 +7,8 @@ Per case (a fresh subprocess each, so peak memory is its own): the model build, 
 (compile included) and a warm one, Newton iterations, the peak resident memory after the
 build and after the solves, and the profile of the warm solve: assembly (the tangent's pair
 blocks, timed alone and multiplied by the assemblies made), host-side work of the linear
-solver (sparse matrix from blocks, factorisations, triangular solves, CG; multigrid set-up,
-Krylov iterations) and the rest (residuals, line searches, callback transfers). The
+solver (the solve's returned ``LinearStats``: sparse matrix from blocks, factorisations or
+multigrid set-ups, triangular solves, CG) and the rest (residuals, line searches, callback transfers). The
 solutions of the solvers at one size are compared (max |u_a - u_b| / max |u|).
 
 A watchdog in this (parent) process kills a case whose resident memory passes --max-rss-gb
@@ -53,9 +53,6 @@ def run_case(n, solver, repeats, out_npz, check_stability=True):
     import numpy as np
 
     import jaxrkpm as jr
-    from jaxrkpm.solvers.linalg import multigrid as krylov
-    from jaxrkpm.solvers.linalg import factorisations as sparse
-
     body = jr.Body.grid((n, n, n), 1.0 / (n - 1))
     sets = {"wall": body.select(lambda X: X[:, 0] < 1e-9), "right": body.select(lambda X: X[:, 0] > 1 - 1e-9)}
     t0 = time.perf_counter()
@@ -66,21 +63,18 @@ def run_case(n, solver, repeats, out_npz, check_stability=True):
     # check_stability=False: the user says the path is stable, so an iterative linear solve
     # far from equilibrium may stop early (inexact Newton's forcing term, jaxrkpm.solvers.newton.newton)
     opts = {} if check_stability else {"check_stability": False}
-    sparse.reset_stats()
-    krylov.reset_stats()
     t0 = time.perf_counter()
     sol = jax.block_until_ready(model.solve({"right": g}, steps=10, **opts))
     cold_s = time.perf_counter() - t0
     times = []
     for _ in range(repeats):
-        sparse.reset_stats()
-        krylov.reset_stats()
         t0 = time.perf_counter()
         sol = jax.block_until_ready(model.solve({"right": g}, steps=10, **opts))
         times.append(time.perf_counter() - t0)
     # --repeats 0 (the largest sizes): the cold solve alone, and its profile (compile in "other")
     solve_s = sorted(times)[len(times) // 2] if times else cold_s
-    host = {k: v for k, v in {**sparse.STATS, **krylov.STATS, **sparse.TIMES, **krylov.TIMES}.items() if v}
+    # the last solve's linear work, returned with it (its host seconds are disjoint parts)
+    host = {k: v for k, v in sol.stats.as_dict().items() if v}
     # assembly: the pair blocks at the converged state, alone, times the assemblies made
     # (one per Newton iteration: the sparse and Krylov paths assemble at every iteration)
     prob = model.problem()

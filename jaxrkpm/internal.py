@@ -1,7 +1,7 @@
 """The pieces under the public API, for power users: the discrete problem as a jit-friendly
 pytree, the terms of the energy it sums (and what a new term is written with), the solver
-objects (Newton, chord, load path, stable-branch descent, arc length) and their one
-iteration loop, the linear solvers with explicit state, implicit derivatives, batching of
+objects (Newton, chord, load path, stable-branch descent, arc length), the contract they
+implement and their one iteration loop, the linear solvers with explicit state, implicit derivatives, batching of
 many problems, and the building blocks of the tracking loop.
 
 These names are supported, but they follow the implementation more closely than
@@ -21,10 +21,10 @@ from .mechanics.strain import StrainEnergy
 from .mechanics.term import Context, Pairs, Term, TermSpec, static, term
 from .model.model import SolverChoice
 from .solvers.branch import BranchSwitch, StableDescent
-from .solvers.continuation import ArcLength
+from .solvers.continuation import ArcLength, ArcLengthPath
 from .solvers.implicit import implicit_jacobian, point_jacobian, response, sensitivity, solve_path_diff
-from .solvers.iterate import iterate
-from .solvers.linalg.base import LinearSolver
+from .solvers.iterate import IterativeSolver, iterate, run
+from .solvers.linalg.base import LinearSolver, LinearStats
 from .solvers.linalg.dense import DenseSolver
 from .solvers.linalg.host import host_callback
 from .solvers.linalg.krylov import KrylovSolver
@@ -43,10 +43,10 @@ __all__ = [
     "Essential", "ContactTerm", "DeadLoad", "SpringTerm", "PressureTerm", "Problem", "StrainEnergy",
     "Context", "Pairs", "Term", "TermSpec", "static", "term",
     "SolverChoice",
-    "BranchSwitch", "StableDescent", "ArcLength",
+    "BranchSwitch", "StableDescent", "ArcLength", "ArcLengthPath",
     "implicit_jacobian", "point_jacobian", "response", "sensitivity", "solve_path_diff",
-    "iterate",
-    "LinearSolver", "DenseSolver", "host_callback", "KrylovSolver", "QuasiNewton", "SparseSolver",
+    "IterativeSolver", "iterate", "run",
+    "LinearSolver", "LinearStats", "DenseSolver", "host_callback", "KrylovSolver", "QuasiNewton", "SparseSolver",
     "minimise", "stable_beyond",
     "Chord", "Newton", "NewtonResult", "Tolerance", "LoadPath",
     "Critical", "Limits",

@@ -252,6 +252,117 @@ def test_the_cycle_check_catches_a_cycle_through_a_function_level_import(tmp_pat
     assert cycles(edges) == [["jaxrkpm.x.a", "jaxrkpm.x.b"]]
 
 
+# ------------------------------------------------------------------- the solver contract
+CONTRACT = ("init", "step", "terminate", "postprocess")
+
+
+def solver_classes(paths) -> dict:
+    """class name -> (base names, method names, where) for the classes in ``paths`` (by name:
+    the solver classes of the package have unique names)."""
+    out = {}
+    for path in paths:
+        tree = ast.parse(path.read_text(), str(path))
+        for node in tree.body:
+            if isinstance(node, ast.ClassDef):
+                bases = {b.id if isinstance(b, ast.Name) else getattr(b, "attr", "") for b in node.bases}
+                methods = {f.name for f in node.body if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef))}
+                out[node.name] = (bases, methods, f"{path.relative_to(ROOT)}:{node.lineno}")
+    return out
+
+
+def contract_violations(classes: dict, contract: str = "IterativeSolver") -> list:
+    """Every class with a ``step`` or ``terminate`` (an iteration) must subclass ``contract``
+    (directly or through its bases) and have, itself or by inheritance, all of CONTRACT."""
+    def lineage(name, seen=()):
+        if name not in classes or name in seen:
+            return [name]
+        bases, _, _ = classes[name]
+        return [name] + [c for b in bases for c in lineage(b, seen + (name,))]
+
+    out = []
+    for name, (_, methods, where) in classes.items():
+        if name == contract or not methods & {"step", "terminate"}:
+            continue
+        chain = lineage(name)
+        if contract not in chain:
+            out.append(f"{where} {name} iterates but is no {contract}")
+            continue
+        have = set().union(*(classes[c][1] for c in chain if c in classes and c != contract))
+        missing = [m for m in CONTRACT if m not in have]
+        if missing:
+            out.append(f"{where} {name} lacks {missing}")
+    return out
+
+
+def solver_sources():
+    """The modules whose classes iterate: solvers/ and the tracking loop."""
+    return sorted((PACKAGE / "solvers").rglob("*.py")) + [PACKAGE / "control" / "tracking.py"]
+
+
+def test_every_solver_implements_the_contract():
+    """Every solver and driver (a class with ``step`` or ``terminate``) in solvers/ and the
+    tracking loop subclasses ``jaxrkpm.solvers.iterate.IterativeSolver`` and implements
+    init, step, terminate and postprocess; and there are such solvers to check."""
+    classes = solver_classes(solver_sources())
+    assert "IterativeSolver" in classes
+    assert {"Newton", "Chord", "LoadPath", "StableDescent", "ArcLength", "ArcLengthPath", "Tracker"} <= set(classes)
+    bad = contract_violations(classes)
+    assert not bad, "solvers outside the contract:\n" + "\n".join(bad)
+
+
+def test_the_contract_check_catches_what_it_must(tmp_path):
+    src = tmp_path / "fake.py"
+    src.write_text("class IterativeSolver:\n    def init(self): ...\n    def step(self): ...\n"
+                   "    def terminate(self): ...\n    def postprocess(self): ...\n"
+                   "class Rogue:\n    def step(self): ...\n    def terminate(self): ...\n"
+                   "class Partial(IterativeSolver):\n    def step(self): ...\n"
+                   "class Whole(IterativeSolver):\n    def init(self): ...\n    def step(self): ...\n"
+                   "    def terminate(self): ...\n    def postprocess(self): ...\n"
+                   "class Heir(Whole):\n    def step(self): ...\n"
+                   "class Linear:\n    def init(self): ...\n    def solve(self): ...\n")
+    global ROOT
+    saved = ROOT
+    try:
+        ROOT = tmp_path
+        classes = solver_classes([src])
+    finally:
+        ROOT = saved
+    # the contract's own (abstract) methods do not count for a class that claims it
+    bad = contract_violations(classes)
+    assert len(bad) == 2 and "Rogue iterates but is no IterativeSolver" in bad[0] and "Partial lacks" in bad[1]
+
+
+# names of module-level constants in solvers/ that are codes and tables, not tuning knobs: a
+# tuning constant is a field (or class attribute) of the object it tunes, documented there
+SOLVER_CODES = {"MKL_DOMAIN_PARDISO", "PARDISO_ERRORS", "FACTORISATIONS", "UNKNOWN", "FAILED", "NONE"}
+
+
+def _number(node) -> bool:
+    """A numeric literal expression (1e-10, 1 << 16, -1)."""
+    if isinstance(node, ast.Constant):
+        return isinstance(node.value, (int, float)) and not isinstance(node.value, bool)
+    if isinstance(node, ast.UnaryOp):
+        return _number(node.operand)
+    return isinstance(node, ast.BinOp) and _number(node.left) and _number(node.right)
+
+
+def test_no_module_level_tuning_constant_in_solvers():
+    """No public UPPER_CASE module constant (but the declared codes and tables) and no
+    private numeric one in solvers/: private compiled functions and library handles stay."""
+    found = []
+    for path in sorted((PACKAGE / "solvers").rglob("*.py")):
+        for node in ast.parse(path.read_text(), str(path)).body:
+            targets = node.targets if isinstance(node, ast.Assign) else \
+                [node.target] if isinstance(node, ast.AnnAssign) else []
+            for t in targets:
+                name = getattr(t, "id", "")
+                public = name.isupper() and not name.startswith("_")
+                numeric = name.lstrip("_").isupper() and node.value is not None and _number(node.value)
+                if (public or numeric) and name not in SOLVER_CODES:
+                    found.append(f"{path.relative_to(ROOT)}:{node.lineno} {name}")
+    assert not found, "module-level constants in solvers/ (make each a field of what it tunes):\n" + "\n".join(found)
+
+
 # ------------------------------------------------------------------ the tests themselves
 TESTS = ROOT / "tests"
 

@@ -1,6 +1,6 @@
 """Jacobian path tracking (thesis Algorithm 3): MP <- MP + K J^-1 e.
 
-The whole tracking run is one jitted while-loop (``Tracker``, a driver of
+The whole tracking run is one jitted while-loop (``Tracker``, an ``IterativeSolver`` run by
 ``jaxrkpm.solvers.iterate.iterate``): at each iteration the controller model's
 implicit Jacobian J = d CP / d MP is taken at its converged state, the manipulation point
 (a rigidly driven essential set, or the position of a contact tool that can only push) moves
@@ -39,7 +39,8 @@ from ..mechanics.contact import ContactTerm
 from ..mechanics.problem import Problem
 from ..model.model import Model
 from ..solvers.implicit import parameter_response, point_jacobian, response
-from ..solvers.iterate import iterate, when
+from ..solvers.iterate import IterativeSolver, run as run_solver, when
+from ..solvers.linalg.base import LinearStats
 from ..solvers.linalg.quasi_newton import secant
 from ..solvers.newton import Chord, Newton, _count, _flag
 from ..solvers.path import LoadPath
@@ -219,9 +220,12 @@ class ControlledModel:
         With ``keeps`` the ``state`` may factorise an earlier state than ``sol``: the
         stability reported is that of the factorisation used (of a nearby, earlier state),
         and a loss of stability shows as a chord that stops contracting (a refactorisation,
-        whose stability is then checked)."""
+        whose stability is then checked).
+
+        The Solution returned carries the settle's linear work (``stats``)."""
         prob = self.problem
-        sol = sol._replace(linear=None, params=None)   # the loop carries its factorisations itself (``state``)
+        # the loop carries its factorisations itself (``state``), and counts the work apart
+        sol = sol._replace(linear=None, params=None, stats=LinearStats.of())
         # a kept factorisation is given up by its contraction (the chord's reuse), not a count
         cap = max(max_corr, self.corrections) if self.keeps else max_corr
 
@@ -235,24 +239,27 @@ class ControlledModel:
             # from the predicted state at g1; where the prediction is not finite (after a failed
             # solve), from the last state moved to g1, whose residual the first step takes up
             u0, g0 = jnp.where(jnp.all(jnp.isfinite(du)), sol.u + du, sol.u), None
-        u, st, its, rn, learned = chord(u0, g0, state)
+        u, st, its, rn, learned, work = chord(u0, g0, state)
         if self.keeps:
             state = learned   # with a quasi-Newton solver: the secant pairs of the corrections
 
             def refactorised():
-                v, st2, its2, rn2, fresh = chord(u, None, self.linear.state_at(prob, u, g1, sol.load))
-                return v, st2, its + its2, rn2, fresh
+                fresh = self.linear.state_at(prob, u, g1, sol.load)
+                v, st2, its2, rn2, kept, work2 = chord(u, None, fresh)
+                return v, st2, its + its2, rn2, kept, work + self.linear.work(fresh) + work2
 
-            u, st, its, rn, state = when(st != Status.CONVERGED, refactorised, (u, st, its, rn, state))
+            u, st, its, rn, state, work = when(st != Status.CONVERGED, refactorised, (u, st, its, rn, state, work))
         quick = Solution(u, g1, sol.load, jnp.zeros_like(sol.status), jnp.ones_like(sol.t),
                          its.astype(sol.iterations.dtype), jnp.ones_like(sol.steps),
                          jnp.zeros_like(sol.cuts), rn.astype(sol.residual_norm.dtype),
-                         jnp.zeros_like(sol.branch), sol.critical)
+                         jnp.zeros_like(sol.branch), sol.critical, stats=work)
 
         def full():
             new = self.driver.solve(prob, lim, sol.u, sol.g, g1, sol.load, sol.load)
-            new = jax.tree.map(lambda a, b: a.astype(b.dtype), new, sol)   # the carry's dtypes
-            return new, (self.factorise(new) if self.keeps else state)
+            kept = self.factorise(new) if self.keeps else state
+            stats = work + new.stats + (self.linear.work(kept) if self.keeps else LinearStats.of())
+            new = jax.tree.map(lambda a, b: a.astype(b.dtype), new._replace(stats=stats), sol)   # the carry's dtypes
+            return new, kept
 
         return when(st != Status.CONVERGED, full, (quick, state))
 
@@ -266,7 +273,8 @@ class TrackResult:
     newton (n+1,) nonlinear iterations (linear solves: predictor + corrections) of the step,
     solve_status (n+1,); reached (W,) iteration at which each waypoint was reached (-1 if
     not); achieved (W, C*d) the control point there; desired (W, C*d); tool_start (d,) where
-    a contact tool was driven, its position at the start (the plant's; None for a set).
+    a contact tool was driven, its position at the start (the plant's; None for a set);
+    stats the run's linear algebra (``LinearStats``).
     Where a solve failed, its iteration's row holds the last converged state and the failed
     solve's status."""
 
@@ -283,6 +291,7 @@ class TrackResult:
     controller_solution: Solution
     plant_solution: Solution
     tool_start: np.ndarray | None = None
+    stats: LinearStats | None = None   # the run's linear work (every solve and Jacobian)
 
     @property
     def tool_position(self) -> np.ndarray:
@@ -382,12 +391,14 @@ class TrackState(NamedTuple):
     hist: History
     reached: jax.Array       # (W,) iteration at which each waypoint was reached (-1 if not)
     achieved: jax.Array      # (W, C*d) the control point there
-    status: jax.Array        # () -1 while running, else the TrackStatus
+    done: jax.Array          # () the run is over (short of the waypoints)
+    status: jax.Array        # () its TrackStatus (while running: HISTORY_FULL, what a stop there is)
     c_state: Any             # the kept factorisations (``ControlledModel.keeps``; else unused)
     p_state: Any
     du: jax.Array            # (d_mp, Nf, d) the controller's last response
     last_move: jax.Array     # (d_mp,) the last iteration's move (zero where it hit a waypoint or failed)
     du_next: jax.Array       # the response predicted at the current state (keeps: where its CG starts)
+    stats: LinearStats       # the linear work so far
 
 
 class TrackStep(NamedTuple):
@@ -403,6 +414,7 @@ class TrackStep(NamedTuple):
     p_state: Any
     du: jax.Array
     trend: jax.Array   # the response's predicted change over the move (``response_trend``)
+    stats: LinearStats   # the iteration's linear work
 
 
 class Tracked(NamedTuple):
@@ -415,10 +427,11 @@ class Tracked(NamedTuple):
     achieved: jax.Array
     controller: Solution
     plant: Solution
+    stats: LinearStats
 
 
 @dataclass(frozen=True)
-class Tracker:
+class Tracker(IterativeSolver):
     """Algorithm 3 as a driver of ``iterate`` (see ``track`` for the settings): each ``step``
     is one control iteration over ``TrackModels`` with ``TrackArgs``. One factorisation of the
     controller at its converged state serves the Jacobian and the settling of the next state
@@ -450,12 +463,11 @@ class Tracker:
             desired, gain, clamp, tol, damping) -> Tracked:
         """Track ``desired`` (W, C*d) from the equilibria c0 and p0 (one jitted while-loop)."""
         models = TrackModels(ctrl, plant)
-        # the loop carries its own factorisations: the ones the Solutions kept stay out of its carry
-        c0, p0 = c0._replace(linear=None, params=None), p0._replace(linear=None, params=None)
+        # the loop carries its own factorisations and counts its work apart: the ones the
+        # Solutions kept stay out of its carry
+        c0, p0 = (x._replace(linear=None, params=None, stats=LinearStats.of()) for x in (c0, p0))
         args = self.constants(models, lim, c0, p0, desired, gain, clamp, tol, damping)
-        s = iterate(self, models, args, self.init(models, args, c0, p0))
-        status = jnp.where(s.status < 0, TrackStatus.DONE, s.status)
-        return Tracked(s.k, status, s.hist, s.reached, s.achieved, s.c, s.p)
+        return run_solver(self, models, args, (c0, p0))
 
     def constants(self, models: TrackModels, lim, c0, p0, desired, gain, clamp, tol, damping) -> TrackArgs:
         # the chords' round-off floors, once, at the start: the floor is a stiffness times machine
@@ -467,8 +479,10 @@ class Tracker:
         p_floor = c_floor if self.same else models.plant.roundoff_floor(p0)
         return TrackArgs(lim, desired, gain, clamp, tol, damping, c0.g, p0.g, c_floor, p_floor)
 
-    def init(self, models: TrackModels, args: TrackArgs, c0: Solution, p0: Solution) -> TrackState:
+    def init(self, models: TrackModels, args: TrackArgs, start) -> TrackState:
+        """From the equilibria ``start`` = (controller's, plant's)."""
         ctrl, plant = models
+        c0, p0 = start
         dim_mp = ctrl.G.shape[0]
         n_wp, n_cp = args.desired.shape
         H = self.max_steps + 1
@@ -477,15 +491,24 @@ class Tracker:
         cp0 = plant.measure(p0)
         hist = hist._replace(cp=hist.cp.at[0].set(cp0),
                              error=hist.error.at[0].set(jnp.linalg.norm(args.desired[0] - cp0)))
-        c_state0 = self._first_factorisation(ctrl, c0)
-        p_state0 = c_state0 if self.same else self._first_factorisation(plant, p0)
+        c_state0, work = self._first_factorisation(ctrl, c0)
+        p_state0 = c_state0
+        if not self.same:
+            p_state0, p_work = self._first_factorisation(plant, p0)
+            work = work + p_work
         return TrackState(jnp.array(0), jnp.array(0), jnp.array(0), jnp.array(jnp.inf), jnp.array(0), jnp.zeros(dim_mp),
-                          c0, p0, cp0, hist, -jnp.ones(n_wp, jnp.int32), jnp.zeros((n_wp, n_cp)), jnp.array(-1),
-                          c_state0, p_state0, jnp.zeros((dim_mp,) + c0.u.shape, c0.u.dtype), jnp.zeros(dim_mp),
-                          jnp.zeros((dim_mp,) + c0.u.shape, c0.u.dtype))
+                          c0, p0, cp0, hist, -jnp.ones(n_wp, jnp.int32), jnp.zeros((n_wp, n_cp)), jnp.array(False),
+                          jnp.array(TrackStatus.HISTORY_FULL), c_state0, p_state0,
+                          jnp.zeros((dim_mp,) + c0.u.shape, c0.u.dtype), jnp.zeros(dim_mp),
+                          jnp.zeros((dim_mp,) + c0.u.shape, c0.u.dtype), work)
 
     def terminate(self, s: TrackState):
-        return (s.status >= 0) | (s.wp >= s.reached.shape[0])
+        """Done on a stop (``status``) or once every waypoint is reached (DONE)."""
+        finished = s.wp >= s.reached.shape[0]
+        return s.done | finished, jnp.where(finished & ~s.done, TrackStatus.DONE, s.status)
+
+    def postprocess(self, models: TrackModels, args: TrackArgs, s: TrackState, status) -> Tracked:
+        return Tracked(s.k, status, s.hist, s.reached, s.achieved, s.c, s.p, s.stats)
 
     def step(self, models: TrackModels, args: TrackArgs, s: TrackState) -> TrackState:
         """One control iteration; where the control point is already at its waypoint (|e| <
@@ -510,10 +533,10 @@ class Tracker:
         best, since = self.progress(s, e_new)
         at = jnp.where(moved, k, self.max_steps + 1)   # out of range: dropped (no row for a waypoint hit)
         hist = self.record(s.hist, at, History(mp, cp, e_new, s.wp, st.newton, st.solve_status))
-        after = self.next_waypoint(s, hit, best, since, self.status(s, ok, k, since))
+        after = self.next_waypoint(s, hit, best, since, *self.status(s, ok, k, since))
         return after._replace(k=k, mp=mp, c=c, p=p, cp=cp, hist=hist, c_state=new.c_state, p_state=new.p_state,
                               du=new.du, last_move=jnp.where(ok & moved, st.mp - s.mp, 0.0),
-                              du_next=jnp.where(ok & moved, new.du + new.trend, new.du))
+                              du_next=jnp.where(ok & moved, new.du + new.trend, new.du), stats=s.stats + new.stats)
 
     # -------------------------------------------------------------------------- parts
     def move(self, models: TrackModels, args: TrackArgs, s: TrackState, e) -> TrackStep:
@@ -522,7 +545,7 @@ class Tracker:
         ctrl, plant = models
         # a tool's problem moves with the manipulation point (``ControlledModel.at``; a driven set's stays)
         here = ctrl.at(s.mp)
-        state = self._factorisation(here, s.c, s.c_state)
+        state, work = self._factorisation(here, s.c, s.c_state)
         # with a kept factorisation the response is refined by CG: it starts from the one
         # predicted for this state (the last one plus its trend), which saves most of CG's
         # iterations (``experiments/bench_tracking.py``, ``experiments/bench_cube3d.py``);
@@ -537,23 +560,26 @@ class Tracker:
         du_move = predicted_change(du, dmp, trend) if ctrl.keeps else None
         c, c_state = ctrl.at(mp).settle(s.c, state, _moved(ctrl, args.c_base, mp), args.lim, self.max_corr,
                                         du_move, args.c_floor)
+        # the response's solve (one block of right-hand sides) and the controller's settle
+        work = work + LinearStats.of(solves=1) + c.stats
         if self.same:
             p, p_state = c, c_state
         else:
-            p, p_state = plant.at(mp).settle(s.p, self._factorisation(plant.at(s.mp), s.p, s.p_state),
-                                             _moved(plant, args.p_base, mp), args.lim, self.max_corr,
-                                             floor=args.p_floor)
+            p_factorised, p_work = self._factorisation(plant.at(s.mp), s.p, s.p_state)
+            p, p_state = plant.at(mp).settle(s.p, p_factorised, _moved(plant, args.p_base, mp), args.lim,
+                                             self.max_corr, floor=args.p_floor)
+            work = work + p_work + p.stats
         return TrackStep(mp, c, p, plant.measure(p), c.iterations + (0 if self.same else p.iterations),
-                         jnp.maximum(c.status, p.status), c_state, p_state, du, trend)
+                         jnp.maximum(c.status, p.status), c_state, p_state, du, trend, work)
 
     @staticmethod
     def taken(s: TrackState, new: TrackStep, hit) -> TrackStep:
         """The step kept: ``new``, or where the waypoint was hit, none (the state as it was,
         no iterations); the factorisations and responses are not selected (``step``)."""
         keep = TrackStep(s.mp, s.c, s.p, s.cp, jnp.array(0, s.c.iterations.dtype), jnp.array(0, s.c.status.dtype),
-                         None, None, None, None)
+                         None, None, None, None, None)
         return jax.tree.map(lambda a, b: jnp.where(hit, a, b), keep,
-                            new._replace(c_state=None, p_state=None, du=None, trend=None))
+                            new._replace(c_state=None, p_state=None, du=None, trend=None, stats=None))
 
     @staticmethod
     def progress(s: TrackState, error):
@@ -568,34 +594,45 @@ class Tracker:
         return History(*(h.at[at].set(v.astype(h.dtype), mode="drop") for h, v in zip(hist, row)))
 
     def status(self, s: TrackState, ok, k, since):
-        """-1 (go on) or why the run stops after an iteration from ``s``."""
-        return jnp.where(~ok, TrackStatus.SOLVE_FAILED,
-                         jnp.where(s.it_wp + 1 >= self.max_iter, TrackStatus.ITERATION_CAP,
-                                   jnp.where(since >= self.window, TrackStatus.NO_PROGRESS,
-                                             jnp.where(k >= self.max_steps, TrackStatus.HISTORY_FULL, -1))))
+        """(stop, why) after an iteration from ``s``: whether the run stops, and its
+        TrackStatus (HISTORY_FULL where it goes on: the status of a stop there)."""
+        stop = ~ok | (s.it_wp + 1 >= self.max_iter) | (since >= self.window) | (k >= self.max_steps)
+        why = jnp.where(~ok, TrackStatus.SOLVE_FAILED,
+                        jnp.where(s.it_wp + 1 >= self.max_iter, TrackStatus.ITERATION_CAP,
+                                  jnp.where(since >= self.window, TrackStatus.NO_PROGRESS, TrackStatus.HISTORY_FULL)))
+        return stop, why
 
     @staticmethod
-    def next_waypoint(s: TrackState, hit, best, since, status) -> TrackState:
+    def next_waypoint(s: TrackState, hit, best, since, stop, status) -> TrackState:
         """``s`` with the waypoint bookkeeping of the iteration from it: where the waypoint
         was hit, its record (the iteration and control point of ``s``) and the next
-        waypoint, its counters reset and the status unchanged (no solve counted, the states
-        and history stay); else the iteration's counters (``progress``) and ``status``."""
+        waypoint, its counters reset and the run going on (no solve counted, the states
+        and history stay); else the iteration's counters (``progress``), ``stop`` and
+        ``status``."""
         at_wp = jnp.where(hit, s.wp, s.reached.shape[0])   # out of range: dropped
         return s._replace(wp=s.wp + hit, it_wp=jnp.where(hit, 0, s.it_wp + 1), best=jnp.where(hit, jnp.inf, best),
                           since_best=jnp.where(hit, 0, since),
                           reached=s.reached.at[at_wp].set(s.k.astype(s.reached.dtype), mode="drop"),
-                          achieved=s.achieved.at[at_wp].set(s.cp, mode="drop"), status=jnp.where(hit, s.status, status))
+                          achieved=s.achieved.at[at_wp].set(s.cp, mode="drop"), done=jnp.where(hit, s.done, stop),
+                          status=jnp.where(hit, s.status, status))
 
     @staticmethod
     def _factorisation(side: ControlledModel, sol: Solution, kept):
-        return kept if side.keeps else side.factorise(sol)
+        """The factorisation a control step of ``side`` uses at ``sol`` and its LinearStats:
+        the ``kept`` one, or one made there."""
+        if side.keeps:
+            return kept, LinearStats.of()
+        state = side.factorise(sol)
+        return state, side.linear.work(state)
 
     @staticmethod
     def _first_factorisation(side: ControlledModel, sol: Solution):
-        """The factorisation kept from the start (a placeholder if none is)."""
+        """The factorisation kept from the start (a placeholder if none is) and its
+        LinearStats."""
         if side.keeps:
-            return side.factorise(sol)
-        return side.linear.empty(side.problem, sol.u.dtype)
+            state = side.factorise(sol)
+            return state, side.linear.work(state)
+        return side.linear.empty(side.problem, sol.u.dtype), LinearStats.of()
 
 
 def _moved(side: ControlledModel, g_base, mp):
@@ -660,31 +697,14 @@ def track(model: Model, path, driven: str, control_points, *, plant: Model | Non
     sparse and Krylov paths."""
     path = np.atleast_2d(np.asarray(path, float))
     cps = np.atleast_2d(np.asarray(control_points, float))
-    if path.ndim != 2 or path.shape[1] != cps.size or len(path) == 0:
-        raise ValueError(f"path must have {cps.size} columns (control points x dimensions), got {path.shape}")
-    if not np.all(np.isfinite(path)):
-        raise ValueError(f"path has non-finite waypoints (rows {np.flatnonzero(~np.isfinite(path).all(1)).tolist()})")
-    for name, v in (("gain", gain), ("clamp", clamp), ("tol", tol)):
-        if not (np.isfinite(v) and v > 0):
-            raise ValueError(f"{name} must be positive, got {v}")
-    if not (np.isfinite(damping) and damping >= 0):
-        raise ValueError(f"damping must be a finite number >= 0, got {damping}")
-    for name, v in (("max_iter", max_iter), ("max_steps", max_steps), ("window", window)):
-        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 1:
-            raise ValueError(f"{name} must be an int >= 1, got {v!r}")
-    if not (reuse is None or (isinstance(reuse, (int, float)) and 0 <= reuse < 1)):
-        raise ValueError(f"reuse must be None or a number in [0, 1) (0: factorise at every iteration), "
-                         f"got {reuse!r}")
+    _check_path(path, cps)
+    _check_track_options(gain, clamp, tol, damping, max_iter, max_steps, window, reuse)
     ctrl = ControlledModel.of(model, driven, cps, params, _kept(model, reuse))
     same = plant is None
     plant_model = model if same else plant
     pside = ctrl if same else ControlledModel.of(plant_model, plant_driven or driven, cps, plant_params,
                                                  _kept(plant_model, reuse))
-    if pside.G.shape[0] != ctrl.G.shape[0]:
-        raise ValueError("controller and plant must drive the same number of coordinates")
-    if (pside.tool is None) != (ctrl.tool is None):
-        raise ValueError("controller and plant must both drive an essential set or both a contact tool, got "
-                         f"{driven!r} and {plant_driven or driven!r}")
+    _check_sides(ctrl, pside, driven, plant_driven)
     c0 = _start(model, ctrl, initial, params, "initial")
     p0 = c0 if same else _start(plant_model, pside, plant_initial, plant_params, "plant_initial")
     # a tool's move is in the problem, not along the load path: cutting a failed step moves nothing
@@ -695,7 +715,35 @@ def track(model: Model, path, driven: str, control_points, *, plant: Model | Non
     h = History(*(np.asarray(v)[:n] for v in out.hist))
     start = None if pside.tool is None else np.asarray(pside.problem.term(pside.tool).position)
     return TrackResult(*h, np.asarray(out.reached), np.asarray(out.achieved), path, TrackStatus.of(out.status),
-                       out.controller, out.plant, start)
+                       out.controller, out.plant, start, LinearStats(*(np.asarray(v) for v in out.stats)))
+
+
+def _check_path(path, cps):
+    if path.ndim != 2 or path.shape[1] != cps.size or len(path) == 0:
+        raise ValueError(f"path must have {cps.size} columns (control points x dimensions), got {path.shape}")
+    if not np.all(np.isfinite(path)):
+        raise ValueError(f"path has non-finite waypoints (rows {np.flatnonzero(~np.isfinite(path).all(1)).tolist()})")
+
+
+def _check_track_options(gain, clamp, tol, damping, max_iter, max_steps, window, reuse):
+    for name, v in (("gain", gain), ("clamp", clamp), ("tol", tol)):
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be positive, got {v}")
+    if not (np.isfinite(damping) and damping >= 0):
+        raise ValueError(f"damping must be a finite number >= 0, got {damping}")
+    for name, v in (("max_iter", max_iter), ("max_steps", max_steps), ("window", window)):
+        _count(name, v, 1)
+    if not (reuse is None or (isinstance(reuse, (int, float)) and 0 <= reuse < 1)):
+        raise ValueError(f"reuse must be None or a number in [0, 1) (0: factorise at every iteration), "
+                         f"got {reuse!r}")
+
+
+def _check_sides(ctrl: ControlledModel, pside: ControlledModel, driven, plant_driven):
+    if pside.G.shape[0] != ctrl.G.shape[0]:
+        raise ValueError("controller and plant must drive the same number of coordinates")
+    if (pside.tool is None) != (ctrl.tool is None):
+        raise ValueError("controller and plant must both drive an essential set or both a contact tool, got "
+                         f"{driven!r} and {plant_driven or driven!r}")
 
 
 def _start(model: Model, side: ControlledModel, initial: Solution | None, params, what: str) -> Solution:

@@ -3,16 +3,13 @@
 """
 from __future__ import annotations
 
+import math
 from typing import Mapping
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-import math
-from functools import partial
-
-from ..solvers.continuation import ArcLength, EquilibriumPath, PathStatus, arc_step, start_point
+from ..solvers.continuation import ArcLength, ArcLengthPath, ArcPath, EquilibriumPath, arc_step, start_point
 from ..solvers.results import Limits, Solution, Status
 from .model import Model
 
@@ -63,90 +60,72 @@ def arc_length(model, ds: float, *, steps: int = 50, initial: Solution | None = 
     points whose displacement is recorded per point (checked inside the body before the path
     is computed). ``options``: solver settings of ``Model.solve`` (the corrector takes
     ``rtol``). Returns an EquilibriumPath (never raises for a failed step: its status
-    says why the path stopped, every accepted point is kept)."""
+    says why the path stopped, every accepted point is kept; ``stats`` its linear work)."""
+    _check_model(model)
+    ds, ds_max, psi = _check_lengths(ds, ds_max, psi)
+    lim = Limits.of(steps, max_iter, max_cuts)   # the solve's limits, checked the same way
+    _check_path_options(target_iterations, direction, load_max)
+    start = model.initial() if initial is None else model.check_solution(initial, "initial")
+    if not Status.of(start.status).equilibrium:
+        raise ValueError(f"initial must be an equilibrium, but its status is {Status.of(start.status).name}")
+    problem = _driven_problem(model, params, load_pattern)
+    dg = model.prescribed(prescribed)
+    if not (problem.loaded() or np.any(np.asarray(dg))):
+        raise ValueError("nothing drives the path: the model has no dead load (tractions, body force) "
+                         "and no pressure, and neither load_pattern nor prescribed is given")
+    probes = _probes(model, points)   # checked (inside the body, finite) before the path, not after it
+    newton = model.solver(**options).newton   # the options checked as a solve's
+    # the compiled step and start looked up here, at the call: a caller may wrap them
+    driver = ArcLengthPath(ArcLength(newton.linear, newton.tolerance), attempt=arc_step, first=start_point)
+    # explicit dtypes: a weakly typed Python scalar would compile arc_step a second time
+    args = ArcPath(dg, jnp.asarray(psi, jnp.float64), lim.max_iter, direction, ds, ds_max, steps, max_cuts,
+                   target_iterations, load_max, probes)
+    return driver.solve(problem, args, start)
+
+
+def _check_model(model):
     if not isinstance(model, Model):
         raise TypeError(f"model must be a jaxrkpm Model, got {type(model).__name__}")
     if model.unconstrained:
         raise ValueError("unconstrained: the model has no essential set and no springs, so it has "
                          "rigid-body modes and no path is unique; hold part of it or add Springs")
+
+
+def _check_lengths(ds, ds_max, psi):
+    """(ds, ds_max, psi) checked, ds_max 4 ds by default."""
     ds = _check_positive("ds", ds)
     ds_max = 4.0 * ds if ds_max is None else _check_positive("ds_max", ds_max)
     if ds_max < ds:
         raise ValueError(f"ds_max ({ds_max}) must be at least ds ({ds})")
-    lim = Limits.of(steps, max_iter, max_cuts)   # the solve's limits, checked the same way
+    return ds, ds_max, _check_positive("psi", psi, allow_zero=True)
+
+
+def _check_path_options(target_iterations, direction, load_max):
     if isinstance(target_iterations, bool) or not isinstance(target_iterations, int) or target_iterations < 1:
         raise ValueError(f"target_iterations must be a positive int, got {target_iterations!r}")
-    psi = _check_positive("psi", psi, allow_zero=True)
     if direction not in (1, -1):
         raise ValueError(f"direction must be +1 (load factor increasing first) or -1, got {direction!r}")
     if load_max is not None and not (isinstance(load_max, (int, float)) and math.isfinite(load_max)):
         raise ValueError(f"load_max must be a finite number (or None: no target), got {load_max!r}")
 
-    start = model.initial() if initial is None else model.check_solution(initial, "initial")
-    if not Status.of(start.status).equilibrium:
-        raise ValueError(f"initial must be an equilibrium, but its status is {Status.of(start.status).name}")
+
+def _driven_problem(model, params, load_pattern):
+    """The model's problem with ``params``, its dead loads replaced by ``load_pattern`` where
+    given (checked)."""
     problem = model.problem(params)
+    if load_pattern is None:
+        return problem
     f_ext = problem.load_pattern
-    if load_pattern is not None:
-        f = np.asarray(load_pattern, float)
-        if f.shape != f_ext.shape or not np.all(np.isfinite(f)):
-            raise ValueError(f"load_pattern must be finite nodal loads of shape {f_ext.shape} "
-                             f"(e.g. from jaxrkpm.point_load), got shape {f.shape}")
-        problem = problem.with_load_pattern(f)
-    dg = model.prescribed(prescribed)
-    if not (problem.loaded() or np.any(np.asarray(dg))):
-        raise ValueError("nothing drives the path: the model has no dead load (tractions, body force) "
-                         "and no pressure, and neither load_pattern nor prescribed is given")
-    probes = None
-    if points is not None:   # checked (inside the body, finite) before the path, not after it
-        sf = model.shape_functions(model.body.check_inside(points, "probe point"), gradients=False)
-        probes = jnp.asarray(sf.idx), jnp.asarray(sf.psi)
-    newton = model.solver(**options).newton   # the options checked as a solve's
-    arc = ArcLength(newton.linear, newton.tolerance)
-    # explicit dtypes: a weakly typed Python scalar would compile arc_step a second time
-    f64 = partial(jnp.asarray, dtype=jnp.float64)
-    psi_a = f64(psi)
-
-    u = jnp.asarray(start.u, jnp.float64)
-    g = jnp.asarray(start.g, jnp.float64)
-    lam = jnp.asarray(start.load, jnp.float64)
-    state, stab, neg, rn0 = start_point(arc, problem, u, g, lam)
-    rows = [(np.asarray(u), np.asarray(g), float(lam), float(rn0), int(stab), int(neg), 0.0, 0)]
-    du_prev, dlam_prev = jnp.zeros_like(u), f64(direction)
-    step_ds, cuts, status = ds, 0, PathStatus.COMPLETED
-    try:
-        for _ in range(steps):
-            tries = 0
-            while True:
-                out = arc_step(arc, problem, lim.max_iter, u, g, dg, lam, state, du_prev, dlam_prev,
-                               f64(step_ds), psi_a)
-                code = int(out[3])
-                if code == PathStatus.COMPLETED:
-                    break
-                if tries == max_cuts:
-                    status = PathStatus.of(code)
-                    break
-                tries, cuts, step_ds = tries + 1, cuts + 1, step_ds / 2
-            if status != PathStatus.COMPLETED:
-                break
-            u1, g1, lam1, _, its, rn, state, stab, neg = out
-            du_prev, dlam_prev = u1 - u, lam1 - lam
-            u, g, lam = u1, g1, lam1
-            its = int(its)
-            rows.append((np.asarray(u), np.asarray(g), float(lam), float(rn), int(stab), int(neg), step_ds, its))
-            step_ds = min(step_ds * min(2.0, max(0.5, math.sqrt(target_iterations / max(its, 1)))), ds_max)
-            if load_max is not None and float(lam) >= load_max:
-                break
-    except KeyboardInterrupt:
-        status = PathStatus.INTERRUPTED
-
-    U, G, L, R, ST, NEG, A, IT = (np.asarray(c) for c in zip(*rows))
-    disp = None
-    if probes is not None:
-        idx, psi_p = probes
-        # one point at a time: a compiled function of the path's length would recompile per length
-        disp = np.stack([np.asarray(_point_values(problem, idx, psi_p, u_k, g_k)) for u_k, g_k in zip(U, G)])
-    return EquilibriumPath(L, U, G, disp, R, ST, NEG, A, IT, cuts, PathStatus.of(status), start)
+    f = np.asarray(load_pattern, float)
+    if f.shape != f_ext.shape or not np.all(np.isfinite(f)):
+        raise ValueError(f"load_pattern must be finite nodal loads of shape {f_ext.shape} "
+                         f"(e.g. from jaxrkpm.point_load), got shape {f.shape}")
+    return problem.with_load_pattern(f)
 
 
-_point_values = jax.jit(lambda problem, idx, psi, u, g: problem.point_values(idx, psi, u, g))
+def _probes(model, points):
+    """(idx, psi) of the probe points' shape functions, or None without points."""
+    if points is None:
+        return None
+    sf = model.shape_functions(model.body.check_inside(points, "probe point"), gradients=False)
+    return jnp.asarray(sf.idx), jnp.asarray(sf.psi)

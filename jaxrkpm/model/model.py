@@ -514,7 +514,7 @@ class Model:
         a term's parameters by the term's name ("springs", a pressure's p by its name).
         ``initial`` warm-starts from a previous Solution (the path starts at its prescribed
         values and load). ``steps`` is the initial number of load steps (halved on failure,
-        grown when easy; at most jaxrkpm.solvers.results.MAX_STEPS). With ``throw`` a failed solve raises
+        grown when easy; at most jaxrkpm.solvers.results.Limits.most_steps). With ``throw`` a failed solve raises
         SolveError (carrying the last converged state), also under jax.jacfwd / jax.grad;
         under jit/vmap the status is returned instead.
 

@@ -1,5 +1,5 @@
 """Past a critical point: the switch to a stable branch (``BranchSwitch``) and the energy
-descent that reaches it (``StableDescent``, a solver with init / step / terminate).
+descent that reaches it (``StableDescent``, an ``IterativeSolver``).
 """
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from .iterate import iterate
+from .iterate import IterativeSolver, run
 from .linalg.dense import lowest_modes
 from .newton import Tolerance, _count, _positive
-from .results import CRITICAL_EIGS
+from .results import Critical, Status
 
 
 class DescentState(NamedTuple):
@@ -22,7 +22,10 @@ class DescentState(NamedTuple):
     residual: jax.Array   # (Nf, d) r at u
     shift: jax.Array      # () tau of the last step
     min_shift: jax.Array  # () the smallest tau the next step may try (Levenberg-Marquardt damping)
-    status: jax.Array     # () -1 running, 1 converged to a stable equilibrium, 0 failed
+    done: jax.Array       # () the descent is over
+    status: jax.Array     # () its Status: CONVERGED (to a stable equilibrium), INVERTED (running
+    #                       into det F = 0), NONFINITE (no shift factorised K_ff), MAX_ITERATIONS
+    #                       (also while running)
 
 
 class Fixed(NamedTuple):
@@ -34,7 +37,7 @@ class Fixed(NamedTuple):
 
 
 @dataclass(frozen=True)
-class StableDescent:
+class StableDescent(IterativeSolver):
     """Minimise the energy at a fixed load (g, load) by Newton steps on a shifted tangent.
 
     Each step solves (K_ff + tau I) p = -r with the smallest tau of the trial sequence 0,
@@ -105,10 +108,17 @@ class StableDescent:
     def init(self, problem, fixed: Fixed, u) -> DescentState:
         Pi0, _, r0 = self._evaluate(problem, fixed, u)
         zero = jnp.asarray(0.0, u.dtype)
-        return DescentState(jnp.array(0), u, Pi0, r0, zero, zero, jnp.array(-1))
+        return DescentState(jnp.array(0), u, Pi0, r0, zero, zero, jnp.array(False), jnp.array(Status.MAX_ITERATIONS))
 
     def terminate(self, s: DescentState):
-        return s.status >= 0
+        return s.done, s.status
+
+    def postprocess(self, problem, fixed: Fixed, s: DescentState, status):
+        """(u, converged to a stable equilibrium, energy, iterations): stable by a Cholesky
+        factorisation of K_ff at the state returned."""
+        L = jnp.linalg.cholesky(problem.tangent(s.u, fixed.g, fixed.load))
+        stable = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
+        return s.u, (status == Status.CONVERGED) & stable, s.energy, s.iteration
 
     def step(self, problem, fixed: Fixed, s: DescentState) -> DescentState:
         v, Pi, r = s.u, s.energy, s.residual
@@ -140,17 +150,16 @@ class StableDescent:
         # damping) instead of giving up; after a good step the damping relaxes
         tau_min = s.min_shift
         tau_min = jnp.where(ls_ok, jnp.where(tau_min / 4 < beta, 0.0, tau_min / 4), jnp.maximum(4 * tau, beta))
-        status = jnp.where(done, 1, jnp.where(~chol_ok | collapsing | (s.iteration + 1 >= fixed.max_iter), 0, -1))
+        status = jnp.where(done, Status.CONVERGED,
+                           jnp.where(~chol_ok, Status.NONFINITE,
+                                     jnp.where(collapsing, Status.INVERTED, Status.MAX_ITERATIONS)))
+        over = done | ~chol_ok | collapsing | (s.iteration + 1 >= fixed.max_iter)
         return DescentState(s.iteration + 1, jnp.where(ok, w, v), jnp.where(ok, Pi_w, Pi), jnp.where(ok, r_w, r),
-                            tau, tau_min, status)
+                            tau, tau_min, over, status)
 
     def solve(self, problem, u, g, load, max_iter):
         """(u, converged to a stable equilibrium, energy, iterations)."""
-        fixed = Fixed(g, load, max_iter)
-        s = iterate(self, problem, fixed, self.init(problem, fixed, u))
-        L = jnp.linalg.cholesky(problem.tangent(s.u, g, load))
-        stable = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
-        return s.u, (s.status == 1) & stable, s.energy, s.iteration
+        return run(self, problem, Fixed(g, load, max_iter), u)
 
 
 @dataclass(frozen=True)
@@ -199,10 +208,11 @@ class BranchSwitch:
         return best
 
     def switch(self, problem, u, g, load, max_iter):
-        """(u, found, lowest eigenvalues (CRITICAL_EIGS,), critical mode (Nf, d) of unit norm,
-        iterations) from the unstable equilibrium u at (g, load)."""
-        lam, vecs = lowest_modes(problem.tangent(u, g, load), min(CRITICAL_EIGS, u.size))
-        lam = jnp.concatenate([lam, jnp.full((CRITICAL_EIGS - lam.shape[0],), jnp.nan, lam.dtype)])
+        """(u, found, lowest eigenvalues (Critical.n_eigenvalues,), critical mode (Nf, d) of
+        unit norm, iterations) from the unstable equilibrium u at (g, load)."""
+        k = Critical.n_eigenvalues
+        lam, vecs = lowest_modes(problem.tangent(u, g, load), min(k, u.size))
+        lam = jnp.concatenate([lam, jnp.full((k - lam.shape[0],), jnp.nan, lam.dtype)])
         mode = vecs[:, 0].reshape(u.shape)
         kick = self.amplitude * problem.spacing / jnp.max(jnp.abs(mode)) * mode
 

@@ -34,28 +34,31 @@ Design choices (and why):
   the arc length in half and retry from the last accepted point.
 - **Adaptive arc length**: after a step that took I corrector iterations,
   Delta s <- Delta s sqrt(target / I), clipped to [1/2, 2] times the last and to ``ds_max``.
-- **A jitted step called from Python**: each step attempt (predictor, corrector loop and
-  the factorisation at the new point) is one compiled function; the loop over steps (and
-  the cuts) is Python. A lax loop over all steps would compile the same step body, so it
-  saves no compile time; it would need (steps, Nf, d) buffers preallocated for the longest
-  path, and its points would reach the host only when the whole loop returns. Here every
-  accepted point is copied to the host as it is accepted, so a failure (or Ctrl-C) loses
-  none, the path stops at once on its target or a failure, and the one dispatch per step
-  costs far less than the step's factorisations.
+- **Two solvers, one contract**: the corrector (``ArcLength``) runs inside jit, one compiled
+  function per step attempt (``arc_step``: predictor, corrector loop and the factorisation
+  at the new point); the path (``ArcLengthPath``) runs on the host, through the same
+  ``iterate`` with a Python loop, one step attempt (accepted, or the arc length cut) per
+  iteration. A lax loop over all steps would compile the same step body, so it saves no
+  compile time; it would need (steps, Nf, d) buffers preallocated for the longest path, and
+  its points would reach the host only when the whole loop returns. Here every accepted
+  point is copied to the host as it is accepted, so a failure (or Ctrl-C) loses none, the
+  path stops at once on its target or a failure, and the one dispatch per step costs far
+  less than the step's factorisations.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import partial
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..base.outcome import Outcome
-from .iterate import iterate
-from .linalg.base import LinearSolver, Stability
+from .iterate import IterativeSolver, python_loop, run
+from .linalg.base import LinearSolver, LinearStats, Stability
 from .linalg.dense import DenseSolver
 from .newton import Tolerance
 from .results import Solution, Status
@@ -75,9 +78,6 @@ class PathStatus(Outcome):
     INTERRUPTED = 5, "interrupted (KeyboardInterrupt); the points accepted until then are kept"
 
 
-_RUNNING = -1
-
-
 @dataclass(frozen=True)
 class EquilibriumPath:
     """An equilibrium path from ``arc_length`` (NumPy arrays, one row per accepted point;
@@ -89,7 +89,8 @@ class EquilibriumPath:
     of negative eigenvalues (-1 where the factorisation could not tell); arc (n,) the arc
     length of the step that reached each point (0 at the start); iterations (n,) corrector
     iterations; cuts: arc-length halvings in all; status: a PathStatus code; start: the
-    Solution the path started from."""
+    Solution the path started from; stats: the linear algebra of the whole path
+    (``LinearStats``, every attempt)."""
 
     load: np.ndarray
     u: np.ndarray
@@ -103,6 +104,7 @@ class EquilibriumPath:
     cuts: int
     status: PathStatus
     start: Solution
+    stats: LinearStats | None = None
 
     def __len__(self) -> int:
         return len(self.load)
@@ -175,25 +177,44 @@ class ArcStep(NamedTuple):
     dg: jax.Array        # (Nb, d) prescribed-value direction per unit lambda
     lam0: jax.Array      # ()
     ds: jax.Array        # () the arc length
-    psi2: jax.Array      # () the load term's weight in the constraint, psi^2 |q|^2
-    r_ref: jax.Array     # () the out-of-balance load the step puts on
+    psi2: jax.Array      # () the load term's weight in the constraint (``predict``: psi^2 |q|^2)
+    r_ref: jax.Array     # () the out-of-balance load the step puts on (``predict``)
     max_iter: jax.Array  # () corrector iterations
+    linear0: Any         # the factorisation of K_ff at (u0, g0, lam0)
 
 
 class ArcState(NamedTuple):
     iteration: jax.Array      # () corrector iterations done
     du: jax.Array             # (Nf, d) the increment of the free coefficients
     dlam: jax.Array           # () the increment of the load factor
-    status: jax.Array         # () _RUNNING, else a PathStatus code
+    done: jax.Array           # () the corrector is over
+    status: jax.Array         # () its PathStatus (COMPLETED: converged; MAX_ITERATIONS while running)
     residual_norm: jax.Array  # () |r| at the last iterate
     linear: Any               # the factorisation of K_ff at the last iterate
+    stats: LinearStats        # the linear work so far
+
+
+class ArcPoint(NamedTuple):
+    """A step attempt's outcome (``arc_step``): the new point, or the failure."""
+
+    u: jax.Array              # (Nf, d)
+    g: jax.Array              # (Nb, d)
+    load: jax.Array           # () lambda
+    status: jax.Array         # () PathStatus: COMPLETED (accepted), else why the attempt failed
+    iterations: jax.Array     # () corrector iterations
+    residual_norm: jax.Array  # () |r|
+    linear: Any               # the factorisation of K_ff there
+    stability: jax.Array      # () its Stability code
+    negative: jax.Array       # () its negative eigenvalues (-1: unknown)
+    stats: LinearStats        # the attempt's linear work
 
 
 @dataclass(frozen=True)
-class ArcLength:
+class ArcLength(IterativeSolver):
     """The arc-length corrector (see the module docstring): full Newton on (u, lambda) with
     Crisfield's constraint, the tangent factorised at every iterate by ``linear``, converged
-    by ``tolerance``. A solver with init / step / terminate; ``step_from`` takes one step."""
+    by ``tolerance``. Its start is the predictor's increment (``predict``); ``arc_step`` takes
+    one step."""
 
     linear: LinearSolver = DenseSolver()
     tolerance: Tolerance = Tolerance()
@@ -210,28 +231,34 @@ class ArcLength:
         return r, -dr, detmin
 
     def start(self, problem, u, g, load):
-        """The path's first point: (factorisation of K_ff, stability, negative eigenvalues, |r|)."""
+        """The path's first point: (factorisation of K_ff, stability, negative eigenvalues, |r|,
+        LinearStats)."""
         state = self.linear.state_at(problem, u, g, load)
         rn = jnp.linalg.norm(problem.residual(u, g, load))
-        return state, self.linear.stability(state), self.linear.negative_eigenvalues(state), rn
+        return (state, self.linear.stability(state), self.linear.negative_eigenvalues(state), rn,
+                self.linear.work(state))
 
-    def init(self, problem, step: ArcStep, state0, du_prev, dlam_prev) -> tuple:
+    def predict(self, problem, step: ArcStep, du_prev, dlam_prev) -> tuple:
         """The predictor: the tangent u_t = K^-1 q scaled to the arc length, signed by the
         angle with the last increment (see the module docstring). Returns (the step's
-        constants completed, the corrector's first state)."""
+        constants completed, the corrector's start (du, dlam))."""
         _, q0, _ = self.residual_and_load(problem, step.u0, step.g0, step.dg, step.lam0, step.lam0)
         qq = jnp.sum(q0 * q0)
         psi2 = step.psi2 * qq     # the load term's weight in the constraint
-        ut = self.linear.solve(state0, q0)
+        ut = self.linear.solve(step.linear0, q0)
         angle = jnp.sum(ut * du_prev) + psi2 * dlam_prev
         sign = jnp.where(angle != 0, jnp.sign(angle), jnp.where(dlam_prev < 0, -1.0, 1.0))
         dlam = sign * step.ds / jnp.sqrt(jnp.sum(ut * ut) + psi2)
-        du = dlam * ut
-        step = step._replace(psi2=psi2, r_ref=jnp.abs(dlam) * jnp.sqrt(qq))
-        return step, ArcState(jnp.array(0), du, dlam, jnp.array(_RUNNING), jnp.array(jnp.inf), state0)
+        return step._replace(psi2=psi2, r_ref=jnp.abs(dlam) * jnp.sqrt(qq)), (dlam * ut, dlam)
+
+    def init(self, problem, step: ArcStep, start) -> ArcState:
+        """From the predicted increment ``start`` = (du, dlam) (the predictor's solve counted)."""
+        du, dlam = start
+        return ArcState(jnp.array(0), du, dlam, jnp.array(False), jnp.array(PathStatus.MAX_ITERATIONS),
+                        jnp.array(jnp.inf), step.linear0, LinearStats.of(solves=1))
 
     def terminate(self, s: ArcState):
-        return s.status != _RUNNING
+        return s.done, s.status
 
     def step(self, problem, step: ArcStep, s: ArcState) -> ArcState:
         du, dlam, it = s.du, s.dlam, s.iteration
@@ -244,9 +271,22 @@ class ArcLength:
         state = self.linear.state_at(problem, u, g, lam)
         # K [dr, dt] = [-r, q]: the residual correction and the tangent at this iterate
         x = self.linear.solve(state, jnp.stack([-r, q], axis=-1))
-        d_r, d_t = x[..., 0], x[..., 1]
-        w = du + d_r
-        psi2, ds = step.psi2, step.ds
+        w, d_t = du + x[..., 0], x[..., 1]
+        dl, disc = self._load_correction(step, s, w, d_t)
+        failed = ~finite | (detmin <= 0)
+        status = jnp.where(~finite, PathStatus.NONFINITE,
+                           jnp.where(detmin <= 0, PathStatus.INVERTED,
+                                     jnp.where(converged, PathStatus.COMPLETED,
+                                               jnp.where(disc < 0, PathStatus.NO_ROOT, PathStatus.MAX_ITERATIONS))))
+        done = failed | converged | (disc < 0) | (it + 1 >= step.max_iter)
+        return ArcState(it + 1, jnp.where(done, du, w + dl * d_t), jnp.where(done, dlam, dlam + dl), done, status,
+                        rn, state, s.stats + self.linear.work(state) + LinearStats.of(solves=1))
+
+    def _load_correction(self, step: ArcStep, s: ArcState, w, d_t):
+        """Crisfield's quadratic for the load-factor correction dl of the iterate w + dl d_t:
+        (dl, its discriminant); of the two roots, the one whose increment makes the smaller
+        angle with the current one (no doubling back)."""
+        psi2, ds, du, dlam = step.psi2, step.ds, s.du, s.dlam
         a = jnp.sum(d_t * d_t) + psi2
         b = 2.0 * (jnp.sum(d_t * w) + psi2 * dlam)
         cc = jnp.sum(w * w) + psi2 * dlam * dlam - ds * ds
@@ -254,19 +294,15 @@ class ArcLength:
         root = jnp.sqrt(jnp.maximum(disc, 0.0))
         dl1, dl2 = (-b + root) / (2.0 * a), (-b - root) / (2.0 * a)
 
-        def angle(dl):   # with the current increment: the root that does not double back
+        def angle(dl):   # with the current increment
             return jnp.sum((w + dl * d_t) * du) + psi2 * (dlam + dl) * dlam
 
-        dl = jnp.where(angle(dl1) >= angle(dl2), dl1, dl2)
-        status = jnp.where(~finite, PathStatus.NONFINITE,
-                           jnp.where(detmin <= 0, PathStatus.INVERTED,
-                                     jnp.where(converged, PathStatus.COMPLETED,
-                                               jnp.where(disc < 0, PathStatus.NO_ROOT,
-                                                         jnp.where(it + 1 >= step.max_iter, PathStatus.MAX_ITERATIONS,
-                                                                   _RUNNING)))))
-        keep = converged | (status != _RUNNING)
-        return ArcState(it + 1, jnp.where(keep, du, w + dl * d_t), jnp.where(keep, dlam, dlam + dl), status, rn,
-                        state)
+        return jnp.where(angle(dl1) >= angle(dl2), dl1, dl2), disc
+
+    def postprocess(self, problem, step: ArcStep, s: ArcState, status) -> ArcPoint:
+        u, g, lam = step.u0 + s.du, step.g0 + s.dlam * step.dg, step.lam0 + s.dlam
+        return ArcPoint(u, g, lam, status, s.iteration - 1, s.residual_norm, s.linear,
+                        self.linear.stability(s.linear), self.linear.negative_eigenvalues(s.linear), s.stats)
 
 
 @partial(jax.jit, static_argnames=("arc",))
@@ -276,17 +312,123 @@ def start_point(arc: ArcLength, problem, u, g, load):
 
 
 @partial(jax.jit, static_argnames=("arc",))
-def arc_step(arc: ArcLength, problem, max_iter, u0, g0, dg, lam0, state0, du_prev, dlam_prev, ds, psi):
+def arc_step(arc: ArcLength, problem, max_iter, u0, g0, dg, lam0, state0, du_prev, dlam_prev, ds, psi) -> ArcPoint:
     """One arc-length step of length ``ds`` from the equilibrium (u0, g0, lam0), whose
     factorisation is ``state0``; (du_prev, dlam_prev) is the last accepted increment (zeros
-    and the wanted sign of the first load increment on the first step).
+    and the wanted sign of the first load increment on the first step). Returns the
+    ``ArcPoint`` (status COMPLETED: accepted, else the PathStatus of the failure: the caller
+    cuts ``ds``)."""
+    step = ArcStep(u0, g0, dg, lam0, ds, psi * psi, jnp.zeros((), u0.dtype), max_iter, state0)
+    step, start = arc.predict(problem, step, du_prev, dlam_prev)
+    return run(arc, problem, step, start)
 
-    Returns (u, g, lam, status, iterations, |r|, state, stability, negative eigenvalues) at
-    the new point; status 0 accepted, else the PathStatus of the failure (the caller cuts
-    ``ds``)."""
-    step = ArcStep(u0, g0, dg, lam0, ds, psi * psi, jnp.zeros((), u0.dtype), max_iter)
-    step, s = arc.init(problem, step, state0, du_prev, dlam_prev)
-    s = iterate(arc, problem, step, s)
-    u, g, lam = u0 + s.du, g0 + s.dlam * dg, lam0 + s.dlam
-    return (u, g, lam, s.status, s.iteration - 1, s.residual_norm, s.linear, arc.linear.stability(s.linear),
-            arc.linear.negative_eigenvalues(s.linear))
+
+# ----------------------------------------------------------------------- on the host
+class ArcPath(NamedTuple):
+    """The path's constants (``ArcLengthPath``; host values, but ``dg``, ``psi``, ``max_iter``
+    as the arrays ``arc_step`` takes)."""
+
+    dg: jax.Array             # (Nb, d) prescribed-value direction per unit lambda
+    psi: jax.Array            # () the constraint's load weight
+    max_iter: jax.Array       # () corrector iterations per attempt
+    direction: int            # +1: the load factor increases first; -1: it decreases
+    ds: float                 # the first arc length
+    ds_max: float             # the largest
+    steps: int                # accepted steps at most
+    max_cuts: int             # halvings of the arc length in a row before the path stops
+    target_iterations: int    # corrector iterations a step should take (the arc length adapts)
+    load_max: float | None    # the path stops once lambda reaches it
+    probes: Any = None        # (idx, psi) of the points whose displacement is recorded, or None
+
+
+class ArcPathState(NamedTuple):
+    """The path between step attempts (host values; the last point's arrays as returned)."""
+
+    u: Any                 # (Nf, d) the last accepted point
+    g: Any                 # (Nb, d)
+    lam: Any               # ()
+    linear: Any            # the factorisation of K_ff there
+    du_prev: Any           # (Nf, d) the last accepted increment
+    dlam_prev: Any         # ()
+    ds: float              # the next attempt's arc length
+    tries: int             # cuts in a row at this step
+    cuts: int              # cuts in all
+    rows: tuple            # the accepted points' host records (``ArcLengthPath.row``)
+    done: bool
+    status: PathStatus     # COMPLETED while running
+    stats: LinearStats     # the linear work of every attempt
+    origin: Solution       # the Solution the path started from
+
+
+@dataclass(frozen=True)
+class ArcLengthPath(IterativeSolver):
+    """The equilibrium path by arc-length steps (see the module docstring), on the host: each
+    ``step`` is one attempt by the compiled ``attempt`` (``arc_step``), accepted, or cut in
+    half and retried (``max_cuts`` times in a row, then the path stops with the attempt's
+    status); the arc length then adapts to about ``target_iterations`` corrector iterations
+    a step, never above ``ds_max``. ``first`` (``start_point``) factorises the start. An
+    interrupt (KeyboardInterrupt) during an attempt ends the path with INTERRUPTED, every
+    accepted point kept. ``run`` through ``iterate`` with a Python loop (``solve``)."""
+
+    corrector: ArcLength = ArcLength()
+    attempt: Callable = arc_step
+    first: Callable = start_point
+
+    @staticmethod
+    def row(u, g, lam, rn, stab, neg, ds, its) -> tuple:
+        """A point's host record: (u, g, lambda, |r|, stability, negative eigenvalues, the arc
+        length that reached it, corrector iterations)."""
+        return np.asarray(u), np.asarray(g), float(lam), float(rn), int(stab), int(neg), float(ds), int(its)
+
+    def init(self, problem, args: ArcPath, start: Solution) -> ArcPathState:
+        f64 = partial(jnp.asarray, dtype=jnp.float64)
+        u, g, lam = f64(start.u), f64(start.g), f64(start.load)
+        state, stab, neg, rn0, work = self.first(self.corrector, problem, u, g, lam)
+        return ArcPathState(u, g, lam, state, jnp.zeros_like(u), f64(args.direction), float(args.ds), 0, 0,
+                            (self.row(u, g, lam, rn0, stab, neg, 0.0, 0),), False, PathStatus.COMPLETED, work,
+                            start)
+
+    def terminate(self, s: ArcPathState):
+        return s.done, s.status
+
+    def step(self, problem, args: ArcPath, s: ArcPathState) -> ArcPathState:
+        try:
+            out = self.attempt(self.corrector, problem, args.max_iter, s.u, s.g, args.dg, s.lam, s.linear,
+                               s.du_prev, s.dlam_prev, jnp.asarray(s.ds, jnp.float64), args.psi)
+            code = PathStatus.of(int(out.status))
+        except KeyboardInterrupt:
+            return s._replace(done=True, status=PathStatus.INTERRUPTED)
+        s = s._replace(stats=s.stats + out.stats)
+        if code == PathStatus.COMPLETED:
+            return self._accepted(args, s, out)
+        if s.tries == args.max_cuts:
+            return s._replace(done=True, status=code)
+        return s._replace(tries=s.tries + 1, cuts=s.cuts + 1, ds=s.ds / 2)
+
+    def _accepted(self, args: ArcPath, s: ArcPathState, out: ArcPoint) -> ArcPathState:
+        """The path after the accepted attempt ``out``, and the next arc length."""
+        its = int(out.iterations)
+        rows = s.rows + (self.row(out.u, out.g, out.load, out.residual_norm, out.stability, out.negative, s.ds,
+                                  its),)
+        ds = min(s.ds * min(2.0, max(0.5, math.sqrt(args.target_iterations / max(its, 1)))), args.ds_max)
+        done = len(rows) > args.steps or (args.load_max is not None and float(out.load) >= args.load_max)
+        return s._replace(u=out.u, g=out.g, lam=out.load, linear=out.linear, du_prev=out.u - s.u,
+                          dlam_prev=out.load - s.lam, ds=ds, tries=0, rows=rows, done=done)
+
+    def postprocess(self, problem, args: ArcPath, s: ArcPathState, status) -> EquilibriumPath:
+        """The EquilibriumPath of the accepted points (the probes' displacements at each)."""
+        U, G, L, R, ST, NEG, A, IT = (np.asarray(c) for c in zip(*s.rows))
+        disp = None
+        if args.probes is not None:
+            idx, psi_p = args.probes
+            # one point at a time: a compiled function of the path's length would recompile per length
+            disp = np.stack([np.asarray(_point_values(problem, idx, psi_p, u_k, g_k)) for u_k, g_k in zip(U, G)])
+        stats = LinearStats(*(np.asarray(v) for v in s.stats))
+        return EquilibriumPath(L, U, G, disp, R, ST, NEG, A, IT, s.cuts, PathStatus.of(status), s.origin, stats)
+
+    def solve(self, problem, args: ArcPath, start: Solution) -> EquilibriumPath:
+        """The path from the equilibrium ``start``: ``run`` on the host (a Python loop)."""
+        return run(self, problem, args, start, loop=python_loop)
+
+
+_point_values = jax.jit(lambda problem, idx, psi, u, g: problem.point_values(idx, psi, u, g))

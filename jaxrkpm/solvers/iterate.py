@@ -1,18 +1,73 @@
-"""The one iteration loop of every solver and driver, and the conditional they share.
+"""The solver contract (``IterativeSolver``), the one loop that runs every solver and driver
+(``iterate``, ``run``), and the conditional they share.
 
-A solver (or driver) is a static object with ``step(problem, args, state) -> state`` and
-``terminate(state) -> bool``; its state is a NamedTuple. ``iterate`` runs it inside jit
-(``lax.while_loop``) or, for host-side iterations, as a plain Python loop.
+Every nonlinear solver and driver of the package (``Newton``, ``Chord``, ``StableDescent``,
+``LoadPath``, ``ArcLength``, ``ArcLengthPath``, the tracking loop's ``Tracker``) is a static,
+immutable object implementing ``IterativeSolver``; a solver written outside the package that
+implements it runs through ``iterate`` and ``run`` the same way.
 """
 from __future__ import annotations
+
+from abc import abstractmethod
+from typing import Any, Protocol, runtime_checkable
 
 import jax
 import jax.numpy as jnp
 
 
-def iterate(solver, problem, args, state, loop=jax.lax.while_loop):
-    """``solver.step(problem, args, state)`` until ``solver.terminate(state)``."""
-    return loop(lambda s: ~solver.terminate(s), lambda s: solver.step(problem, args, s), state)
+@runtime_checkable
+class IterativeSolver(Protocol):
+    """The contract of every solver: a static description whose iteration state is a pytree
+    (a NamedTuple; host-side drivers: any immutable value), in the manner of optimistix.
+
+    ``problem`` is what the iteration solves (a ``Problem``, or the models of a tracking
+    loop); ``args`` the iteration's constants (the increment asked for, limits, the
+    factorisation to start from), built by the solver's own method before the loop;
+    ``start`` the iterate the loop starts from (an array, or a tuple of them).
+
+    - ``init(problem, args, start) -> state``
+    - ``step(problem, args, state) -> state``: one iteration
+    - ``terminate(state) -> (done, status)``: whether the iteration is over, and its outcome
+      code (the solver's own ``Outcome``: ``Status``, ``PathStatus``, ``TrackStatus``), valid
+      at every state: the outcome the iteration has if it stops there
+    - ``postprocess(problem, args, state, status) -> result``: the result of the final state
+
+    Built-in solvers subclass it (so a missing method fails at construction, and the
+    architecture test finds them); a solver defined elsewhere need only have the four
+    methods (``isinstance(solver, IterativeSolver)``)."""
+
+    @abstractmethod
+    def init(self, problem, args, start) -> Any:
+        """The state the loop starts from."""
+
+    @abstractmethod
+    def step(self, problem, args, state) -> Any:
+        """The state after one iteration."""
+
+    @abstractmethod
+    def terminate(self, state) -> tuple:
+        """(done, status): whether the iteration is over, and its outcome code."""
+
+    @abstractmethod
+    def postprocess(self, problem, args, state, status) -> Any:
+        """The solve's result from its final state and outcome."""
+
+
+def iterate(solver: IterativeSolver, problem, args, state, loop=jax.lax.while_loop):
+    """``solver.step(problem, args, state)`` until ``solver.terminate(state)`` says done: the
+    final state. ``loop``: ``jax.lax.while_loop`` (inside jit) or ``python_loop`` (a host-side
+    iteration, whose steps may call compiled functions)."""
+    def running(s):
+        return jnp.logical_not(solver.terminate(s)[0])
+    return loop(running, lambda s: solver.step(problem, args, s), state)
+
+
+def run(solver: IterativeSolver, problem, args, start, loop=jax.lax.while_loop):
+    """A whole solve through the contract: ``init``, ``iterate``, then ``postprocess`` of the
+    final state with its outcome from ``terminate``."""
+    state = iterate(solver, problem, args, solver.init(problem, args, start), loop)
+    _, status = solver.terminate(state)
+    return solver.postprocess(problem, args, state, status)
 
 
 def python_loop(cond, body, state):

@@ -2,8 +2,8 @@
 
 ``Newton`` (full Newton; modified Newton with ``reuse`` > 0) and ``Chord`` (every solve with a
 given factorisation; quasi-Newton chord with a ``QuasiNewton`` linear solver) differ by one
-flag. Each is a static, immutable description with ``init`` / ``step`` / ``terminate`` over a
-``NewtonState``, run by the one loop of :func:`jaxrkpm.solvers.iterate.iterate`; ``solve``
+flag. Each is an ``IterativeSolver`` (``init`` / ``step`` / ``terminate`` / ``postprocess`` over
+a ``NewtonState``), run by the one loop of :func:`jaxrkpm.solvers.iterate.iterate`; ``solve``
 does it all::
 
     newton = Newton(linear=DenseSolver(), rtol=1e-10)
@@ -21,8 +21,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .iterate import iterate, when
-from .linalg.base import LinearSolver, Stability
+from .iterate import IterativeSolver, run, when
+from .linalg.base import LinearSolver, LinearStats, Stability
 from .linalg.dense import DenseSolver
 from .results import Status
 
@@ -81,6 +81,8 @@ class Increment(NamedTuple):
     r_ref: jax.Array      # () |rhs0|: the out-of-balance force the increment puts on
     max_iter: jax.Array   # () iteration cap
     floor: Any            # () round-off floor given by the caller, or None (computed once)
+    linear: Any = None    # the linear solver's state the iteration starts from (a chord's
+    #                       factorisation; modified Newton's predictor where it is stable)
 
 
 class NewtonState(NamedTuple):
@@ -90,12 +92,14 @@ class NewtonState(NamedTuple):
     u: jax.Array          # (Nf, d) the iterate
     energy: jax.Array     # () Pi at u
     residual: jax.Array   # (Nf, d) r at u (before the first step: the predictor's right-hand side)
-    status: jax.Array     # () -1 while running, else a Status code
+    done: jax.Array       # () the iteration is over
+    status: jax.Array     # () its Status (while running: MAX_ITERATIONS, the status of a stop there)
     linear: Any           # the linear solver's state (its factorisation)
     keep: jax.Array       # () modified Newton: the kept factorisation serves the next iteration
     scale: jax.Array      # () the force scale of the tolerance
     floor: jax.Array      # () the round-off floor of the tolerance
     factorised: jax.Array  # () modified Newton: a tangent of this load step has been factorised
+    stats: LinearStats    # the linear work so far
 
 
 class NewtonResult(NamedTuple):
@@ -104,10 +108,11 @@ class NewtonResult(NamedTuple):
     iterations: jax.Array
     residual_norm: jax.Array
     linear: Any           # the linear solver's last state
+    stats: LinearStats    # the solve's linear work
 
 
 @dataclass(frozen=True)
-class Newton:
+class Newton(IterativeSolver):
     """Newton from the equilibrium at (g0, l0) to (g1, l1).
 
     The first linear solve is the predictor: it carries the prescribed increment,
@@ -180,9 +185,9 @@ class Newton:
         return (not self.chord) and self.reuse > 0 and self.linear.modified_newton
 
     # ------------------------------------------------------------------- the protocol
-    def increment(self, problem, u, g0, g1, l0, l1, max_iter, floor=None) -> Increment:
+    def increment(self, problem, u, g0, g1, l0, l1, max_iter, floor=None, linear=None) -> Increment:
         """The loop's constants for a solve from u (an equilibrium at g0, or with g0 None an
-        iterate at g1)."""
+        iterate at g1), the linear solver's state starting from ``linear`` (default: empty)."""
         if g0 is None:   # no increment: the residual at (u, g1), not a linearisation along zero
             g0, l0, rhs0 = g1, l1, problem.residual(u, g1, l1)
         else:
@@ -193,105 +198,144 @@ class Newton:
             r0, dr = jax.jvp(lambda g, l: problem.residual(u, g, l), (g0, l0), (g1 - g0, l1 - l0))
             rhs0 = r0 + dr
         given = None if floor is None else jnp.asarray(floor, u.dtype)
-        return Increment(g0, g1, l0, l1, rhs0, jnp.linalg.norm(rhs0), max_iter, given)
+        if linear is None:
+            linear = self.linear.empty(problem, jnp.result_type(u))
+        return Increment(g0, g1, l0, l1, rhs0, jnp.linalg.norm(rhs0), max_iter, given, linear)
 
-    def init(self, problem, inc: Increment, u, linear) -> NewtonState:
+    def init(self, problem, inc: Increment, u) -> NewtonState:
+        linear = inc.linear
+        stable = self.linear.stability(linear) == Stability.STABLE
         if self.chord:
             # the chord's first solve is the predictor (right-hand side rhs0, accepted whenever
             # admissible): the energy and residual at (u, g1) would go unused, not evaluated
             energy, residual = jnp.array(jnp.inf, u.dtype), inc.rhs0
-            status = jnp.where(self.linear.stability(linear) == Stability.STABLE, -1, Status.UNSTABLE_TANGENT)
+            done = ~stable
         else:
             energy, _, residual, _ = problem.energy_residual(u, inc.g1, inc.l1)
-            status = jnp.array(-1)
-        keep = jnp.asarray(self.modified) & (self.linear.stability(linear) == Stability.STABLE)
+            done = jnp.array(False)
+        status = jnp.where(done, Status.UNSTABLE_TANGENT, Status.MAX_ITERATIONS)
+        keep = jnp.asarray(self.modified) & stable
         zero = jnp.zeros((), u.dtype)
-        return NewtonState(jnp.array(0), u, energy, residual, status, linear, keep, zero, zero, jnp.array(False))
+        return NewtonState(jnp.array(0), u, energy, residual, done, status, linear, keep, zero, zero,
+                           jnp.array(False), LinearStats.of())
 
     def terminate(self, s: NewtonState):
-        return s.status >= 0
+        return s.done, s.status
 
     def step(self, problem, inc: Increment, s: NewtonState) -> NewtonState:
         first = s.iteration == 0
         rhs = jnp.where(first, inc.rhs0, s.residual)
-        state, keep, factorised = s.linear, s.keep, s.factorised
-        made = True
-        if self.chord:
-            dx, stab = self.linear.solve(state, rhs), self.linear.stability(state)
-            made = False
-        elif self.modified:
-            dx, state, stab, made = jax.lax.cond(
-                keep, lambda: (self.linear.solve(state, rhs), state, self.linear.stability(state), False),
-                lambda: (*self._assemble_and_solve(problem, inc, s.u, first, rhs, state), True))
-        else:
-            dx, state, stab = self._assemble_and_solve(problem, inc, s.u, first, rhs, state)
+        dx, state, stab, made, work = self._linear_step(problem, inc, s, first, rhs)
         ok, v, Pi_v, r_v, aux_v, why = self._line_search(problem, inc, s, -dx, first)
         if self.chord:
             # a quasi-Newton solver learns from each correction (the predictor's step also
             # changes the load: not a secant pair of one residual)
             state = self.linear.update(state, v - s.u, r_v - s.residual, ok & ~first)
         rn = jnp.linalg.norm(r_v)
-        # the force scale of the tolerance: at the iterate after each assembled step, kept
-        # through the chord steps that follow it (they move the state by less than the step
-        # before them, so the scale by a relative O(|du|)); the round-off floor once a call,
-        # after the predictor, where not given
-        scale = when(first | made, lambda: problem.force_scale(aux_v), s.scale)
+        scale, floor = self._tolerance_scales(problem, inc, s, first | made, first, aux_v, v)
+        tol = self.tolerance.of(scale, floor, inc.r_ref)
+        converged = ok & (rn <= tol)
+        cap = self._cap(inc, s, first, converged, rn)
+        keep, factorised = s.keep, s.factorised
+        if self.modified:
+            converged, keep, factorised = self._modified_bookkeeping(inc, s, ok, converged, made, first, rn, tol,
+                                                                     state)
+        done, status = self._outcome(ok, why, converged, stab, s.iteration + 1 >= cap)
+        return NewtonState(s.iteration + 1, jnp.where(ok, v, s.u), jnp.where(ok, Pi_v, s.energy),
+                           jnp.where(ok, r_v, s.residual), done, status, state, keep, scale, floor, factorised,
+                           s.stats + work)
+
+    def postprocess(self, problem, inc: Increment, s: NewtonState, status) -> NewtonResult:
+        return NewtonResult(s.u, status, s.iteration, jnp.linalg.norm(s.residual), s.linear, s.stats)
+
+    def solve(self, problem, u, g0, g1, l0, l1, linear=None, *, max_iter=25, floor=None) -> NewtonResult:
+        """The whole solve: ``increment``, then ``run`` (init, the loop, postprocess);
+        ``linear`` the solver's state to start from (a chord needs the factorisation it
+        reuses)."""
+        if linear is None and self.chord:
+            raise ValueError("a chord solve needs the factorisation to reuse (linear=...)")
+        inc = self.increment(problem, u, g0, g1, jnp.asarray(l0, jnp.float64), jnp.asarray(l1, jnp.float64),
+                             max_iter, floor, linear)
+        return run(self, problem, inc, u)
+
+    # -------------------------------------------------------------------------- parts
+    def _linear_step(self, problem, inc: Increment, s: NewtonState, first, rhs):
+        """The step's linear solve: (dx, linear state, its stability, whether a tangent was
+        assembled and factorised, LinearStats). A chord solves with its factorisation;
+        modified Newton with the kept one where it still serves (``keep``), else both
+        assemble and factorise."""
+        state = s.linear
+        if self.chord:
+            return (self.linear.solve(state, rhs), state, self.linear.stability(state), False,
+                    LinearStats.of(solves=1))
+        def assembled():
+            dx, new, stab, work = self._assemble_and_solve(problem, inc, s.u, first, rhs, state)
+            return dx, new, stab, True, work
+
+        if self.modified:
+            return jax.lax.cond(
+                s.keep, lambda: (self.linear.solve(state, rhs), state, self.linear.stability(state), False,
+                                 LinearStats.of(solves=1)), assembled)
+        return assembled()
+
+    def _tolerance_scales(self, problem, inc: Increment, s: NewtonState, assembled, first, aux_v, v):
+        """(force scale, round-off floor) of the residual test after a step to v: the force
+        scale at the iterate after each assembled step, kept through the chord steps that
+        follow it (they move the state by less than the step before them, so the scale by a
+        relative O(|du|)); the round-off floor once a call, after the predictor, where the
+        caller did not give it."""
+        scale = when(assembled, lambda: problem.force_scale(aux_v), s.scale)
         if inc.floor is None:
             floor = when(first, lambda: self.tolerance.floor(problem.force_scales(v, inc.g1)[1]), s.floor)
         else:
             floor = inc.floor
-        tol = self.tolerance.of(scale, floor, inc.r_ref)
-        converged = ok & (rn <= tol)
-        cap = inc.max_iter
-        if self.chord and self.reuse > 0:
-            # a kept factorisation that no longer contracts fast is not worth more corrections
-            slow = ~first & ~converged & (rn > self.reuse * jnp.linalg.norm(s.residual))
-            cap = jnp.where(slow, s.iteration + 1, inc.max_iter)
-        if self.modified:
-            # the equilibrium is declared only once a tangent of this step (at g1: not the
-            # predictor's) has been factorised, so the stability reported is, as in full
-            # Newton, that of an iterate of this step's Newton sequence; a chord step that
-            # meets the tolerance before that is followed by one. That factorisation is made
-            # where it does most: once |r| is low enough that a Newton step from there meets
-            # the tolerance (quadratic convergence, |r|^2 <= tol r_ref), so the chord steps
-            # after it contract at once
-            factorised = factorised | (made & ~first)
-            met = converged
-            converged = converged & (factorised | (not self.check_stability))
-            # (without the stability check no factorisation is owed: chords while they contract)
-            owed = self.check_stability & ~factorised & (rn * rn <= tol * inc.r_ref)
-            keep = ok & ~met & (rn <= self.reuse * jnp.linalg.norm(s.residual)) & \
-                (self.linear.stability(state) == Stability.STABLE) & ~owed
-        # stability from the last factorised tangent (at the iterate before the converged one)
+        return scale, floor
+
+    def _cap(self, inc: Increment, s: NewtonState, first, converged, rn):
+        """The iteration cap after this step: a chord with ``reuse`` > 0 stops at once where a
+        correction cut |r| by less than ``reuse`` (a kept factorisation that no longer
+        contracts fast is not worth more corrections)."""
+        if not (self.chord and self.reuse > 0):
+            return inc.max_iter
+        slow = ~first & ~converged & (rn > self.reuse * jnp.linalg.norm(s.residual))
+        return jnp.where(slow, s.iteration + 1, inc.max_iter)
+
+    def _modified_bookkeeping(self, inc: Increment, s: NewtonState, ok, converged, made, first, rn, tol, state):
+        """Modified Newton: (converged, keep, factorised) after the step. The equilibrium is
+        declared only once a tangent of this step (at g1: not the predictor's) has been
+        factorised, so the stability reported is, as in full Newton, that of an iterate of
+        this step's Newton sequence; a chord step that meets the tolerance before that is
+        followed by one. That factorisation is made where it does most: once |r| is low
+        enough that a Newton step from there meets the tolerance (quadratic convergence,
+        |r|^2 <= tol r_ref), so the chord steps after it contract at once."""
+        factorised = s.factorised | (made & ~first)
+        met = converged
+        # (without the stability check no factorisation is owed: chords while they contract)
+        converged = converged & (factorised | (not self.check_stability))
+        owed = self.check_stability & ~factorised & (rn * rn <= tol * inc.r_ref)
+        keep = ok & ~met & (rn <= self.reuse * jnp.linalg.norm(s.residual)) & \
+            (self.linear.stability(state) == Stability.STABLE) & ~owed
+        return converged, keep, factorised
+
+    def _outcome(self, ok, why, converged, stab, capped):
+        """(done, status) after a step. Stability from the last factorised tangent (at the
+        iterate before the converged one); a linear solve that did not converge (Krylov)
+        gives an untrusted step: unless the residual met the tolerance anyway, the attempt
+        ends."""
         if self.check_stability:
-            done = jnp.where(stab == Stability.STABLE, Status.CONVERGED,
-                             jnp.where(stab == Stability.UNSTABLE, Status.UNSTABLE_TANGENT,
-                                       Status.STABILITY_UNKNOWN))
+            reached = jnp.where(stab == Stability.STABLE, Status.CONVERGED,
+                                jnp.where(stab == Stability.UNSTABLE, Status.UNSTABLE_TANGENT,
+                                          Status.STABILITY_UNKNOWN))
         else:
-            done = Status.CONVERGED
-        status = jnp.where(~ok, why, jnp.where(converged, done,
-                                               jnp.where(s.iteration + 1 >= cap, Status.MAX_ITERATIONS, -1)))
-        # a linear solve that did not converge (Krylov) gives an untrusted step: unless the
-        # residual met the tolerance anyway, the attempt ends
-        status = jnp.where((stab == Stability.FAILED) & ~converged, Status.LINEAR_SOLVE, status)
-        return NewtonState(s.iteration + 1, jnp.where(ok, v, s.u), jnp.where(ok, Pi_v, s.energy),
-                           jnp.where(ok, r_v, s.residual), status, state, keep, scale, floor, factorised)
+            reached = Status.CONVERGED
+        failed_solve = (stab == Stability.FAILED) & ~converged
+        status = jnp.where(~ok, why, jnp.where(converged, reached, Status.MAX_ITERATIONS))
+        status = jnp.where(failed_solve, Status.LINEAR_SOLVE, status)
+        return ~ok | converged | capped | failed_solve, status
 
-    def solve(self, problem, u, g0, g1, l0, l1, linear=None, *, max_iter=25, floor=None) -> NewtonResult:
-        """The whole solve: ``increment``, ``init``, the loop; ``linear`` the solver's state to
-        start from (a chord needs the factorisation it reuses)."""
-        if linear is None:
-            if self.chord:
-                raise ValueError("a chord solve needs the factorisation to reuse (linear=...)")
-            linear = self.linear.empty(problem, jnp.result_type(u))
-        inc = self.increment(problem, u, g0, g1, jnp.asarray(l0, jnp.float64), jnp.asarray(l1, jnp.float64),
-                             max_iter, floor)
-        s = iterate(self, problem, inc, self.init(problem, inc, u, linear))
-        return NewtonResult(s.u, s.status, s.iteration, jnp.linalg.norm(s.residual), s.linear)
-
-    # -------------------------------------------------------------------------- parts
     def _assemble_and_solve(self, problem, inc: Increment, u, first, rhs, state):
-        """A Newton step with the tangent at u (at g0 for the predictor): (dx, state, stability)."""
+        """A Newton step with the tangent at u (at g0 for the predictor): (dx, state,
+        stability, LinearStats)."""
         blocks = problem.tangent_blocks(u, jnp.where(first, inc.g0, inc.g1), jnp.where(first, inc.l0, inc.l1))
         # inexact Newton (iterative linear solvers): far from equilibrium the linear solve
         # need only be as accurate as the step is good (a forcing term proportional to the
@@ -307,7 +351,8 @@ class Newton:
             forcing = jnp.where(rel > 1e-4, jnp.minimum(1e-2 * rel, 1e-4), 1e-11)
         elif self.linear.tight_rtol is not None:
             forcing = jnp.where(first, self.predictor_rtol, self.linear.tight_rtol)
-        return self.linear.newton_solve(state, problem, blocks, rhs, forcing)
+        dx, state, stab = self.linear.newton_solve(state, problem, blocks, rhs, forcing)
+        return dx, state, stab, self.linear.work(state) + LinearStats.of(solves=1)
 
     def _line_search(self, problem, inc: Increment, s: NewtonState, du, first):
         """Backtracking along du from s.u: (accepted, v, Pi, r, aux, status if refused)."""

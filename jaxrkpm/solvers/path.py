@@ -11,9 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .branch import BranchSwitch
-from .iterate import iterate, when
+from .iterate import IterativeSolver, run, when
+from .linalg.base import LinearStats
 from .newton import Newton, _count, _flag, _positive
-from .results import CRITICAL_EIGS, Critical, Limits, Solution, Status, Stop
+from .results import Critical, Limits, Solution, Status, Stop
 
 
 class Path(NamedTuple):
@@ -29,6 +30,7 @@ class Path(NamedTuple):
     nominal: jax.Array    # () a converging solve's nominal Newton work (steps x easy)
     max_iter: jax.Array   # () Newton iterations per step
     p0: Any = None        # the problem's parameters at the start (None: its own throughout)
+    state0: Any = None    # the linear solver's state at the start (None: an empty one)
 
     def problem_at(self, problem, t):
         """``problem`` with its parameters at the fraction t of the increment: from ``p0`` to
@@ -66,10 +68,11 @@ class PathState(NamedTuple):
     branch: jax.Array         # () critical points passed by switching to a stable branch
     critical: Critical        # the critical points passed (fixed size)
     wasted: jax.Array         # () Newton iterations spent in failed attempts
+    stats: LinearStats        # the linear work of every attempt
 
 
 @dataclass(frozen=True)
-class LoadPath:
+class LoadPath(IterativeSolver):
     """Adaptive load stepping from the equilibrium (u0, g0, l0) to (g1, l1) by ``newton``.
 
     Halves the step on failure (up to ``Limits.max_cuts`` times below the initial step), grows
@@ -142,14 +145,22 @@ class LoadPath:
         return Path(g0, g1, l0, l1, dt0, dt_min, jnp.maximum(dt0 * 0.5 ** self.locate, dt_min),
                     lim.steps * max(int(self.easy), 1), lim.max_iter)
 
-    def init(self, problem, path: Path, u0, state0=None) -> PathState:
+    def init(self, problem, path: Path, u0) -> PathState:
         zero = jnp.array(0)
-        linear = self.linear.empty(problem, u0.dtype) if state0 is None else state0
+        linear = self.linear.empty(problem, u0.dtype) if path.state0 is None else path.state0
         return PathState(jnp.array(0.0), jnp.array(path.dt0), u0, zero, zero, zero, zero, jnp.array(0.0),
-                         jnp.array(False), linear, zero, Critical.empty(u0), zero)
+                         jnp.array(False), linear, zero, Critical.empty(u0), zero, LinearStats.of())
 
     def terminate(self, s: PathState):
-        return ~((s.t < 1.0) & (s.status <= 0))
+        """Done at the end of the increment or on a failure (a Status code above 0); an
+        accepted state of unknown stability makes a finished path STABILITY_UNKNOWN."""
+        done = ~((s.t < 1.0) & (s.status <= 0))
+        return done, jnp.where((s.status == 0) & s.unknown, Status.STABILITY_UNKNOWN, s.status)
+
+    def postprocess(self, problem, path: Path, s: PathState, status) -> Solution:
+        g, load = path.at(s.t)
+        return Solution(s.u, g, load, status, s.t, s.iterations, s.steps, s.cuts, s.residual_norm, s.branch,
+                        s.critical, s.linear if self.keep_linear else None, stop=self._stop(path, s), stats=s.stats)
 
     def step(self, problem, path: Path, s: PathState) -> PathState:
         t, dt, u = s.t, s.dt, s.u
@@ -157,43 +168,28 @@ class LoadPath:
         t1 = jnp.where(1.0 - t1 < 1e-12, 1.0, t1)
         ga, la = path.at(t)
         gb, lb = path.at(t1)
-        start, linear = u, s.linear
+        start, linear, work = u, s.linear, LinearStats.of()
         if path.p0 is not None:   # its factorisation is the one a modified Newton then keeps
-            start, linear = self._parameter_predictor(path.problem_at(problem, t), path.problem_at(problem, t1),
-                                                      u, ga, la)
+            start, linear, work = self._parameter_predictor(path.problem_at(problem, t),
+                                                            path.problem_at(problem, t1), u, ga, la)
         problem = path.problem_at(problem, t1)
         res = self.newton.solve(problem, start, ga, gb, la, lb, linear, max_iter=path.max_iter)
-        v, st, it, rn_v, linear = res
+        v, st, it, rn_v, linear = res[:5]
         ok = (st == Status.CONVERGED) | (st == Status.STABILITY_UNKNOWN)
-        branch, crit = s.branch, s.critical
+        branch, crit, lost = s.branch, s.critical, jnp.array(False)
         if self.switches:
-            switch = (st == Status.UNSTABLE_TANGENT) & (dt <= path.dt_locate * (1 + 1e-9))
-            nan = jnp.full((CRITICAL_EIGS,), jnp.nan, u.dtype)
-            w, found, lam, mode, its = when(
-                switch, lambda: self.branch.switch(problem, v, gb, lb, path.max_iter),
-                (v, jnp.array(False), nan, jnp.zeros_like(u), jnp.array(0)))
-            moved = switch & found
-            lost = switch & ~found
-            critical = moved & (lam[0] < 0)
-            crit = crit.record(branch, critical, t, t1, lam, mode)
-            branch = branch + critical
-            v = jnp.where(moved, w, v)
-            it = it + its
-            ok = ok | moved
-            st = jnp.where(moved, Status.CONVERGED, st)
-            # the residual of the state kept (the switch converged to the Newton tolerance)
-            rn_v = jnp.where(moved, jnp.linalg.norm(problem.residual(v, gb, lb)), rn_v)
+            v, st, it, rn_v, ok, branch, crit, lost = self._switched(problem, path, s, t1, gb, lb, v, st, it, rn_v,
+                                                                     ok)
         grow = jnp.where(it <= self.easy, self.growth, 1.0)
         dt_next = jnp.where(ok, jnp.minimum(dt * grow, path.dt0), dt / 2)
         wasted = s.wasted + jnp.where(ok, 0, it)
-        give_up = (~ok) & ((dt / 2 < path.dt_min * (1 - 1e-9)) | self._spent(path, s.iterations + it, wasted))
-        if self.switches:
-            # the critical point is bracketed and no stable state of that load was found:
-            # smaller steps would only bracket it again
-            give_up = give_up | lost
+        # with the branch switch: the critical point is bracketed and no stable state of that
+        # load was found (``lost``): smaller steps would only bracket it again
+        give_up = (~ok) & ((dt / 2 < path.dt_min * (1 - 1e-9)) | self._spent(path, s.iterations + it, wasted) | lost)
         return PathState(jnp.where(ok, t1, t), dt_next, jnp.where(ok, v, u), jnp.where(give_up, st, 0),
                          s.iterations + it, s.steps + ok, s.cuts + (~ok), jnp.where(ok, rn_v, s.residual_norm),
-                         s.unknown | (st == Status.STABILITY_UNKNOWN), linear, branch, crit, wasted)
+                         s.unknown | (st == Status.STABILITY_UNKNOWN), linear, branch, crit, wasted,
+                         s.stats + work + res.stats)
 
     def _spent(self, path: Path, iterations, wasted):
         """Whether the failed attempts (``wasted`` of the ``iterations``) have spent their
@@ -209,25 +205,45 @@ class LoadPath:
                           jnp.where(self._spent(path, s.iterations, s.wasted), Stop.WORK_BUDGET, Stop.NO_STABLE_STATE))
         return jnp.where(s.status > 0, cause, Stop.NONE).astype(jnp.int32)
 
+    def _switched(self, problem, path: Path, s: PathState, t1, gb, lb, v, st, it, rn_v, ok):
+        """The step's outcome after the branch switch (``switches``): where Newton ended on an
+        unstable equilibrium at a step short enough to pin the critical point, the
+        ``BranchSwitch`` goes on from it to a stable equilibrium of the same load, which the
+        step then accepts (the critical point recorded). Returns (v, status, iterations, |r|,
+        accepted, branch, critical, lost: no stable state was found)."""
+        u, branch = s.u, s.branch
+        switch = (st == Status.UNSTABLE_TANGENT) & (s.dt <= path.dt_locate * (1 + 1e-9))
+        nan = jnp.full((Critical.n_eigenvalues,), jnp.nan, u.dtype)
+        w, found, lam, mode, its = when(
+            switch, lambda: self.branch.switch(problem, v, gb, lb, path.max_iter),
+            (v, jnp.array(False), nan, jnp.zeros_like(u), jnp.array(0)))
+        moved = switch & found
+        critical = moved & (lam[0] < 0)
+        crit = s.critical.record(branch, critical, s.t, t1, lam, mode)
+        v = jnp.where(moved, w, v)
+        # the residual of the state kept (the switch converged to the Newton tolerance)
+        rn_v = jnp.where(moved, jnp.linalg.norm(problem.residual(v, gb, lb)), rn_v)
+        return (v, jnp.where(moved, Status.CONVERGED, st), it + its, rn_v, ok | moved, branch + critical, crit,
+                switch & ~found)
+
     def _parameter_predictor(self, problem_a, problem_b, u, g, load):
-        """(u + du, K_ff's factorisation) with K_ff du = -(r + dr/dp (p_b - p_a)) at u under
-        problem_a (an equilibrium of it, or at a path's start near one): the linearised response
-        to a step of the parameters (a frictional tool that moves drags the points that stick to
-        it along), which Newton's first step, with the tangent at the new ones, does not see."""
+        """(u + du, K_ff's factorisation, LinearStats) with K_ff du = -(r + dr/dp (p_b - p_a))
+        at u under problem_a (an equilibrium of it, or at a path's start near one): the
+        linearised response to a step of the parameters (a frictional tool that moves drags
+        the points that stick to it along), which Newton's first step, with the tangent at the
+        new ones, does not see."""
         dp = jax.tree.map(lambda a, b: b - a if jnp.issubdtype(jnp.result_type(b), jnp.inexact)
                           else np.zeros(jnp.shape(b), jax.dtypes.float0), problem_a.params, problem_b.params)
         r, dr = jax.jvp(lambda p: problem_a.replace(params=p).residual(u, g, load), (problem_a.params,), (dp,))
         state = self.linear.state_at(problem_a, u, g, load)
         du = self.linear.solve(state, r + dr)
-        return jnp.where(jnp.all(jnp.isfinite(du)), u - du, u), state
+        return (jnp.where(jnp.all(jnp.isfinite(du)), u - du, u), state,
+                self.linear.work(state) + LinearStats.of(solves=1))
 
     def solve(self, problem, lim: Limits, u0, g0, g1, l0, l1, state0=None, params0=None) -> Solution:
         """The equilibrium at (g1, l1) reached from (u0, g0, l0): a Solution (the last
-        converged state and the failing status where the path stopped). ``params0``: the
-        problem's parameters at the start, ramped to its own along the path."""
-        path = self.path(lim, g0, g1, l0, l1)._replace(p0=params0)
-        s = iterate(self, problem, path, self.init(problem, path, u0, state0))
-        status = jnp.where((s.status == 0) & s.unknown, Status.STABILITY_UNKNOWN, s.status)
-        g, load = path.at(s.t)
-        return Solution(s.u, g, load, status, s.t, s.iterations, s.steps, s.cuts, s.residual_norm, s.branch,
-                        s.critical, s.linear if self.keep_linear else None, stop=self._stop(path, s))
+        converged state and the failing status where the path stopped). ``state0``: the
+        linear solver's state at the start; ``params0``: the problem's parameters at the
+        start, ramped to its own along the path."""
+        path = self.path(lim, g0, g1, l0, l1)._replace(p0=params0, state0=state0)
+        return run(self, problem, path, u0)

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..base.outcome import Outcome
+from .linalg.base import LinearStats
 
 
 class Status(Outcome):
@@ -56,28 +57,30 @@ def reached_equilibrium(status):
     return (status == Status.CONVERGED) | (status == Status.STABILITY_UNKNOWN)
 
 
-MAX_STEPS = 1000   # initial load steps of one solve (Limits.of)
-
-MAX_ITER = 1000    # Newton iterations per load step
-
-MAX_CUTS = 50      # halvings of the load step (2**-50 of the increment: below round-off)
-
-
 class Limits(NamedTuple):
-    """Dynamic solver limits (arrays, so changing them does not recompile)."""
+    """Dynamic solver limits (arrays, so changing them does not recompile).
+
+    ``of`` bounds them by ``most_steps`` (initial load steps of one solve), ``most_iterations``
+    (Newton iterations per load step) and ``most_cuts`` (halvings of the load step: 2**-50 of
+    the increment is below round-off)."""
 
     steps: jax.Array      # initial (and largest) number of load steps
     max_iter: jax.Array   # Newton iterations per load step
     max_cuts: jax.Array   # halvings of the initial load step before giving up
 
+    most_steps = 1000
+    most_iterations = 1000
+    most_cuts = 50
+
     @staticmethod
     def of(steps=1, max_iter=25, max_cuts=10) -> "Limits":
-        """Validated limits: 1 <= steps <= MAX_STEPS, 1 <= max_iter <= MAX_ITER,
-        0 <= max_cuts <= MAX_CUTS (each step costs an assembly and a factorisation, so a
+        """Validated limits: 1 <= steps <= most_steps, 1 <= max_iter <= most_iterations,
+        0 <= max_cuts <= most_cuts (each step costs an assembly and a factorisation, so a
         bigger count only buys minutes of run time; the adaptive stepping refines where
         needed)."""
-        for name, v, lo, hi in (("steps", steps, 1, MAX_STEPS), ("max_iter", max_iter, 1, MAX_ITER),
-                                ("max_cuts", max_cuts, 0, MAX_CUTS)):
+        for name, v, lo, hi in (("steps", steps, 1, Limits.most_steps),
+                                ("max_iter", max_iter, 1, Limits.most_iterations),
+                                ("max_cuts", max_cuts, 0, Limits.most_cuts)):
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
                 raise TypeError(f"{name} must be an int, got {v!r}")
             if not lo <= int(v) <= hi:
@@ -85,33 +88,33 @@ class Limits(NamedTuple):
         return Limits(jnp.asarray(int(steps)), jnp.asarray(int(max_iter)), jnp.asarray(int(max_cuts)))
 
 
-MAX_CRITICAL = 8    # critical points one solve records (more are counted in Solution.branch)
-
-CRITICAL_EIGS = 3   # lowest eigenvalues of K_ff recorded at each
-
-
 class Critical(NamedTuple):
-    """Critical points a solve passed (the first ``MAX_CRITICAL``; NaN where unfilled).
+    """Critical points a solve passed (the first ``capacity`` = K of them, more are counted in
+    ``Solution.branch``; NaN where unfilled). Its sizes are the Solution's format, the same
+    for every solve (a warm start or a control loop mixes Solutions of several solves).
 
     The tangent K_ff lost positive definiteness between the load fractions ``t_stable`` (the
     last stable equilibrium) and ``t_unstable`` (the first equilibrium on the path with a
     negative eigenvalue; ``t_unstable - t_stable`` <= dt0 / 2**LoadPath.locate); ``eigenvalues``
-    (K, CRITICAL_EIGS) the lowest eigenvalues of K_ff there, ``mode`` (K, Nf, d) the critical
-    mode (unit norm) along which the solve left the unstable branch."""
+    (K, ``n_eigenvalues``) the lowest eigenvalues of K_ff there, ``mode`` (K, Nf, d) the
+    critical mode (unit norm) along which the solve left the unstable branch."""
 
     t_stable: jax.Array      # (K,)
     t_unstable: jax.Array    # (K,)
-    eigenvalues: jax.Array   # (K, CRITICAL_EIGS)
+    eigenvalues: jax.Array   # (K, n_eigenvalues)
     mode: jax.Array          # (K, Nf, d)
+
+    capacity = 8        # critical points one solve records
+    n_eigenvalues = 3   # lowest eigenvalues of K_ff recorded at each
 
     @staticmethod
     def empty(u) -> "Critical":
-        nan = jnp.full((MAX_CRITICAL,), jnp.nan, u.dtype)
-        return Critical(nan, nan, jnp.full((MAX_CRITICAL, CRITICAL_EIGS), jnp.nan, u.dtype),
-                        jnp.full((MAX_CRITICAL,) + u.shape, jnp.nan, u.dtype))
+        nan = jnp.full((Critical.capacity,), jnp.nan, u.dtype)
+        return Critical(nan, nan, jnp.full((Critical.capacity, Critical.n_eigenvalues), jnp.nan, u.dtype),
+                        jnp.full((Critical.capacity,) + u.shape, jnp.nan, u.dtype))
 
     def record(self, k, when, t_stable, t_unstable, eigenvalues, mode) -> "Critical":
-        """With entry k set where ``when`` (k >= MAX_CRITICAL: dropped)."""
+        """With entry k set where ``when`` (k >= capacity: dropped)."""
         def put(a, v):
             return jnp.where(when, a.at[k].set(v, mode="drop"), a)
         return Critical(put(self.t_stable, t_stable), put(self.t_unstable, t_unstable),
@@ -133,7 +136,9 @@ class Solution(NamedTuple):
     again. ``params``: the problem's parameters at this state, where the solve keeps them (an
     eager ``Model.solve``; None otherwise): a solve started from this Solution with other
     parameters (a tool's new pose) ramps them from these along its path. ``stop``: a ``Stop``
-    code, why a failed solve stopped where it did (``Solution.stopped`` as a member).""" 
+    code, why a failed solve stopped where it did (``Solution.stopped`` as a member).
+    ``stats``: the linear algebra this solve did (``LinearStats``: factorisations, solves, CG
+    iterations, host seconds); None for a state no solve made (``Model.initial``)."""
 
     u: jax.Array
     g: jax.Array
@@ -151,6 +156,7 @@ class Solution(NamedTuple):
     # a Stop code: why the path stopped (a concrete int32 by default: the same pytree and
     # jit signature as a solve's)
     stop: Any = np.int32(Stop.NONE)
+    stats: Any = None     # LinearStats of the solve that made it (None: no solve did)
 
     def __repr__(self) -> str:
         """The outcome and the shapes, not the arrays (the critical-point record is NaN where
@@ -210,7 +216,7 @@ def joined(first: Solution, rest: Solution) -> Solution:
     """One Solution of a path solved in two parts: ``first`` stopped at the fraction t1 of
     the increment, ``rest`` went on from its state to the same end. Fractions of the rest
     (its t, its critical points) become fractions of the whole path, t1 + (1 - t1) t; the
-    counters add up; the state is the rest's."""
+    counters and the linear work add up; the state is the rest's."""
     t1 = first.t
 
     def whole(t):
@@ -218,6 +224,7 @@ def joined(first: Solution, rest: Solution) -> Solution:
 
     crit = rest.critical._replace(t_stable=whole(rest.critical.t_stable),
                                   t_unstable=whole(rest.critical.t_unstable))
+    stats = rest.stats if first.stats is None or rest.stats is None else first.stats + rest.stats
     return rest._replace(t=whole(rest.t), iterations=first.iterations + rest.iterations,
                          steps=first.steps + rest.steps, cuts=first.cuts + rest.cuts,
-                         branch=first.branch + rest.branch, critical=crit)
+                         branch=first.branch + rest.branch, critical=crit, stats=stats)

@@ -14,7 +14,7 @@ import pytest
 import jaxrkpm as jr
 from jaxrkpm.thesis import needle as nd
 from jaxrkpm.control.tracking import track
-from jaxrkpm.solvers.results import MAX_STEPS, Limits, Status
+from jaxrkpm.solvers.results import Limits, Status
 from jaxrkpm.solvers.implicit import solve_path_jit
 from jaxrkpm.thesis.scenarios import planar_square
 from tests.problems import FUNG, block, unit_grid
@@ -59,7 +59,7 @@ def test_tiny_load_step_converges_to_the_linear_response(blk):
 
 def test_steps_are_bounded(blk):
     _, _, model = blk
-    with pytest.raises(ValueError, match=f"steps must lie in 1..{MAX_STEPS}"):
+    with pytest.raises(ValueError, match=f"steps must lie in 1..{Limits.most_steps}"):
         model.solve({"right": [0.05, 0.0]}, steps=10**6)
     with pytest.raises(TypeError, match="steps must be an int"):
         model.solve({"right": [0.05, 0.0]}, steps=2.5)

@@ -95,7 +95,8 @@ def test_jacobian_and_next_solve_from_the_kept_state(planar):
 
 def test_sparse_jacobian_from_the_kept_state_factorises_nothing(planar):
     """With the sparse solver, the Jacobian at a Solution that kept its factorisation costs no
-    factorisation (conjugate gradients preconditioned by it), one without costs one."""
+    factorisation (conjugate gradients preconditioned by it), one without costs one (counted
+    by the handles the model's factorisation pool gives out: a Jacobian returns no stats)."""
     from jaxrkpm.solvers.linalg import factorisations as jsparse
 
     model, _ = planar
@@ -103,13 +104,13 @@ def test_sparse_jacobian_from_the_kept_state_factorises_nothing(planar):
                       solver="sparse")
     sol = sparse.solve({"paddle": jnp.array([-0.08, 0.05])}, steps=2)
     assert sol.linear is not None
-    jsparse.reset_stats()
+    pool = jsparse.pool(sparse.linear.system)
+    made = pool.next
     Jk = np.asarray(sparse.jacobian(sol, "paddle", CP))
-    kept = dict(jsparse.STATS)
-    jsparse.reset_stats()
+    kept = pool.next - made
     Jb = np.asarray(sparse.jacobian(sol._replace(linear=None), "paddle", CP))
-    fresh = dict(jsparse.STATS)
-    assert kept["factorisations"] == 0 and fresh["factorisations"] == 1, (kept, fresh)
+    fresh = pool.next - made - kept
+    assert kept == 0 and fresh == 1, (kept, fresh)
     assert np.abs(Jk - Jb).max() < 1e-10 * np.abs(Jb).max()
     with pytest.raises(ValueError, match="rtol"):
         sparse.jacobian(sol, "paddle", CP, rtol=2.0)
@@ -202,7 +203,7 @@ def test_tracking_step_reuses_one_factorisation(planar):
         g1 = s.g + jnp.einsum("a,abi->bi", dmp, side.G)
         return side.chord.solve(prob, s.u, s.g, g1, s.load, s.load, st, max_iter=7), g1
 
-    (u, status, its, rn, _), g1 = chord(side.problem, sol, state, jnp.array([0.004, -0.003]))
+    (u, status, its, rn, *_), g1 = chord(side.problem, sol, state, jnp.array([0.004, -0.003]))
     ref = model.solve_g(g1, initial=sol, loads=sol.load)
     assert Status.of(status) == Status.CONVERGED and 2 <= int(its) <= 7
     assert np.abs(np.asarray(u - ref.u)).max() < 1e-10
@@ -215,16 +216,13 @@ def test_tracking_step_reuses_one_factorisation(planar):
 def test_tracking_fast_path_with_the_sparse_solver(planar):
     """The sparse solver takes the same fast path as the dense one (one factorisation per
     iteration, chord corrections with it) and tracks the same path."""
-    from jaxrkpm.solvers.linalg import factorisations as jsparse
-
     model, _ = planar
     sparse = jr.Model(model.body, model.material, essential={n: model.set_indices(n) for n in model.set_names},
                       solver="sparse")
     path = PATHS["setpoint"]
     dense_run = track(model, path, "paddle", CP, reuse=0)   # the dense default keeps factorisations
-    jsparse.reset_stats()
     sparse_run = track(sparse, path, "paddle", CP)
-    stats = dict(jsparse.STATS)
+    stats = sparse_run.stats.as_dict()   # the run's own statistics, returned with it
     assert sparse_run.status == TrackStatus.DONE
     assert np.abs(sparse_run.cp - dense_run.cp).max() < 1e-8
     assert np.abs(sparse_run.mp - dense_run.mp).max() < 1e-8

@@ -3,6 +3,7 @@ validated fields (a test builds an object with another value instead of patching
 the declared linear-solver interface, and the options of Model.solve checked where they
 become those objects."""
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -10,8 +11,11 @@ import numpy as np
 import pytest
 
 import jaxrkpm as jr
+from jaxrkpm.control.tracking import Tracker
 from jaxrkpm.internal import (BranchSwitch, Chord, DenseSolver, LinearSolver, LoadPath, Newton, QuasiNewton,
                               StableDescent, Tolerance, iterate)
+from jaxrkpm.solvers.continuation import ArcLength, ArcLengthPath
+from jaxrkpm.solvers.iterate import IterativeSolver, run
 from jaxrkpm.solvers.linalg.krylov import KrylovSolver
 from jaxrkpm.solvers.linalg.quasi_newton import secant
 from jaxrkpm.solvers.linalg.sparse import SparseSolver
@@ -168,3 +172,103 @@ def test_a_solver_written_outside_the_package_serves_the_model(square):
     assert np.abs(np.asarray(res.u - ref.u)).max() < 1e-10
     with pytest.raises(ValueError, match="pass a jaxrkpm.internal.LinearSolver instance"):
         jr.Model(body, square.material, essential=sets, solver=object())
+
+
+# -------------------------------------------------------------- a solver written outside
+class Fixed(NamedTuple):
+    """The damped iteration's constants."""
+
+    g: jax.Array
+    load: jax.Array
+    max_iter: jax.Array
+    tol: jax.Array
+
+
+class DampedState(NamedTuple):
+    iteration: jax.Array
+    u: jax.Array
+    residual: jax.Array
+    done: jax.Array
+    status: jax.Array
+
+
+@dataclass(frozen=True)
+class DampedFixedPoint:
+    """A nonlinear solver written outside the package against the contract only (it imports
+    nothing of the solvers but the Status codes): the damped fixed-point iteration
+    u <- u - theta K(u)^-1 r(u) at fixed prescribed values and load, converging linearly
+    (by 1 - theta an iteration) where Newton converges quadratically."""
+
+    theta: float = 0.6
+
+    def init(self, problem, args: Fixed, start) -> DampedState:
+        r = problem.residual(start, args.g, args.load)
+        return DampedState(jnp.array(0), start, r, jnp.array(False), jnp.array(jr.Status.MAX_ITERATIONS))
+
+    def step(self, problem, args: Fixed, s: DampedState) -> DampedState:
+        K = problem.tangent(s.u, args.g, args.load)
+        u = s.u - self.theta * jnp.linalg.solve(K, s.residual.reshape(-1)).reshape(s.u.shape)
+        r = problem.residual(u, args.g, args.load)
+        converged = jnp.linalg.norm(r) <= args.tol
+        finite = jnp.all(jnp.isfinite(r))
+        done = converged | ~finite | (s.iteration + 1 >= args.max_iter)
+        status = jnp.where(converged, jr.Status.CONVERGED,
+                           jnp.where(finite, jr.Status.MAX_ITERATIONS, jr.Status.NONFINITE))
+        return DampedState(s.iteration + 1, u, r, done, status)
+
+    def terminate(self, s: DampedState):
+        return s.done, s.status
+
+    def postprocess(self, problem, args: Fixed, s: DampedState, status):
+        return s.u, status, s.iteration
+
+
+def test_a_solver_defined_here_runs_through_the_one_loop(square):
+    """The contract is declared once (``IterativeSolver``): a solver defined in this test
+    implements it, and ``iterate`` (its final state) and ``run`` (init, loop, postprocess)
+    drive it as they drive Newton; it lands on Newton's equilibrium. Every solver of the
+    package subclasses the contract and reports (done, status) from ``terminate``."""
+    assert isinstance(DampedFixedPoint(), IterativeSolver)
+    for cls in (Newton, Chord, LoadPath, StableDescent, ArcLength, ArcLengthPath, Tracker):
+        assert issubclass(cls, IterativeSolver), cls
+    prob, start = square.problem(), square.initial()
+    ref = square.solve({"right": [0.02, 0.01]}, reuse=0)    # one load step of full Newton
+    tol = 1e-10 * float(prob.force_scale(prob.energy_residual(ref.u, ref.g)[3]))
+    args = Fixed(ref.g, jnp.float64(1.0), jnp.array(200), jnp.float64(tol))
+    solver = DampedFixedPoint()
+
+    @jax.jit
+    def both(p, a):   # the whole solve, and the loop alone from the solver's own init
+        return run(solver, p, a, start.u), iterate(solver, p, a, solver.init(p, a, start.u))
+
+    (u, status, its), final = both(prob, args)
+    # the 2% stretch from the undeformed state: a fixed-point iteration from u = 0 converges
+    assert jr.Status.of(status) == jr.Status.CONVERGED and 10 < int(its) < 200
+    assert int(its) > int(ref.iterations)          # linear against Newton's quadratic
+    assert np.abs(np.asarray(u - ref.u)).max() < 1e-9 * np.abs(np.asarray(ref.u)).max()
+    assert np.array_equal(np.asarray(final.u), np.asarray(u)) and bool(final.done)
+    # a cap it cannot converge within: done, with the status of a stop there
+    (_, status, its), _ = both(prob, args._replace(max_iter=jnp.array(3)))
+    assert jr.Status.of(status) == jr.Status.MAX_ITERATIONS and int(its) == 3
+    # the package's solvers answer terminate with (done, status) too
+    newton = Newton(square.linear)
+    done, status = jax.jit(lambda p: newton.terminate(newton.init(
+        p, newton.increment(p, start.u, start.g, ref.g, jnp.float64(1.0), jnp.float64(1.0), 25), start.u)))(prob)
+    assert not bool(done) and jr.Status.of(status) == jr.Status.MAX_ITERATIONS
+
+
+def test_solves_return_their_own_linear_statistics(square):
+    """A solve's linear work comes back with it (``Solution.stats``), not in a module-wide
+    tally: full Newton factorises at every iteration, modified Newton less often, both solve
+    once an iteration; two solves in a row report the same work each."""
+    move = {"right": [0.05, 0.02]}
+    full = square.solve(move, reuse=0)
+    again = square.solve(move, reuse=0)
+    stats = full.stats.as_dict()
+    assert stats["factorisations"] == stats["solves"] == int(full.iterations)
+    assert again.stats.as_dict() == stats
+    assert stats["cg_solves"] == 0 and stats["factorise_s"] == 0.0     # the dense path: inside XLA
+    modified = square.solve(move, reuse=0.5)
+    assert int(modified.stats.solves) == int(modified.iterations)
+    assert int(modified.stats.factorisations) < int(modified.iterations)
+    assert square.initial().stats is None

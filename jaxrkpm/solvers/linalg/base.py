@@ -13,15 +13,62 @@ changes between calls is its *state*, a pytree returned and passed explicitly::
                                                # a Newton step with the current tangent, reusing
                                                # ``state`` where the solver can
     state = solver.update(state, s, y, accept)  # learn from a secant pair (quasi-Newton)
+    solver.work(state)                         # LinearStats: the work of the call that made it
 
 ``rhs`` is (Nf, d) or (Nf, d, m). One factorisation thus serves a Newton predictor, chord
 corrections and implicit Jacobians, for every solver alike.
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
 
 from ...base.outcome import Outcome
+
+
+class LinearStats(NamedTuple):
+    """The linear algebra a solve did, returned with its result (``Solution.stats``,
+    ``NewtonResult.stats``, ``TrackResult.stats``, ``EquilibriumPath.stats``): 0-d arrays
+    (stacked by batched solves); ``a + b`` adds two up field by field.
+
+    Counted by the nonlinear solver from what each linear call returns (``LinearSolver.work``),
+    so they belong to that solve alone. Host seconds are measured by the host-side solvers
+    (sparse, Krylov) and are 0 on the dense path, which runs inside XLA. The branch switch's
+    eigenpairs and shifted factorisations (``jaxrkpm.solvers.branch``) are its own and not
+    counted; nor are the host seconds of a solve with a kept factorisation (``solve`` returns
+    no state), which counts as a solve."""
+
+    factorisations: Any = 0    # factorisations made (Krylov: multigrid hierarchies built)
+    refactorisations: Any = 0  # of which made again from their blocks after eviction from the host
+    solves: Any = 0            # linear solves the nonlinear solver asked for
+    cg_solves: Any = 0         # host conjugate-gradient solves (one per right-hand side)
+    cg_iterations: Any = 0     # their iterations
+    factorise_s: Any = 0.0     # host seconds factorising (Krylov: building hierarchies)
+    triangular_s: Any = 0.0    # host seconds in triangular solves with a factorisation
+    cg_s: Any = 0.0            # host seconds of CG's own work (products, updates)
+    matrix_s: Any = 0.0        # host seconds making sparse matrices from the tangent blocks
+
+    @staticmethod
+    def of(**counts) -> "LinearStats":
+        """Zero work but ``counts`` (field name -> value), as 0-d arrays (int64 counts,
+        float64 seconds)."""
+        return LinearStats(*(jnp.asarray(counts.get(name, default), jnp.result_type(default, jnp.int64))
+                             for name, default in LinearStats._field_defaults.items()))
+
+    @staticmethod
+    def shape_dtypes() -> "LinearStats":
+        """The ``jax.ShapeDtypeStruct`` of each field (a host callback's result type)."""
+        return LinearStats(*(jax.ShapeDtypeStruct((), v.dtype) for v in LinearStats.of()))
+
+    def __add__(self, other: "LinearStats") -> "LinearStats":
+        """Field by field (not tuple concatenation)."""
+        return LinearStats(*(a + b for a, b in zip(self, other)))
+
+    def as_dict(self) -> dict:
+        """Plain numbers by field name (for records)."""
+        return {k: (float(v) if k.endswith("_s") else int(v)) for k, v in self._asdict().items()}
 
 
 class Stability(Outcome):
@@ -86,6 +133,13 @@ class LinearSolver:
         """A Newton step with the tangent ``blocks``: (x, new state, stability); ``rtol`` the
         relative residual an iterative solver may stop at (the inexact-Newton forcing term)."""
         raise NotImplementedError
+
+    def work(self, state) -> LinearStats:
+        """The work of the call (``init``, ``state_at`` or ``newton_solve``) that returned
+        ``state``, without the solve itself (the nonlinear solver counts its solves): one
+        factorisation by default, as a direct solver makes at each. Solvers that may reuse a
+        factorisation, or that measure host time, carry their own in the state."""
+        return LinearStats.of(factorisations=1)
 
     def update(self, state, s, y, accept=True):
         """The state after a correction s with residual change y (a secant pair): unchanged,

@@ -48,6 +48,7 @@ import sys
 import threading
 import time
 import weakref
+from contextlib import contextmanager
 
 import numpy as np
 import scipy.sparse as sp
@@ -55,7 +56,39 @@ import scipy.sparse.linalg as spla
 
 from ...base.threads import sparse_threads
 from ...discretise.constraints import HostElimination
+from .base import LinearStats
 from .refinement import preconditioned_cg, refine
+
+
+class HostWork:
+    """The host-side work of one call into a pool (a factorisation, a Newton step's solve),
+    counted as it happens and handed back to the solver state as ``LinearStats``: the
+    statistics of a solve are those its own calls returned, never a module-wide tally."""
+
+    def __init__(self):
+        self.counts = dict.fromkeys(LinearStats._fields, 0)
+
+    def add(self, **counts):
+        for k, v in counts.items():
+            self.counts[k] += v
+
+    @contextmanager
+    def timed(self, field: str):
+        """Adds the seconds the block takes to ``field``."""
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.counts[field] += time.perf_counter() - t0
+
+    @staticmethod
+    def of(work: "HostWork | None") -> "HostWork":
+        """``work``, or a new ledger where a caller keeps none (a call outside a pool)."""
+        return HostWork() if work is None else work
+
+    def stats(self) -> LinearStats:
+        """As host scalars (int64 counts, float64 seconds), for a callback's result."""
+        return LinearStats(*(np.float64(v) if k.endswith("_s") else np.int64(v) for k, v in self.counts.items()))
 
 
 def nested_dissection(X: np.ndarray, indptr: np.ndarray, indices: np.ndarray, leaf: int = 64) -> np.ndarray:
@@ -322,7 +355,6 @@ def block_matrix(blocks, indptr, indices) -> sp.bsr_matrix:
     return sp.bsr_matrix((np.asarray(blocks, np.float64), indices, indptr), shape=(n, n))
 
 
-PARALLEL_MIN_BLOCKS = 1 << 16   # below this a product is too short to share out among threads
 _executors: dict = {}           # worker count -> the thread pool of the product parts
 _executors_lock = threading.Lock()
 
@@ -335,15 +367,16 @@ def _threads_pool(n: int):
         return _executors[n]
 
 
-def row_parts_product(K: sp.bsr_matrix, threads: int | None = None):
+def row_parts_product(K: sp.bsr_matrix, threads: int | None = None, min_blocks: int = 1 << 16):
     """x -> K @ x with K's block rows cut into ``threads`` parts of about equal nonzeros,
     multiplied side by side (SciPy's sparse kernels release the GIL; the product is memory-
     bound, and two cores move about twice the bytes: ``experiments/bench_cube3d_large.py``).
     The parts are views of K's arrays (no copy). One part, the product as it is, where
-    ``threads`` (default ``jaxrkpm.base.threads.sparse_threads()``) is 1 or K is small."""
+    ``threads`` (default ``jaxrkpm.base.threads.sparse_threads()``) is 1 or K has fewer than
+    ``min_blocks`` blocks (a product too short to share out among threads)."""
     threads = sparse_threads() if threads is None else threads
     nb = K.indptr.shape[0] - 1
-    if threads <= 1 or K.indices.shape[0] < PARALLEL_MIN_BLOCKS:
+    if threads <= 1 or K.indices.shape[0] < min_blocks:
         return lambda x: K @ x
     R = K.blocksize[0]
     cuts = np.unique(np.searchsorted(K.indptr, np.linspace(0, K.indptr[-1], threads + 1)).clip(0, nb))
@@ -471,80 +504,79 @@ class SaddlePointSystem:
         pos_K = np.flatnonzero(src[srt] >= 0)
         return indices, indptr, pos_K, src[srt][pos_K], template
 
-    def matrix(self, blocks) -> sp.csc_matrix:
-        """The stored saddle-point matrix (the lower triangle for PARDISO)."""
-        t0 = time.perf_counter()
-        data = self.template.copy()
-        data[self.pos_K] = np.asarray(blocks, np.float64).ravel()[self.take_K]
-        A = sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
-        TIMES["matrix_s"] += time.perf_counter() - t0
-        return A
+    def matrix(self, blocks, work: HostWork | None = None) -> sp.csc_matrix:
+        """The stored saddle-point matrix (the lower triangle for PARDISO); ``work`` (of this
+        method and the others) the call's ledger, where one counts."""
+        with HostWork.of(work).timed("matrix_s"):
+            data = self.template.copy()
+            data[self.pos_K] = np.asarray(blocks, np.float64).ravel()[self.take_K]
+            return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
 
-    def factorise(self, A, fac=None):
+    def factorise(self, A, fac=None, work: HostWork | None = None):
         """A new factorisation of the stored matrix A: (factor, number of negative eigenvalues
         of K_ff: -1 unknown (perturbed or pivoted), -2 failed: a singular matrix). ``fac``:
         a released factor object of this system to reuse (PARDISO keeps its analysis)."""
         fac = self.Backend(self.n, self.indptr, self.indices, self.single) if fac is None else fac
-        t0 = time.perf_counter()
+        work = HostWork.of(work)
         try:
-            neg = fac.factor(A.data)
+            with work.timed("factorise_s"):
+                neg = fac.factor(A.data)
         except FactorisationError:
             return None, FAILED
-        finally:
-            TIMES["factorise_s"] += time.perf_counter() - t0
-        STATS["factorisations"] += 1
+        work.add(factorisations=1)
         return fac, (UNKNOWN if neg is None else neg - self.nc)
 
-    def direct(self, fac, b):
+    def direct(self, fac, b, work: HostWork | None = None):
         """K_ff x = b (n_free, m) with a factorisation of the saddle-point matrix."""
-        t0 = time.perf_counter()
-        B = np.zeros((self.n, b.shape[1]))
-        B[self.inv[self.free_dofs]] = b
-        x = fac.solve(B)[self.inv[self.free_dofs]]
-        TIMES["triangular_s"] += time.perf_counter() - t0
-        return x
+        with HostWork.of(work).timed("triangular_s"):
+            B = np.zeros((self.n, b.shape[1]))
+            B[self.inv[self.free_dofs]] = b
+            return fac.solve(B)[self.inv[self.free_dofs]]
 
     def kff(self, blocks):
         """x -> K_ff x for the tangent ``blocks`` (host arrays; no saddle-point matrix made)."""
         return kff(self.elimination, block_matrix(blocks, self.block_indptr, self.block_indices))
 
-    def exact(self, fac, blocks, b):
+    def exact(self, fac, blocks, b, work: HostWork | None = None):
         """K_ff x = b (n_free, m) by the factorisation ``fac`` of ``blocks``, to double
         accuracy: a single-precision factorisation's solve is refined (``refinements`` steps
         x <- x + direct(b - K_ff x), as the dense path's mixed precision)."""
+        work = HostWork.of(work)
         if not self.single:
-            return self.direct(fac, b)
+            return self.direct(fac, b, work)
         kff = self.kff(blocks)
-        return refine(lambda r: self.direct(fac, r), lambda x: np.stack([kff(c) for c in x.T], 1), b,
+        return refine(lambda r: self.direct(fac, r, work), lambda x: np.stack([kff(c) for c in x.T], 1), b,
                       self.refinements)
 
-    def _pcg(self, fac, kff, b, rtol):
+    def _pcg(self, fac, kff, b, rtol, work: HostWork):
         """CG on K_ff x = b preconditioned by the factorisation ``fac`` of another matrix,
         to the relative residual rtol; (x, iterations), or None when it stalls or meets
         negative curvature."""
-        x, its, ok = preconditioned_cg(kff, lambda r: self.direct(fac, r[:, None])[:, 0], b, rtol, self.cg_maxiter)
+        x, its, ok = preconditioned_cg(kff, lambda r: self.direct(fac, r[:, None], work)[:, 0], b, rtol,
+                                       self.cg_maxiter)
         if not ok:
             return None
-        STATS["cg_iterations"] += its
+        work.add(cg_iterations=its)
         return x, its
 
-    def preconditioned(self, fac, blocks, b, rtol):
+    def preconditioned(self, fac, blocks, b, rtol, work: HostWork | None = None):
         """K_ff x = b for the tangent ``blocks`` by CG preconditioned with ``fac`` (every
         column): (x, the most CG iterations per decade of residual reduction of a column), or
         None when any column fails."""
-        t0, tri0 = time.perf_counter(), TIMES["triangular_s"]
+        work = HostWork.of(work)
+        t0, tri0 = time.perf_counter(), work.counts["triangular_s"]
         kff = self.kff(blocks)
         cols, rate = [], 0.0
         try:
             for j in range(b.shape[1]):
-                done = self._pcg(fac, kff, b[:, j], rtol)
+                done = self._pcg(fac, kff, b[:, j], rtol, work)
                 if done is None:
                     return None
                 cols.append(done[0])
                 rate = max(rate, done[1] / max(-np.log10(rtol), 1.0))
         finally:   # cg_s: CG's own work (products, updates); its triangular solves are apart
-            TIMES["cg_s"] += time.perf_counter() - t0 - (TIMES["triangular_s"] - tri0)
-        STATS["cg_solves"] += 1
+            work.add(cg_s=time.perf_counter() - t0 - (work.counts["triangular_s"] - tri0))
+        work.add(cg_solves=1)
         return np.stack(cols, 1), rate
 
 
@@ -552,19 +584,6 @@ class SaddlePointSystem:
 UNKNOWN = -1    # pivots were perturbed (PARDISO) or permuted (SuperLU): the count is unknown
 FAILED = -2     # the factorisation failed (a singular matrix)
 NONE = -3       # no factorisation held yet
-
-# instrumentation only (never read by the solver): counts since the last reset_stats(), and
-# the host seconds of a solve's parts (disjoint: factorisations, triangular solves, CG's own
-# work apart from its triangular solves, the sparse matrix made from the blocks)
-STATS = {"factorisations": 0, "cg_solves": 0, "cg_iterations": 0, "refactorisations": 0}
-TIMES = {"factorise_s": 0.0, "triangular_s": 0.0, "cg_s": 0.0, "matrix_s": 0.0}
-
-
-def reset_stats():
-    for k in STATS:
-        STATS[k] = 0
-    for k in TIMES:
-        TIMES[k] = 0.0
 
 
 class FactorPool:
@@ -588,9 +607,9 @@ class FactorPool:
             self._drop(next(iter(self.slots)))
         self.slots[handle] = (fac, neg)
 
-    def _factorise(self, blocks):
+    def _factorise(self, blocks, work: HostWork):
         fac, self.spare = self.spare, None
-        return self.system.factorise(self.system.matrix(blocks), fac)
+        return self.system.factorise(self.system.matrix(blocks, work), fac, work)
 
     def _keep(self, fac, neg) -> int:
         """A new handle for a new factorisation (kept unless it failed)."""
@@ -600,32 +619,35 @@ class FactorPool:
             self._store(h, fac, neg)
         return h
 
-    def factor(self, handle: int, blocks):
+    def factor(self, handle: int, blocks, work: HostWork):
         """The factorisation of ``handle`` (made again from ``blocks`` if evicted), or None."""
         if handle in self.slots:
             self.slots[handle] = self.slots.pop(handle)     # most recently used last
             return self.slots[handle][0]
-        STATS["refactorisations"] += 1
-        fac, neg = self._factorise(blocks)
+        work.add(refactorisations=1)
+        fac, neg = self._factorise(blocks, work)
         if fac is not None:
             self._store(handle, fac, neg)
         return fac
 
     def init(self, blocks):
-        """Factorise the tangent ``blocks``: (handle, inertia code)."""
+        """Factorise the tangent ``blocks``: (handle, inertia code, LinearStats of the call)."""
+        work = HostWork()
         with self.lock:
-            fac, neg = self._factorise(blocks)
-            return np.int64(self._keep(fac, neg)), np.int64(neg)
+            fac, neg = self._factorise(blocks, work)
+            return np.int64(self._keep(fac, neg)), np.int64(neg), work.stats()
 
     def solve(self, handle, blocks, rhs):
         """x (rhs.shape) with K_ff x = rhs by the factorisation ``handle`` of ``blocks``
         (NaN where that factorisation failed)."""
         rhs = np.asarray(rhs, np.float64)
+        work = HostWork()   # a solve returns no state to carry it: its work stays uncounted
         with self.lock:
-            fac = self.factor(int(handle), blocks) if int(handle) > 0 else None
+            fac = self.factor(int(handle), blocks, work) if int(handle) > 0 else None
             if fac is None:
                 return np.full(rhs.shape, np.nan)
-            return self.system.exact(fac, blocks, rhs.reshape(len(self.system.free_dofs), -1)).reshape(rhs.shape)
+            b = rhs.reshape(len(self.system.free_dofs), -1)
+            return self.system.exact(fac, blocks, b, work).reshape(rhs.shape)
 
     def _drop(self, handle: int):
         """Forget ``handle``'s factorisation; its object (memory, PARDISO's analysis) serves
@@ -638,7 +660,7 @@ class FactorPool:
         """A Newton step's solve with the current tangent ``blocks``: CG preconditioned by the
         held factorisation while it is positive definite and CG converges, else a new
         factorisation. Returns (x, handle, inertia, reused) of the factorisation held after
-        the step: a CG solve that needed more than ``system.growth`` x the iterations per
+        the step and the call's LinearStats: a CG solve that needed more than ``system.growth`` x the iterations per
         decade of the held factorisation's first one (the tangent has moved away from it)
         factorises ``blocks`` after it, for the steps to come (kept where its inertia is
         known): one factorisation for a whole path let CG's iterations grow several-fold
@@ -646,30 +668,41 @@ class FactorPool:
         first, so one is held at a time (a large 3D factorisation takes gigabytes)."""
         rhs = np.asarray(rhs, np.float64)
         b = rhs.reshape(len(self.system.free_dofs), -1)
-        h = int(handle)
+        h, work = int(handle), HostWork()
         with self.lock:
-            if int(neg) == 0 and h > 0:
-                fac = self.factor(h, kept_blocks)
-                done = None if fac is None else self.system.preconditioned(fac, blocks, b, float(rtol))
-                if done is not None:
-                    x, rate = done
-                    if rate <= self.system.growth * self.rates.setdefault(h, rate):
-                        return x.reshape(rhs.shape), np.int64(h), np.int64(neg), np.bool_(True)
-                    self._drop(h)
-                    new, new_neg = self._factorise(blocks)
-                    if new is not None and new_neg >= 0:
-                        return (x.reshape(rhs.shape), np.int64(self._keep(new, new_neg)), np.int64(new_neg),
-                                np.bool_(False))
-                    # inertia unknown: the held one stays (made again from its blocks when used)
-                    if new is not None:
-                        self.spare = new
-                    return x.reshape(rhs.shape), np.int64(h), np.int64(neg), np.bool_(True)
-            self._drop(h)
-            fac, neg = self._factorise(blocks)
-            h = self._keep(fac, neg)
-            if fac is None:
-                return np.full(rhs.shape, np.nan), np.int64(h), np.int64(neg), np.bool_(False)
-            return self.system.exact(fac, blocks, b).reshape(rhs.shape), np.int64(h), np.int64(neg), np.bool_(False)
+            done = self._reusing(h, int(neg), kept_blocks, blocks, b, float(rtol), work) \
+                if int(neg) == 0 and h > 0 else None
+            x, h, neg, reused = self._refactorised(h, blocks, b, work) if done is None else done
+        return x.reshape(rhs.shape), np.int64(h), np.int64(neg), np.bool_(reused), work.stats()
+
+    def _reusing(self, h, neg, kept_blocks, blocks, b, rtol, work):
+        """``newton_solve`` by CG preconditioned with the held factorisation ``h``: (x, handle,
+        inertia, reused), or None where CG failed."""
+        fac = self.factor(h, kept_blocks, work)
+        done = None if fac is None else self.system.preconditioned(fac, blocks, b, rtol, work)
+        if done is None:
+            return None
+        x, rate = done
+        if rate <= self.system.growth * self.rates.setdefault(h, rate):
+            return x, h, neg, True
+        self._drop(h)
+        new, new_neg = self._factorise(blocks, work)
+        if new is not None and new_neg >= 0:
+            return x, self._keep(new, new_neg), new_neg, False
+        # inertia unknown: the held one stays (made again from its blocks when used)
+        if new is not None:
+            self.spare = new
+        return x, h, neg, True
+
+    def _refactorised(self, h, blocks, b, work):
+        """``newton_solve`` by a new factorisation of ``blocks`` (``h`` dropped): (x, handle,
+        inertia, reused=False); x NaN where the factorisation failed."""
+        self._drop(h)
+        fac, neg = self._factorise(blocks, work)
+        h = self._keep(fac, neg)
+        if fac is None:
+            return np.full(b.shape, np.nan), h, neg, False
+        return self.system.exact(fac, blocks, b, work), h, neg, False
 
     def clear(self):
         with self.lock:

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 
 from . import multigrid as krylov
-from .base import LinearSolver, Stability
+from .base import LinearSolver, LinearStats, Stability
 from .host import host_callback
 
 
@@ -20,6 +20,7 @@ class KrylovState(NamedTuple):
     pre_blocks: jax.Array  # (P, d, d) the tangent the hierarchy was built from (to build it again)
     blocks: jax.Array      # (P, d, d) the tangent K_ff is made of (the matrix solved)
     outcome: jax.Array     # () int64 krylov.KrylovStatus of the last CG solve
+    work: LinearStats      # the host work of the call that made this state (``LinearSolver.work``)
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,13 +45,17 @@ class KrylovSolver(LinearSolver):
 
     def init(self, problem, blocks) -> KrylovState:
         i64 = jax.ShapeDtypeStruct((), jnp.int64)
-        h, st = host_callback(self._pool.init, (i64, i64), blocks)
-        return KrylovState(h, blocks, blocks, st)
+        h, st, work = host_callback(self._pool.init, (i64, i64, LinearStats.shape_dtypes()), blocks)
+        return KrylovState(h, blocks, blocks, st, work)
 
     def empty(self, problem, dtype) -> KrylovState:
         P, d = problem.n_pairs, problem.dim
         z = jnp.zeros((P, d, d), dtype)
-        return KrylovState(jnp.zeros((), jnp.int64), z, z, jnp.asarray(krylov.KrylovStatus.NONE, jnp.int64))
+        return KrylovState(jnp.zeros((), jnp.int64), z, z, jnp.asarray(krylov.KrylovStatus.NONE, jnp.int64),
+                           LinearStats.of())
+
+    def work(self, state: KrylovState) -> LinearStats:
+        return state.work
 
     def solve(self, state: KrylovState, rhs):
         """K_ff x = rhs to the system's rtol (NaN where CG does not converge)."""
@@ -73,8 +78,9 @@ class KrylovSolver(LinearSolver):
         the system's rtol), preconditioned by the kept hierarchy (rebuilt when CG slows)."""
         rtol = jnp.asarray(self.system.rtol if rtol is None else rtol, rhs.dtype)
         i64 = jax.ShapeDtypeStruct((), jnp.int64)
-        out = (jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), i64, i64, jax.ShapeDtypeStruct((), jnp.bool_))
-        x, h, st, rebuilt = host_callback(self._pool.newton_solve, out, state.handle, state.pre_blocks,
-                                              blocks, rhs, rtol)
-        new = KrylovState(h, jnp.where(rebuilt, blocks, state.pre_blocks), blocks, st)
+        out = (jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), i64, i64, jax.ShapeDtypeStruct((), jnp.bool_),
+               LinearStats.shape_dtypes())
+        x, h, st, rebuilt, work = host_callback(self._pool.newton_solve, out, state.handle, state.pre_blocks,
+                                                blocks, rhs, rtol)
+        new = KrylovState(h, jnp.where(rebuilt, blocks, state.pre_blocks), blocks, st, work)
         return x, new, self.stability(new)

@@ -34,18 +34,13 @@ from __future__ import annotations
 
 import copy
 import threading
-import time
 
 import numpy as np
 import scipy.sparse as sp
 
 from ...base.outcome import Outcome
 from ...discretise.constraints import HostElimination
-from .factorisations import block_matrix, block_pattern, kff, pooled
-
-
-# p.Kp below this x |p| |Kp| in magnitude is round-off, not curvature (a stagnating CG)
-CURVATURE_ROUNDOFF = 1e-10
+from .factorisations import HostWork, block_matrix, block_pattern, kff, pooled
 
 
 class KrylovStatus(Outcome):
@@ -55,22 +50,6 @@ class KrylovStatus(Outcome):
     MAX_ITERATIONS = 1, "CG did not reach its tolerance within maxiter iterations"
     NEGATIVE_CURVATURE = 2, "CG met a direction p with p.K_ff p <= 0: K_ff is not positive definite"
     NONE = 3, "no solve yet (a fresh state)"
-
-
-# instrumentation only (never read by the solver): counts since the last reset_stats(), and
-# host seconds (disjoint: the hierarchy set-up, CG, the matrix made from the blocks)
-STATS = {"amg_setups": 0, "krylov_solves": 0, "krylov_iterations": 0}
-TIMES = {"amg_setup_s": 0.0, "krylov_s": 0.0, "krylov_matrix_s": 0.0}
-
-
-def reset_stats():
-    for k in STATS:
-        STATS[k] = 0
-    for k in TIMES:
-        TIMES[k] = 0.0
-
-
-DROP = 0.01   # pair blocks weaker than this (relative) are left out of the multigrid hierarchy
 
 
 def rigid_modes(X: np.ndarray) -> np.ndarray:
@@ -90,7 +69,14 @@ def rigid_modes(X: np.ndarray) -> np.ndarray:
 class KrylovSystem:
     """The host-side pieces, immutable once built (part of the static solver configuration):
     the BSR pattern of K from the sorted particle pairs, the free-free part the hierarchy is
-    built on, the transformation T and the near-nullspace."""
+    built on, the transformation T and the near-nullspace.
+
+    Its work is reported per call in ``LinearStats`` (``factorisations``: hierarchies built,
+    ``cg_solves`` and ``cg_iterations``: CG's, ``factorise_s``: set-up seconds, ``cg_s``, and
+    ``matrix_s``: the matrix made from the blocks)."""
+
+    drop = 0.01                 # pair blocks weaker than this (relative) are left out of the hierarchy
+    curvature_roundoff = 1e-10  # p.Kp below this x |p| |Kp| in magnitude is round-off, not curvature
 
     def __init__(self, X: np.ndarray, pair_i: np.ndarray, pair_j: np.ndarray, C, free: np.ndarray,
                  bnd: np.ndarray, rtol: float = 1e-10, maxiter: int = 500, growth: float = 2.0):
@@ -141,52 +127,61 @@ class KrylovSystem:
     def n_free(self) -> int:
         return len(self.free_dofs)
 
-    def matrix(self, blocks) -> sp.bsr_matrix:
-        """K (N d, N d): the pair blocks as they are (no copy of the data)."""
-        t0 = time.perf_counter()
-        K = block_matrix(blocks, self.indptr, self.indices)
-        TIMES["krylov_matrix_s"] += time.perf_counter() - t0
-        return K
+    def matrix(self, blocks, work: HostWork | None = None) -> sp.bsr_matrix:
+        """K (N d, N d): the pair blocks as they are (no copy of the data); ``work`` (of this
+        method and the others) the call's ledger, where one counts."""
+        with HostWork.of(work).timed("matrix_s"):
+            return block_matrix(blocks, self.indptr, self.indices)
 
-    def hierarchy(self, blocks):
+    def hierarchy(self, blocks, work: HostWork | None = None):
         """A smoothed-aggregation AMG hierarchy of K_nn (free particles) for ``blocks``, with
-        the pair blocks weaker than DROP x sqrt(|K_ii| |K_jj|) (Frobenius norms) left out: an
+        the pair blocks weaker than ``drop`` x sqrt(|K_ii| |K_jj|) (Frobenius norms) left out: an
         RKPM particle couples to ~300 others, most of them weakly; measured at a 14^3 cube,
         dropping below 0.02 keeps 28% of the blocks, CG needs the same 30 iterations (to
         1e-10) and a V-cycle costs a third (0.05 dropped too much: CG did not converge).
         Every kept block counts as a strong connection for the aggregation (theta = 0: the
         dropping already chose them): larger aggregates and a lower operator complexity, with
-        fewer CG iterations at DROP = 0.01 than at 0.02 or 0.005
+        fewer CG iterations at ``drop`` = 0.01 than at 0.02 or 0.005
         (``experiments/bench_cube3d_large.py --solver krylov``)."""
+        work = HostWork.of(work)
+        with work.timed("factorise_s"):
+            ml = self._hierarchy(blocks)
+        work.add(factorisations=1)
+        return ml
+
+    def _hierarchy(self, blocks):
         import pyamg
-        t0 = time.perf_counter()
         data = np.asarray(blocks, np.float64)[self.keep_ff]
         size = np.sqrt(np.einsum("pab,pab->p", data, data))
         diag = np.zeros(len(self.indptr_ff) - 1)
         on = self.rows_ff == self.indices_ff
         diag[self.rows_ff[on]] = size[on]
-        strong = size >= DROP * np.sqrt(diag[self.rows_ff] * diag[self.indices_ff])
+        strong = size >= self.drop * np.sqrt(diag[self.rows_ff] * diag[self.indices_ff])
         indptr = np.searchsorted(self.rows_ff[strong], np.arange(len(diag) + 1))
         Knn = sp.bsr_matrix((data[strong], self.indices_ff[strong], indptr), shape=(self.n_free,) * 2)
         ml = pyamg.smoothed_aggregation_solver(Knn, B=self.B, symmetry="symmetric", max_coarse=500,
                                                strength=("symmetric", {"theta": 0.0}))
-        STATS["amg_setups"] += 1
-        TIMES["amg_setup_s"] += time.perf_counter() - t0
         return ml
 
-    def cg(self, ml, K, b, x0=None, rtol=None):
+    def cg(self, ml, K, b, x0=None, rtol=None, work: HostWork | None = None):
         """CG on K_ff x = b (one column) preconditioned by one V-cycle of ``ml``: (x, status,
         iterations, iterations per decade of residual reduction). Converged on the true
         residual |b - K_ff x| <= rtol |b| (checked again whenever the recursive one says so)."""
-        t0 = time.perf_counter()
+        if np.linalg.norm(b) == 0:
+            return np.zeros_like(b), KrylovStatus.CONVERGED, 0, 0.0
+        work = HostWork.of(work)
+        with work.timed("cg_s"):
+            x, status, it, rate = self._cg(ml, K, b, x0, rtol)
+        work.add(cg_solves=1, cg_iterations=it)
+        return x, status, it, rate
+
+    def _cg(self, ml, K, b, x0, rtol):
         rtol = self.rtol if rtol is None else rtol
         A = kff(self.elimination, K)
         M = ml.aspreconditioner(cycle="V")
         bn = np.linalg.norm(b)
         x = np.zeros_like(b) if x0 is None else np.array(x0, np.float64)
         status, it = KrylovStatus.MAX_ITERATIONS, 0
-        if bn == 0:
-            return np.zeros_like(b), KrylovStatus.CONVERGED, 0, 0.0
         r = b - A(x) if x0 is not None else b.copy()
         z = M @ r
         p = z.copy()
@@ -198,7 +193,7 @@ class KrylovSystem:
             if not pAp > 0:
                 # negative curvature only where it is resolved: a CG that stagnates at its
                 # attainable accuracy meets p.Kp ~ 0 from round-off, which says nothing of K_ff
-                resolved = pAp < -CURVATURE_ROUNDOFF * np.linalg.norm(p) * np.linalg.norm(Ap)
+                resolved = pAp < -self.curvature_roundoff * np.linalg.norm(p) * np.linalg.norm(Ap)
                 status = KrylovStatus.NEGATIVE_CURVATURE if resolved else KrylovStatus.MAX_ITERATIONS
                 break
             a = rz / pAp
@@ -217,9 +212,6 @@ class KrylovSystem:
             rz, rz_old = r @ z, rz
             p = z + (rz / rz_old) * p
         reduction = max(np.linalg.norm(r) / bn, 1e-300)
-        STATS["krylov_solves"] += 1
-        STATS["krylov_iterations"] += it
-        TIMES["krylov_s"] += time.perf_counter() - t0
         return x, status, it, it / max(-np.log10(reduction), 1e-3)
 
 
@@ -235,9 +227,10 @@ class KrylovPool:
         self.next = 1
         self.lock = threading.Lock()
 
-    def _get(self, handle: int, blocks):
+    def _get(self, handle: int, blocks, work: HostWork):
         if handle not in self.slots:
-            self._store(handle, self.system.hierarchy(blocks))
+            work.add(refactorisations=1)
+            self._store(handle, self.system.hierarchy(blocks, work))
         self.slots[handle] = self.slots.pop(handle)           # most recently used last
         return self.slots[handle]
 
@@ -246,17 +239,17 @@ class KrylovPool:
             self.slots.pop(next(iter(self.slots)))
         self.slots[handle] = [ml, None]
 
-    def _new(self, blocks) -> int:
+    def _new(self, blocks, work: HostWork) -> int:
         h = self.next
         self.next += 1
-        self._store(h, self.system.hierarchy(blocks))
+        self._store(h, self.system.hierarchy(blocks, work))
         return h
 
-    def _solve_columns(self, slot, K, b, rtol):
+    def _solve_columns(self, slot, K, b, rtol, work: HostWork):
         """Every column of b (n, m): (x, worst status, largest iterations per decade)."""
         xs, status, rate = [], KrylovStatus.CONVERGED, 0.0
         for j in range(b.shape[1]):
-            x, st, _, per = self.system.cg(slot[0], K, b[:, j], rtol=rtol)
+            x, st, _, per = self.system.cg(slot[0], K, b[:, j], rtol=rtol, work=work)
             xs.append(x)
             rate = max(rate, per)
             if st != KrylovStatus.CONVERGED:
@@ -268,20 +261,24 @@ class KrylovPool:
 
     def init(self, blocks):
         """A hierarchy for ``blocks`` and a probe solve K_ff x = K_ff 1 (its outcome says
-        whether CG converges and meets no negative curvature): (handle, status)."""
+        whether CG converges and meets no negative curvature): (handle, status, LinearStats of
+        the call)."""
+        work = HostWork()
         with self.lock:
-            h = self._new(blocks)
-            K = self.system.matrix(blocks)
+            h = self._new(blocks, work)
+            K = self.system.matrix(blocks, work)
             b = kff(self.system.elimination, K)(np.ones(self.system.n_free))
-            _, st, _ = self._solve_columns(self.slots[h], K, b[:, None], None)
-            return np.int64(h), np.int64(st)
+            _, st, _ = self._solve_columns(self.slots[h], K, b[:, None], None, work)
+            return np.int64(h), np.int64(st), work.stats()
 
     def solve(self, handle, pre_blocks, blocks, rhs):
         """x (rhs.shape) with K_ff x = rhs for ``blocks``, NaN where CG did not converge."""
         rhs = np.asarray(rhs, np.float64)
+        work = HostWork()   # a solve returns no state to carry it: its work stays uncounted
         with self.lock:
-            slot = self._get(int(handle), pre_blocks)
-            x, st, _ = self._solve_columns(slot, self.system.matrix(blocks), rhs.reshape(self.system.n_free, -1), None)
+            slot = self._get(int(handle), pre_blocks, work)
+            b = rhs.reshape(self.system.n_free, -1)
+            x, st, _ = self._solve_columns(slot, self.system.matrix(blocks, work), b, None, work)
             if st != KrylovStatus.CONVERGED:
                 return np.full(rhs.shape, np.nan)
             return x.reshape(rhs.shape)
@@ -290,24 +287,30 @@ class KrylovPool:
         """A Newton step with the current tangent ``blocks``: CG with the kept hierarchy; a
         new one (from ``blocks``) where none is held, where CG did not converge (then CG goes
         again with the new one) or where it needed more than ``growth`` x the
-        iterations per decade of its first solve. Returns (x, handle, status, rebuilt)."""
+        iterations per decade of its first solve. Returns (x, handle, status, rebuilt) and
+        the call's LinearStats."""
         rhs = np.asarray(rhs, np.float64)
         b = rhs.reshape(self.system.n_free, -1)
+        work = HostWork()
         with self.lock:
-            K = self.system.matrix(blocks)
-            h, rebuilt = int(handle), False
-            if h <= 0:
-                h, rebuilt = self._new(blocks), True
-            slot = self._get(h, pre_blocks)
-            x, st, rate = self._solve_columns(slot, K, b, float(rtol))
-            if st == KrylovStatus.NEGATIVE_CURVATURE:
-                return x.reshape(rhs.shape), np.int64(h), np.int64(st), np.bool_(rebuilt)
-            slow = slot[1] is not None and rate > self.system.growth * slot[1]
-            if st != KrylovStatus.CONVERGED or (slow and not rebuilt):
-                h, rebuilt = self._new(blocks), True
-                if st != KrylovStatus.CONVERGED:
-                    x, st, _ = self._solve_columns(self.slots[h], K, b, float(rtol))
-            return x.reshape(rhs.shape), np.int64(h), np.int64(st), np.bool_(rebuilt)
+            x, h, st, rebuilt = self._newton_solve(int(handle), pre_blocks, blocks, b, float(rtol), work)
+        return x.reshape(rhs.shape), np.int64(h), np.int64(st), np.bool_(rebuilt), work.stats()
+
+    def _newton_solve(self, h, pre_blocks, blocks, b, rtol, work):
+        K = self.system.matrix(blocks, work)
+        rebuilt = False
+        if h <= 0:
+            h, rebuilt = self._new(blocks, work), True
+        slot = self._get(h, pre_blocks, work)
+        x, st, rate = self._solve_columns(slot, K, b, rtol, work)
+        if st == KrylovStatus.NEGATIVE_CURVATURE:
+            return x, h, st, rebuilt
+        slow = slot[1] is not None and rate > self.system.growth * slot[1]
+        if st != KrylovStatus.CONVERGED or (slow and not rebuilt):
+            h, rebuilt = self._new(blocks, work), True
+            if st != KrylovStatus.CONVERGED:
+                x, st, _ = self._solve_columns(self.slots[h], K, b, rtol, work)
+        return x, h, st, rebuilt
 
     def clear(self):
         with self.lock:

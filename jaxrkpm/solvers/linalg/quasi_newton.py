@@ -83,6 +83,9 @@ class QuasiNewton(LinearSolver):
         Y = jnp.where(good, jnp.roll(state.Y, -1, axis=0).at[-1].set(y), state.Y)
         return QuasiNewtonState(state.base, S, Y, jnp.minimum(state.count + good, self.memory))
 
+    def work(self, state: QuasiNewtonState):
+        return self.base.work(state.base)
+
     def stability(self, state: QuasiNewtonState):
         return self.base.stability(state.base)
 

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 
 from . import factorisations as sparse
-from .base import LinearSolver, Stability
+from .base import LinearSolver, LinearStats, Stability
 from .host import host_callback
 
 
@@ -19,6 +19,7 @@ class SparseState(NamedTuple):
     handle: jax.Array   # () int64 key of the host factorisation (0: none)
     inertia: jax.Array  # () int64 negative eigenvalues of K_ff; sparse.UNKNOWN/FAILED/NONE
     blocks: jax.Array   # (P, d, d) the tangent it factorises (to make it again if evicted)
+    work: LinearStats   # the host work of the call that made this state (``LinearSolver.work``)
 
 
 def _sparse_stability(inertia):
@@ -54,13 +55,16 @@ class SparseSolver(LinearSolver):
 
     def init(self, problem, blocks) -> SparseState:
         i64 = jax.ShapeDtypeStruct((), jnp.int64)
-        h, neg = host_callback(self._pool.init, (i64, i64), blocks)
-        return SparseState(h, neg, blocks)
+        h, neg, work = host_callback(self._pool.init, (i64, i64, LinearStats.shape_dtypes()), blocks)
+        return SparseState(h, neg, blocks, work)
 
     def empty(self, problem, dtype) -> SparseState:
         P, d = problem.n_pairs, problem.dim
         return SparseState(jnp.zeros((), jnp.int64), jnp.asarray(sparse.NONE, jnp.int64),
-                           jnp.zeros((P, d, d), dtype))
+                           jnp.zeros((P, d, d), dtype), LinearStats.of())
+
+    def work(self, state: SparseState) -> LinearStats:
+        return state.work
 
     def solve(self, state: SparseState, rhs):
         return host_callback(self._pool.solve, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
@@ -79,8 +83,9 @@ class SparseSolver(LinearSolver):
         no negative curvature met counts as stable), else a new factorisation."""
         rtol = jnp.asarray(self.system.cg_rtol if rtol is None else rtol, rhs.dtype)
         i64 = jax.ShapeDtypeStruct((), jnp.int64)
-        out = (jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), i64, i64, jax.ShapeDtypeStruct((), jnp.bool_))
-        x, h, neg, reused = host_callback(self._pool.newton_solve, out, state.handle, state.inertia,
-                                              state.blocks, blocks, rhs, rtol)
-        new = SparseState(h, neg, jnp.where(reused, state.blocks, blocks))
+        out = (jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), i64, i64, jax.ShapeDtypeStruct((), jnp.bool_),
+               LinearStats.shape_dtypes())
+        x, h, neg, reused, work = host_callback(self._pool.newton_solve, out, state.handle, state.inertia,
+                                                state.blocks, blocks, rhs, rtol)
+        new = SparseState(h, neg, jnp.where(reused, state.blocks, blocks), work)
         return x, new, self.stability(new)
