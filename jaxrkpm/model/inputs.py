@@ -30,6 +30,20 @@ def concrete(x):
     return np.asarray(x)
 
 
+def unconstrained(model) -> bool:
+    """No essential set and no springs: the body may translate and rotate freely. Such a model
+    is fine for its tangent (its rigid-body modes) and energy; a solve is refused."""
+    return len(model.sets.bnd) == 0 and not np.any(np.asarray(model.problem().term_of(SpringTerm).k) > 0)
+
+
+def check_constrained(model) -> None:
+    if model.unconstrained:
+        raise ValueError("unconstrained: rigid-body modes. The model has no essential set and no "
+                         "springs, so it can translate and rotate freely and no solve has a unique "
+                         "equilibrium; hold part of it (essential={'wall': body.select(...)}) or "
+                         "add Springs")
+
+
 def check_set(model, name: str) -> None:
     if name not in model.sets.slices:
         raise ValueError(f"unknown essential set {name!r}; this model has {list(model.sets.names)}")

@@ -10,10 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..discretise.body import Body
-from ..discretise.discretisation import discretise
-from ..discretise.discretisation import check_options as check_discretisation
-from ..mechanics.build import BUILT_IN, assemble
-from ..mechanics.build import check_options as check_mechanics
+from ..discretise.discretisation import check_options as check_discretisation, discretise
+from ..mechanics.build import BUILT_IN, assemble, check_options as check_mechanics
 from ..mechanics.constraint import Essential
 from ..mechanics.loads import SpringTerm, Springs
 from ..mechanics.materials import Material
@@ -22,8 +20,7 @@ from ..solvers.implicit import solve_path_jit
 from ..solvers.path import LoadPath
 from ..solvers.results import Limits, Solution
 from . import inputs, jacobian, post, solving
-from .linear import SolverChoice, linear_solver
-from .linear import check_options as check_linear
+from .linear import SolverChoice, check_options as check_linear, linear_solver
 from .solving import SolveError
 
 __all__ = ["Model", "SolveError", "SolverChoice"]
@@ -98,9 +95,7 @@ class Model:
         self._problem = built.problem
         self.linear = linear_solver(disc, built, solver, factorisation, precision, choice)
         self.point_tables = post.PointTables(self.shape_functions)
-        # no essential set and no springs: the body may translate and rotate freely. Such a
-        # model is fine for its tangent (its rigid-body modes) and energy; a solve is refused
-        self.unconstrained = len(self.sets.bnd) == 0 and not np.any(np.asarray(self.springs.k) > 0)
+        self.unconstrained = inputs.unconstrained(self)
 
     # ------------------------------------------------------------------ the problem
     @property
@@ -225,11 +220,7 @@ class Model:
                 initial: Solution | None = None, throw: bool = True, max_iter: int = 25,
                 max_cuts: int = 10, solver=None, **options) -> Solution:
         """``solve`` with all prescribed values as one (Nb, d) array (see ``prescribed``)."""
-        if self.unconstrained:
-            raise ValueError("unconstrained: rigid-body modes. The model has no essential set and no "
-                             "springs, so it can translate and rotate freely and no solve has a unique "
-                             "equilibrium; hold part of it (essential={'wall': body.select(...)}) or "
-                             "add Springs")
+        inputs.check_constrained(self)
         start = self.initial() if initial is None else self.check_solution(initial, "initial")
         g = inputs.check_g(self, g)
         if inputs.is_concrete(loads) and not np.isfinite(loads):
