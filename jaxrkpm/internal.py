@@ -20,6 +20,7 @@ from .mechanics.problem import Problem
 from .mechanics.strain import StrainEnergy
 from .mechanics.term import Context, Pairs, Term, TermSpec, static, term
 from .model.model import SolverChoice
+from .model.solving import BranchOnDemand, Direct
 from .solvers.branch import BranchSwitch, StableDescent
 from .solvers.continuation import ArcLength, ArcLengthPath
 from .solvers.implicit import implicit_jacobian, point_jacobian, response, sensitivity, solve_path_diff
@@ -42,7 +43,7 @@ __all__ = [
     "EssentialSets", "Transformation",
     "Essential", "ContactTerm", "DeadLoad", "SpringTerm", "PressureTerm", "Problem", "StrainEnergy",
     "Context", "Pairs", "Term", "TermSpec", "static", "term",
-    "SolverChoice",
+    "SolverChoice", "Direct", "BranchOnDemand",
     "BranchSwitch", "StableDescent", "ArcLength", "ArcLengthPath",
     "implicit_jacobian", "point_jacobian", "response", "sensitivity", "solve_path_diff",
     "IterativeSolver", "iterate", "run",

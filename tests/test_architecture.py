@@ -513,3 +513,26 @@ def test_the_command_check_catches_a_table_of_commands(tmp_path):
     assert "declared twice" in text and "only as the module-level COMMAND" in text
     assert "table.py:1 names the study module jaxrkpm.thesis.studies.hello" in text
     assert "table.py:1 names the command 'hello'" in text and "cli.py:1 names the command 'hello'" in text
+
+
+# --------------------------------------------------------------------------- the model
+MODEL = PACKAGE / "model"
+
+
+def test_the_model_is_a_thin_facade():
+    """``Model`` delegates to the builders of the lower layers (discretise, assemble, the
+    linear solver) and to the functions beside it (inputs, solving, jacobian, post)."""
+    lines = len((MODEL / "model.py").read_text().splitlines())
+    assert lines <= 300, f"model/model.py has {lines} lines (at most 300): move the work into a module beside it"
+
+
+BUILT_IN_NAMES = {"strain", "springs", "dead_load"}
+
+
+@pytest.mark.parametrize("path", sorted(MODEL.glob("*.py")), ids=lambda p: p.name)
+def test_the_model_finds_built_in_terms_by_type(path):
+    """No built-in term is reached by its name (``problem.term("strain")``): by its type
+    (``Problem.term_of(StrainEnergy)``), so that a name is only a key of parameters."""
+    names = [n.value for n in ast.walk(ast.parse(path.read_text())) if isinstance(n, ast.Constant)
+             and n.value in BUILT_IN_NAMES]
+    assert not names, f"model/{path.name} names built-in terms {names}: find them by type"

@@ -53,7 +53,7 @@ class Material:
             arr = np.asarray(v, float)
             if not np.all(np.isfinite(arr)):
                 raise ValueError(f"{self.name}: parameter {k!r} is not finite: {v}")
-            self._check_sign(k, arr)
+            self.check_sign(k, arr)
         errors = {}
         for dim in (2, 3):   # the body's dimension is not known yet: W must work in one of them
             try:
@@ -100,7 +100,8 @@ class Material:
         arr = np.asarray(v, float)
         return arr if arr.ndim == 0 else arr.reshape(-1)[0]
 
-    def _check_sign(self, k, arr):
+    def check_sign(self, k, arr):
+        """A ValueError where the values ``arr`` of parameter ``k`` break its declared sign."""
         if k in self.positive and np.any(arr <= 0):
             raise ValueError(f"{self.name}: parameter {k!r} must be positive, got {np.min(arr):g}")
         if k in self.nonnegative and np.any(arr < 0):
@@ -117,7 +118,7 @@ class Material:
                                      f"got {arr.shape}")
                 if not np.all(np.isfinite(arr)):
                     raise ValueError(f"{self.name}: field {k!r} has non-finite values")
-                self._check_sign(k, arr)
+                self.check_sign(k, arr)
             else:
                 arr = np.asarray(v, float)
                 if arr.ndim == 0:

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from .constraint import Essential
+from .loads import DeadLoad
 from .term import Pairs, Term
 
 
@@ -75,6 +76,14 @@ class Problem:
                 return t
         raise KeyError(f"no term {name!r}; this problem has {[t.name for t in self.terms]}")
 
+    def term_of(self, kind: type) -> Term:
+        """The first term of type ``kind`` (a built-in one: ``StrainEnergy``, ``SpringTerm``,
+        ``DeadLoad``), whatever its name."""
+        for t in self.terms:
+            if isinstance(t, kind):
+                return t
+        raise KeyError(f"no {kind.__name__} term; this problem has {[type(t).__name__ for t in self.terms]}")
+
     @property
     def params(self) -> dict:
         """The parameters the problem is differentiable in: term name -> its parameters."""
@@ -83,12 +92,12 @@ class Problem:
     @property
     def load_pattern(self):
         """(N, d) the dead loads at load scale 1."""
-        return self.term("dead_load").f
+        return self.term_of(DeadLoad).f
 
     def with_load_pattern(self, f_ext) -> "Problem":
         """The same problem with the dead load (N, d) at load scale 1 replaced by ``f_ext``."""
         f = jnp.asarray(f_ext)
-        return self.replace(terms=tuple(replace(t, f=f) if t.name == "dead_load" else t for t in self.terms))
+        return self.replace(terms=tuple(replace(t, f=f) if isinstance(t, DeadLoad) else t for t in self.terms))
 
     def loaded(self) -> bool:
         """Whether the load scale drives anything (a nonzero dead load or pressure; host side)."""
