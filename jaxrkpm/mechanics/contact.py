@@ -488,7 +488,11 @@ class ContactPenetrationWarning(UserWarning):
 def penetration(term: "ContactTerm", d, load) -> float:
     """The smallest gap of the contact ``term``'s points at coefficients ``d`` (N, d) and load
     scale ``load`` (negative: a point inside the tool)."""
-    return float(jnp.min(term.gaps(term.points(d), load)))
+    return float(_smallest_gap(term, d, load))
+
+
+# one compiled program, not one per eager operation (a converged contact solve checks it)
+_smallest_gap = jax.jit(lambda term, d, load: jnp.min(term.gaps(term.points(d), load)))
 
 
 def contact_forces(model, sol, name: str, params=None) -> ContactResult:

@@ -14,8 +14,19 @@ from .inputs import check_set, check_solution, params_with
 
 STRESSES = ("pk2", "pk1", "cauchy")
 
-# FD evaluates it per re-solve: one dispatch, not ~10 eager ops
+# Each post-processing step is one compiled program: run eagerly, JAX compiles every
+# operation of the residual's backward pass on its own, which costs a cold process more than
+# the program does (``experiments/bench_peer.py``'s first_post_s); FD evaluates point values
+# per re-solve
 point_values = jax.jit(lambda constraint, idx, psi, u, g: constraint.point_values(idx, psi, u, g))
+_coefficients = jax.jit(lambda constraint, u, g: constraint.coefficients(u, g))
+_reactions = jax.jit(lambda problem, u, g, load: problem.reactions(u, g, load))
+_energy = jax.jit(lambda problem, d, load: problem.energy_full(d, load)[0])
+
+
+@jax.jit
+def _gradients(idx, dpsi, constraint, u, g):
+    return deformation_gradients(idx, dpsi, constraint.coefficients(u, g))
 
 
 class PointTables:
@@ -41,7 +52,7 @@ class PointTables:
 def coefficients(model, sol: Solution):
     """(N, d) RK coefficients of a solution (essential ones by eq 3.22)."""
     check_solution(model, sol)
-    return model.constraint.coefficients(sol.u, sol.g)
+    return _coefficients(model.constraint, sol.u, sol.g)
 
 
 def displacement(model, sol: Solution, points):
@@ -53,8 +64,9 @@ def displacement(model, sol: Solution, points):
 
 def deformation_gradient(model, sol: Solution, points):
     """F at reference points (P, d, d)."""
+    check_solution(model, sol)
     sf = model.shape_functions(points)
-    return deformation_gradients(sf.idx, jnp.asarray(sf.dpsi), coefficients(model, sol))
+    return _gradients(jnp.asarray(sf.idx), jnp.asarray(sf.dpsi), model.constraint, sol.u, sol.g)
 
 
 def material_parameters(model, points, params=None) -> tuple[dict, dict]:
@@ -88,7 +100,7 @@ def reactions(model, sol: Solution, params=None):
     """(Nb, d) generalized reaction at each essential particle: dPi/dg, the force the
     constraint exerts on the body (exact discrete reaction from the residual)."""
     check_solution(model, sol)
-    return model.problem(params).reactions(sol.u, sol.g, sol.load)
+    return _reactions(model.problem(params), sol.u, sol.g, sol.load)
 
 
 def reaction(model, sol: Solution, name: str, params=None):
@@ -99,4 +111,4 @@ def reaction(model, sol: Solution, name: str, params=None):
 
 def energy(model, sol: Solution, params=None):
     """The total potential energy at a solution."""
-    return model.problem(params).energy_full(coefficients(model, sol), sol.load)[0]
+    return _energy(model.problem(params), coefficients(model, sol), sol.load)
