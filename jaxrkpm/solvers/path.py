@@ -10,9 +10,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..base.checks import count, flag, positive
 from .branch import BranchSwitch
 from .iterate import iterate, when
-from .newton import Newton, _count, _flag, _positive
+from .newton import Newton
 from .results import CRITICAL_EIGS, Critical, Limits, Solution, Status
 
 
@@ -116,11 +117,11 @@ class LoadPath:
     def __post_init__(self):
         if not isinstance(self.newton, Newton) or self.newton.chord:
             raise ValueError(f"newton must be a Newton solver (not a chord), got {self.newton!r}")
-        _count("easy", self.easy)
-        _positive("growth", self.growth)
-        _count("locate", self.locate)
-        _count("failed_work", self.failed_work)
-        _flag("keep_linear", self.keep_linear)
+        count("easy", self.easy)
+        positive("growth", self.growth)
+        count("locate", self.locate)
+        count("failed_work", self.failed_work)
+        flag("keep_linear", self.keep_linear)
         if self.branch is not None and not isinstance(self.branch, BranchSwitch):
             raise ValueError(f"branch must be a BranchSwitch or None, got {self.branch!r}")
 
