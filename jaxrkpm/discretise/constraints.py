@@ -243,8 +243,8 @@ def elimination_layout(A, pair_i, pair_j, free, bnd) -> EliminationLayout:
     particles linked by a tangent pair or by a free particle that A couples to both. Why:
     A couples each essential particle only to the free ones near its own piece of boundary
     (a cube's two clamped faces are two blocks of A, half of it zero), so the products and
-    scatters of one component involve only its free rows and coupled columns (at the 10^3
-    cube a fraction of the flops of the dense Kfb A). No essential particles: C = 0."""
+    scatters of one component involve only its free rows and coupled columns, not the dense
+    Kfb A (``experiments/bench_cube3d.py``). No essential particles: C = 0."""
     A = np.asarray(A, float)
     Nb, Nf = A.shape
     pair_i, pair_j = np.asarray(pair_i, np.int64), np.asarray(pair_j, np.int64)

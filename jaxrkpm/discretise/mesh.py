@@ -43,10 +43,9 @@ if TYPE_CHECKING:
 SIMPLEX = {2: "triangle", 3: "tetra"}          # body dimension -> meshio cell type
 # second-order simplices are used through their corner nodes (straight-sided cells)
 CORNERS = {"triangle": 3, "triangle6": 3, "triangle7": 3, "tetra": 4, "tetra10": 4}
-# the most tetrahedra a refinement may make or a spacing may ask gmsh for (``surface``): a
-# million make a body of ~170,000 particles, past what a 3D solve on one machine does, and a
-# finer spacing only meshes for minutes before that shows (0.2% of a body's size asked for
-# ~1e9): refused before meshing, estimate in the message
+# the default bound (``max_cells``) on the tetrahedra a refinement may make or a spacing may
+# ask gmsh for (``surface``): a million make a body past what a 3D solve on one machine does,
+# and a finer spacing only meshes for minutes before that shows: refused before meshing
 MAX_TETRAHEDRA = 1_000_000
 _GMSH_LOCK = threading.RLock()
 log = logging.getLogger(__name__)
@@ -140,10 +139,7 @@ class VolumeMesh:
         return self.points.shape[1]
 
 
-FLAT = 1e-10     # a cell whose measure is below this fraction of the mean is degenerate (zero volume)
-
-
-def volume_mesh(source, dim: int | None = None, drop_degenerate: bool = False) -> VolumeMesh:
+def volume_mesh(source, dim: int | None = None, drop_degenerate: bool = False, flat: float = 1e-10) -> VolumeMesh:
     """The simplices of a mesh (tetrahedra for ``dim`` 3, triangles for 2; default: 3 if
     the mesh has tetrahedra), validated, each positively oriented, unused vertices dropped,
     with its tags. Raises a ValueError naming the defect: non-finite coordinates, no cells,
@@ -152,7 +148,8 @@ def volume_mesh(source, dim: int | None = None, drop_degenerate: bool = False) -
     ``drop_degenerate``: zero-volume cells (the slivers of scipy's ``Delaunay`` on points of
     a lattice) are dropped instead of refused, and counted (``report["degenerate"]`` and the
     log line); they add nothing to the body's volume, and the faces they leave unmatched
-    inside the body are not boundary (:func:`boundary_faces`)."""
+    inside the body are not boundary (:func:`boundary_faces`). ``flat``: a cell whose
+    measure is below this fraction of the mean is degenerate (zero volume)."""
     if not isinstance(drop_degenerate, (bool, np.bool_)):
         raise ValueError(f"drop_degenerate must be True or False, got {drop_degenerate!r}")
     mesh = read_mesh(source)
@@ -160,12 +157,12 @@ def volume_mesh(source, dim: int | None = None, drop_degenerate: bool = False) -
     dim, points, cells = _simplices(mesh, name, dim)
     degenerate = 0
     if drop_degenerate:
-        cells, degenerate = _without_flat(points, cells, name, dim)
+        cells, degenerate = _without_flat(points, cells, name, dim, flat)
     used, cells = np.unique(cells, return_inverse=True)
     cells = cells.reshape(-1, dim + 1)
     dropped = np.setdiff1d(np.arange(len(mesh.points)), used)
     points = points[used]
-    cells, reoriented = _checked_cells(points, cells)
+    cells, reoriented = _checked_cells(points, cells, flat)
     tags = _kept_tags(mesh, used)
     report = {"reoriented": reoriented, "dropped": dropped, "degenerate": degenerate}
     _say(name, SIMPLEX[dim], len(cells), reoriented, dropped, mesh, degenerate)
@@ -197,10 +194,10 @@ def _no_simplices(dim: int, kinds: set) -> str:
     return f"a {dim}D body needs {SIMPLEX[dim]} cells, but the mesh {what}"
 
 
-def _without_flat(points, cells, name: str, dim: int):
+def _without_flat(points, cells, name: str, dim: int, tolerance: float):
     """(the cells of nonzero volume, how many were dropped)."""
     vol = np.abs(simplex_volumes(points, cells))
-    flat = vol <= FLAT * vol.mean()
+    flat = vol <= tolerance * vol.mean()
     if flat.all():
         raise ValueError(f"every {SIMPLEX[dim]} cell of the mesh {name} has zero volume: it has no body")
     return cells[~flat], int(flat.sum())
@@ -308,7 +305,7 @@ def simplex_volumes(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
     return np.linalg.det(E) / math.factorial(points.shape[1])
 
 
-def _checked_cells(points, cells):
+def _checked_cells(points, cells, tolerance: float):
     """(cells with positive volumes, how many were reordered). Each negatively oriented cell
     has two vertices swapped: in a reference mesh the vertex order is a convention (qhull
     and scikit-fem mix both), not a deformation. Errors: coincident vertices, zero-volume
@@ -324,7 +321,7 @@ def _checked_cells(points, cells):
                          "merge duplicate nodes first")
     vol = simplex_volumes(points, cells)
     name = SIMPLEX[d]
-    flat = np.abs(vol) <= FLAT * np.abs(vol).mean()
+    flat = np.abs(vol) <= tolerance * np.abs(vol).mean()
     if flat.any():
         c = int(np.flatnonzero(flat)[0])
         raise ValueError(f"{int(flat.sum())} of {len(cells)} {name} cells are zero-volume, e.g. cell {c} with "
@@ -445,11 +442,12 @@ def _vertex_tags(mesh: meshio.Mesh) -> dict:
 GMSH_TYPE = {1: 1, 2: 2, 3: 4}   # simplex dimension -> gmsh element type: line, triangle, tetrahedron
 
 
-def refine_mesh(source, times: int = 1) -> meshio.Mesh:
+def refine_mesh(source, times: int = 1, max_cells: int = MAX_TETRAHEDRA) -> meshio.Mesh:
     """The mesh with every simplex split uniformly ``times`` times by Gmsh (tetrahedra into
     8, triangles into 4; new vertices at the edge midpoints, so a curved surface keeps its
     chords), its named cell groups carried along as physical groups. Point sets cannot be
-    carried (a new vertex belongs to no listed point): such a mesh is refused."""
+    carried (a new vertex belongs to no listed point): such a mesh is refused. A refinement
+    that would make more than ``max_cells`` simplices is refused before meshing."""
     if not (isinstance(times, (int, np.integer)) and times >= 0):
         raise ValueError(f"refine must be a whole number of refinements >= 0, got {times!r}")
     mesh = read_mesh(source)
@@ -461,7 +459,7 @@ def refine_mesh(source, times: int = 1) -> meshio.Mesh:
     dim = 3 if {b.type for b in mesh.cells} & {"tetra", "tetra10"} else 2
     blocks = [b for b, blk in enumerate(mesh.cells) if CORNERS.get(blk.type) == dim + 1]
     sizes = [len(mesh.cells[b].data) for b in blocks]
-    _check_refined_size(sum(sizes), dim, times)
+    _check_refined_size(sum(sizes), dim, times, max_cells)
     first = dict(zip(blocks, np.cumsum([0] + sizes[:-1])))
     simplices = np.concatenate([np.asarray(mesh.cells[b].data)[:, :dim + 1] for b in blocks])
     groups = _cell_groups(mesh)
@@ -475,11 +473,11 @@ def refine_mesh(source, times: int = 1) -> meshio.Mesh:
         return gmsh_to_meshio(gmsh)
 
 
-def _check_refined_size(cells: int, dim: int, times: int) -> None:
+def _check_refined_size(cells: int, dim: int, times: int, max_cells: int) -> None:
     made = cells * float(2 ** dim) ** times
-    if made > MAX_TETRAHEDRA:
+    if made > max_cells:
         raise ValueError(f"refine={times} would split the {cells:,} cells into {made:.3g} (x{2 ** dim} each "
-                         f"time), more than the bound of {MAX_TETRAHEDRA:,}: refine fewer times")
+                         f"time), more than the bound of {max_cells:,}: refine fewer times")
 
 
 def _owners(groups: dict, first: dict, n: int) -> np.ndarray:

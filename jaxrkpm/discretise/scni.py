@@ -31,9 +31,9 @@ patch test to O(h)). Both are exact for linear fields (sum_I b_I X_I^T = I).
 Stabilisation (``stab`` = beta > 0; Model(integration="mscni") uses beta = 0.5). Nodal
 integration under-integrates fields whose gradient oscillates inside a cell but whose cell
 average is small (Puso, Chen, Zywicz & Elmer 2008). With the default support (2.01 h) plain
-SCNI has no spurious zero-energy mode (only the rigid ones), but such modes carry up to ~7x
-too little energy (~25x at support 1.5 h; experiments/scni_modes.py), and they soften the
-response to strong compression. Each cell is split into sub-cells (the triangles / pyramids
+SCNI has no spurious zero-energy mode (only the rigid ones), but such modes carry too little
+energy (the more so at a smaller support; experiments/scni_modes.py measures how much), and
+they soften the response to strong compression. Each cell is split into sub-cells (the triangles / pyramids
 from the cell centroid to each facet); their smoothed gradients b^s come from the same
 shared-facet machinery and satisfy the integration constraint on their own. The energy is
 the blend
@@ -71,8 +71,6 @@ SCHEMES = {
     "scni": (0.0, "nodal"),     # Chen et al. 2001 SCNI: one smoothed point per particle
     "mscni": (0.5, "nodal"),    # + sub-cell stabilisation (modified SCNI, see above)
 }
-DEFAULT_STAB = 0.5
-NODAL_DEGREE = 1   # Lagrange degree of the boundary interpolant of the 'nodal' rule
 
 
 def _rot(t):
@@ -520,11 +518,13 @@ class Smoothing:
     boundary: Table
 
 
-def build(body: Body, a: float, stab: float = DEFAULT_STAB, boundary: str = "nodal",
-          order: int = 2, support_factor=None) -> Smoothing:
+def build(body: Body, a: float, stab: float = 0.5, boundary: str = "nodal",
+          order: int = 2, support_factor=None, nodal_degree: int = 1) -> Smoothing:
     """Smoothing cells, shared-facet quadrature and the SCNI Table of ``body`` for the RK
     dilation ``a``. ``stab`` = beta in [0, 1] (0: plain SCNI), ``order`` Gauss points per
-    facet direction, ``boundary`` 'nodal' | 'gauss' (see the module docstring)."""
+    facet direction, ``boundary`` 'nodal' | 'gauss' (see the module docstring);
+    ``nodal_degree``: the Lagrange degree of the 'nodal' rule's boundary interpolant on grid
+    and polygon bodies (a mesh body's is P1 on its surface faces)."""
     _check_options(stab, boundary, order)
     d, N = body.dim, body.n
     Bd = _facets(body, order, stab > 0)
@@ -544,7 +544,7 @@ def build(body: Body, a: float, stab: float = DEFAULT_STAB, boundary: str = "nod
     def sf(P):
         return body.shape_functions(P, a, gradients=False, support_factor=support_factor)
 
-    ent_pt, ent_I, ent_v = _facet_psi(body, Bd, pts, isb, boundary, sf)
+    ent_pt, ent_I, ent_v = _facet_psi(body, Bd, pts, isb, boundary, sf, nodal_degree)
     areas = _row_areas(body, R, level, owner, inc_row, inc_pt, inc_sign, pts, wts, nrm)
 
     # (row, particle) -> oint Psi n as sparse products: incidences (R, points) x Psi at the
@@ -585,7 +585,7 @@ def _facets(body: Body, order, stabilised) -> _Builder:
     return _build_3d(body, order, stabilised)
 
 
-def _facet_psi(body: Body, Bd: _Builder, pts, isb, boundary, sf):
+def _facet_psi(body: Body, Bd: _Builder, pts, isb, boundary, sf, degree):
     """Psi at every facet point as sparse entries (point, particle, value): the shape
     functions themselves, but on the boundary under the 'nodal' rule their interpolant
     between the boundary particles."""
@@ -596,7 +596,7 @@ def _facet_psi(body: Body, Bd: _Builder, pts, isb, boundary, sf):
     ent_v = [s_in.psi.ravel()]
     if boundary == "nodal" and isb.any():
         bpts = np.flatnonzero(isb)
-        st_idx, st_w = _boundary_stencils(body, Bd, pts, bpts)
+        st_idx, st_w = _boundary_stencils(body, Bd, pts, bpts, degree)
         nodes = np.unique(st_idx)
         s_nodes = sf(body.X[nodes])
         where = np.searchsorted(nodes, st_idx)            # (Gb, S) rows of s_nodes
@@ -607,12 +607,12 @@ def _facet_psi(body: Body, Bd: _Builder, pts, isb, boundary, sf):
     return map(np.concatenate, (ent_pt, ent_I, ent_v))
 
 
-def _boundary_stencils(body: Body, Bd: _Builder, pts, bpts):
+def _boundary_stencils(body: Body, Bd: _Builder, pts, bpts, degree):
     """The boundary particles interpolating each boundary facet point pts[bpts], and their
     weights (the 'nodal' rule)."""
     if body.cells is not None:
         return _boundary_stencils_mesh(body.X, Bd.mesh_faces, np.concatenate(Bd.face)[bpts], pts[bpts])
-    return (_boundary_stencils_2d if body.dim == 2 else _boundary_stencils_3d)(body, pts[bpts], NODAL_DEGREE)
+    return (_boundary_stencils_2d if body.dim == 2 else _boundary_stencils_3d)(body, pts[bpts], degree)
 
 
 def _row_areas(body: Body, R, level, owner, inc_row, inc_pt, inc_sign, pts, wts, nrm) -> np.ndarray:

@@ -56,7 +56,6 @@ def isochoric_invariants(C):
 # tr f(C) and the matrix function f(C) are: d tr f(C) = f'(C) : dC, and df(C) has the
 # Daleckii-Krein form Q (Γ ∘ Qᵀ dC Q) Qᵀ with Γ_ij the divided differences of f, f' at equal
 # eigenvalues. Written as custom JVPs, stress and tangent are exact at repeated stretches.
-_CLOSE = 1e-6        # relative eigenvalue gap below which Γ takes f' at the midpoint
 
 
 def _power_derivative(lam, a, n: int):
@@ -74,13 +73,15 @@ def _power_matrix(C, a, n: int):
     return (Q * _power_derivative(lam, a, n)) @ Q.T
 
 
-def _power_matrix_jvp(n, primals, tangents):
+def _power_matrix_jvp(n, primals, tangents, rel_gap: float = 1e-6):
+    """The Daleckii-Krein derivative; eigenvalues closer than ``rel_gap`` (relative) count as
+    equal (Γ takes f' at their midpoint)."""
     C, a = primals
     dC, da = tangents
     lam, Q = jnp.linalg.eigh(C)
     li, lj = lam[:, None], lam[None, :]
     gap = li - lj
-    close = jnp.abs(gap) <= _CLOSE * jnp.maximum(li, lj)
+    close = jnp.abs(gap) <= rel_gap * jnp.maximum(li, lj)
     fi, fj = _power_derivative(li, a, n), _power_derivative(lj, a, n)
     gamma = jnp.where(close, _power_derivative(0.5 * (li + lj), a, n + 1),
                       (fi - fj) / jnp.where(close, 1.0, gap))

@@ -100,7 +100,7 @@ class Phantom3D(NeedleTrack):
                    (``paddle_points``): start the optimiser there (``with_footprint``)
     material_law   "neo-hookean" (default: nearly incompressible neo-Hookean tissue, shear
                    modulus ``mu``, Poisson's ratio ``nu`` = 0.45), "neohookean" (compressible,
-                   ``lam`` and ``mu``: ν = 0.4, the default before), "fung" (chapter 6's law
+                   ``lam`` and ``mu``: ν = 0.4), "fung" (chapter 6's law
                    with the 3D Table 5.2 pattern) or "fung-barrier" (the same with the
                    volumetric barrier); see ``material``
     mu, lam, nu    neo-Hookean constants; alpha, beta the Fung ones
@@ -367,7 +367,7 @@ class Phantom3D(NeedleTrack):
 
         Nearly incompressible neo-Hookean tissue by default (mu = 1, Poisson's ratio ``nu`` =
         0.45, W = mu/2 (I1bar - 3) + kappa/2 (ln J)^2); ``material_law="neohookean"`` the
-        compressible neo-Hookean solid (lam = 4, mu = 1: nu = 0.4) that was the default before;
+        compressible neo-Hookean solid (lam = 4, mu = 1: nu = 0.4);
         ``"fung"`` chapter 6's law with the Table 5.2 pattern extended to 3D (its tensors are
         the 2D thesis' numbers), ``"fung-barrier"`` the same with the volumetric barrier
         (:func:`jaxrkpm.thesis.needle.tissue_material`).
