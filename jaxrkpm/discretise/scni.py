@@ -33,10 +33,10 @@ integration under-integrates fields whose gradient oscillates inside a cell but 
 average is small (Puso, Chen, Zywicz & Elmer 2008). With the default support (2.01 h) plain
 SCNI has no spurious zero-energy mode (only the rigid ones), but such modes carry too little
 energy (the more so at a smaller support; experiments/scni_modes.py measures how much), and
-they soften the response to strong compression. Each cell is split into sub-cells (the triangles / pyramids
-from the cell centroid to each facet); their smoothed gradients b^s come from the same
-shared-facet machinery and satisfy the integration constraint on their own. The energy is
-the blend
+they soften the response to strong compression. Each cell is split into sub-cells (the
+triangles / pyramids from the cell centroid to each facet); their smoothed gradients b^s come
+from the same shared-facet machinery and satisfy the integration constraint on their own. The
+energy is the blend
 
     Pi = sum_L [(1 - beta) A_L W(F_L) + beta sum_{s in L} A_s W(F_s)],
 
