@@ -5,8 +5,8 @@ The public API is the names below (declared once, in ``__init__.pyi``, which typ
 IDEs read); they load on first use, so ``jaxrkpm --help`` answers without importing JAX. Power
 users reach the pieces underneath through :mod:`jaxrkpm.internal`; the thesis application is
 :mod:`jaxrkpm.thesis`, the hardware side of the rig :mod:`jaxrkpm.rig`. The layer folders
-(``discretise``, ``mechanics``, ``solvers``, ``model``, ``control``, ``io``) are the
-implementation.
+(``discretise``, ``mechanics``, ``solvers``, ``model``, ``control``, ``io``, ``sweeps``) are
+the implementation.
 
 Importing the package enables float64 in JAX (``jax_enable_x64``: solid mechanics needs it)
 and makes BLAS/LAPACK single-threaded (:mod:`jaxrkpm.base.threads` says why;

@@ -5,16 +5,6 @@ from . import internal as internal, rig as rig
 from .base.outcome import Outcome as Outcome
 from .base.cache import use_compilation_cache as use_compilation_cache
 from .base.programs import release_if_crowded as release_if_crowded
-from .control.sweep import (
-    ChunkChoice as ChunkChoice,
-    SweepFolderError as SweepFolderError,
-    SweepSummary as SweepSummary,
-    choose_chunk_size as choose_chunk_size,
-    read_sweep as read_sweep,
-    results_dataset as results_dataset,
-    sweep as sweep,
-    worker_settings as worker_settings,
-)
 from .control.friction import (
     FrictionalSolve as FrictionalSolve,
     LagStatus as LagStatus,
@@ -87,5 +77,13 @@ from .model.model import Model as Model, SolveError as SolveError
 from .solvers.continuation import EquilibriumPath as EquilibriumPath, PathStatus as PathStatus
 from .solvers.linalg.base import Stability as Stability
 from .solvers.results import Solution as Solution, Status as Status
+from .sweeps.chunk_size import ChunkChoice as ChunkChoice, choose_chunk_size as choose_chunk_size
+from .sweeps.executors import worker_settings as worker_settings
+from .sweeps.runner import SweepSummary as SweepSummary, sweep as sweep
+from .sweeps.storage import (
+    SweepFolderError as SweepFolderError,
+    read_sweep as read_sweep,
+    results_dataset as results_dataset,
+)
 
 __version__: str

@@ -28,7 +28,7 @@ def stack_models(models: Sequence[Model], like: Sequence[Model] = ()) -> tuple[P
     on a stacked copy (``experiments/bench_sweep.py`` compares the two).
 
     ``like``: models that count as members for the padded shapes and for which leaves are
-    batched, but are not stacked: the chunks of a sweep (``jaxrkpm.control.sweep``) given
+    batched, but are not stacked: the chunks of a sweep (``jaxrkpm.sweep``) given
     the same ``like`` stack to one shape and one set of batched leaves, so one compiled
     program serves them all instead of one per chunk."""
     ref = models[0]

@@ -3,7 +3,7 @@
 :class:`NeedleSweep`) or of the 3D half-ellipsoid phantom (paddle patch, inclusion, stiffness
 ratio, the tissue's constants; :class:`NeedleSweep3D`), evaluated a chunk at a time by the
 batched insertion (``needle.insert``: every configuration x every increment in one compiled
-call) and written by :func:`jaxrkpm.control.sweep.sweep` (Parquet, resumable, in process or on
+call) and written by :func:`jaxrkpm.sweep` (Parquet, resumable, in process or on
 a Dask cluster); and tracking sweeps over the object's material and the control gains
 (:class:`TrackSweep`).
 """
@@ -15,11 +15,11 @@ from typing import Sequence
 
 import numpy as np
 
-from ..control.sweep import sweep
 from ..control.tracking import TrackStatus, track
 from ..model.model import Model
 from ..mechanics.materials import Fung
 from ..solvers.results import Status
+from ..sweeps.runner import sweep
 from .data import CP_2D, INCLUSIONS, INCLUSIONS_3D, PATHS
 from .needle import Phantom, controllability, inclusion_field, insert
 from .phantom3d import MATERIAL_VALUES, Phantom3D
@@ -71,7 +71,7 @@ class _InsertionSweep:
 
     def for_chunk_size(self, size: int):
         """This evaluator with every batch padded to ``size`` members, unless it was given a
-        ``batch`` of its own (what :func:`jaxrkpm.control.sweep.sweep` asks once it knows the
+        ``batch`` of its own (what :func:`jaxrkpm.sweep` asks once it knows the
         chunk size)."""
         if self.batch is not None:
             return self
@@ -206,7 +206,7 @@ def _outcome(st: np.ndarray, depths) -> tuple[str, str]:
 
 class NeedleSweep(_InsertionSweep):
     """The evaluator of a 2D needle sweep: ``evaluate(chunk) -> columns`` for
-    :func:`jaxrkpm.control.sweep.sweep`. A configuration is a row with ``paddle`` (1-based
+    :func:`jaxrkpm.sweep`. A configuration is a row with ``paddle`` (1-based
     Table 6.2 position), ``inclusion`` (a name of ``INCLUSIONS``), ``stiffness_ratio`` and,
     optionally, ``alpha`` and ``beta`` (Fung; the phantom's where absent). A chunk's valid
     configurations are inserted in one batched call (``needle.insert``), padded to ``batch``
@@ -389,8 +389,8 @@ def needle_sweep(out, configurations=None, *, increments: int = 15, chunk_size: 
     """The 2D needle sweep of ``configurations`` (default :func:`paddle_configurations`)
     into the folder ``out``: :class:`NeedleSweep` (``options``: its own and the phantom's)
     padded to ``chunk_size`` members (``"auto"``: measured, see
-    :func:`jaxrkpm.control.sweep.choose_chunk_size`), through
-    :func:`jaxrkpm.control.sweep.sweep`; a rerun resumes. Returns its ``SweepSummary``;
+    :func:`jaxrkpm.choose_chunk_size`), through
+    :func:`jaxrkpm.sweep`; a rerun resumes. Returns its ``SweepSummary``;
     ``read_sweep(out)`` gives the table."""
     evaluate = NeedleSweep(increments, **options)
     return sweep(paddle_configurations() if configurations is None else configurations, evaluate, out,

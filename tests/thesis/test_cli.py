@@ -469,7 +469,7 @@ def test_sweep_checks_where_it_runs_before_writing(tmp_path, monkeypatch, capsys
                                statuses={"CONVERGED": len(cfg["paddle"])})
     monkeypatch.setattr(sweeps, "needle_sweep", fake_sweep)
     monkeypatch.setattr(sweep, "_cluster", lambda args: (None, lambda: None))
-    monkeypatch.setattr("jaxrkpm.control.sweep.read_sweep", lambda *a, **k: __import__("pyarrow").table(
+    monkeypatch.setattr("jaxrkpm.sweeps.storage.read_sweep", lambda *a, **k: __import__("pyarrow").table(
         {"id": [0], "paddle": [1], "inclusion": ["right"], "stiffness_ratio": [1.0], "final_deviation": [0.1],
          "status": ["CONVERGED"]}))
     monkeypatch.setattr(interface, "unreachable", lambda address: None)

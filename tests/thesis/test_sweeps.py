@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from jaxrkpm.control.batching import stack_models
-from jaxrkpm.control.sweep import read_sweep
+from jaxrkpm.sweeps.storage import read_sweep
 from jaxrkpm.solvers.results import Status
 from jaxrkpm.thesis import cli, needle as nd, sweeps
 
@@ -167,7 +167,7 @@ def test_3d_sweep_rows_are_the_batched_insertion(sweep3d, tmp_path):
     ph = sweep3d.phantom
     table = {"paddle": [1, 2, 3], "inclusion": ["none", "side", "above"], "stiffness_ratio": [1.0, 10.0, 100.0],
              "mu": [1.0, 1.0, 2.0]}
-    from jaxrkpm.control.sweep import sweep
+    from jaxrkpm.sweeps.runner import sweep
     summary = sweep(table, sweep3d, tmp_path / "s3", chunk_size=3, progress=False)
     assert summary.complete and summary.statuses == {"CONVERGED": 3}
     rows = read_sweep(tmp_path / "s3")

@@ -33,6 +33,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from jaxrkpm.sweeps import limits as sweep_limits
+
 EXIT_OK, EXIT_GOAL, EXIT_USAGE, EXIT_OUTPUT = 0, 1, 2, 3
 EXIT_INTERRUPTED = 130          # the shell's code for a run ended by Ctrl-C (128 + SIGINT)
 EXIT_CODES = {
@@ -54,8 +56,8 @@ REPEATS_MAX = 100               # timed warm runs
 LEVELS_MAX = 6                  # cantilever refinements: h = 1/4 .. 1/128 (257 x 129 particles)
 COMPRESSION_STEPS_MAX = 1_000   # compression steps (--max / --step), a solve each
 DEVICES_MAX = 4096
-SWEEP_CHUNK_MAX = 65_536        # configurations per chunk of a sweep (jaxrkpm.control.sweep.MAX_CHUNK)
-SWEEP_MAX = 10_000_000          # configurations of a sweep (jaxrkpm.control.sweep.MAX_CONFIGURATIONS)
+SWEEP_CHUNK_MAX = sweep_limits.MAX_CHUNK          # configurations per chunk of a sweep
+SWEEP_MAX = sweep_limits.MAX_CONFIGURATIONS      # configurations of a sweep
 SEED_MAX = 2 ** 32 - 1          # NumPy's seeds are unsigned 32-bit words
 # peak memory per particle of a 2D model (experiments/bench_memory_2d.py: building, solving and
 # differentiating the planar square at 65 x 65 particles, sparse path, compile included); sizes

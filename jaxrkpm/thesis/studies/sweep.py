@@ -64,7 +64,7 @@ def main(argv=None) -> dict:
         interface.PARSERS["sweep"]().error(f"--executor: {why}")
     # where the chunks run does not change the results: not part of the run's identity
     results = interface.results("sweep", args, staged=False, ignore=("executor", "workers"))
-    from jaxrkpm.control.sweep import SweepFolderError, SweepInUseError, read_sweep
+    from jaxrkpm.sweeps.storage import SweepFolderError, SweepInUseError, read_sweep
     from jaxrkpm.thesis import sweeps
     with results as out:
         if results.replaces:              # --overwrite over another sweep: start afresh
