@@ -27,8 +27,9 @@ from every core (``experiments/bench_cube3d_large.py``, against
 process holds. PARDISO's threads are OpenMP's (Intel's runtime, libiomp5), so ``configure``
 sets KMP_BLOCKTIME=0 where unset: a thread that waits sleeps at once instead of spinning for
 the runtime's default block time (``experiments/bench_contention.py --workloads cube20``
-compares, beside a busy process). The products run on a Python thread pool (SciPy's sparse kernels release the GIL), whose
-waits are blocking. ``JAXRKPM_SPARSE_THREADS=1`` keeps all of it on one thread.
+compares, beside a busy process). The products run on a Python thread pool (SciPy's sparse
+kernels release the GIL), whose waits are blocking. ``JAXRKPM_SPARSE_THREADS=1`` keeps all
+of it on one thread.
 """
 from __future__ import annotations
 
