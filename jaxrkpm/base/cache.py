@@ -13,11 +13,6 @@ import os
 from pathlib import Path
 
 OFF = ("0", "off", "false", "no")
-# every program is kept: JAX's default threshold of compile time leaves out most of a tracking
-# run's many small programs, and a second demo run was faster keeping all of them
-# (experiments/bench_compile_cache.py); together they are small
-MIN_COMPILE_S = 0.0
-MAX_BYTES = 2 * 2**30   # the cache's cap: least recently used entries go past it
 
 
 def cache_dir() -> Path:
@@ -29,11 +24,17 @@ def cache_dir() -> Path:
     return Path(base).expanduser() / "jaxrkpm"
 
 
-def use_compilation_cache() -> Path | None:
+def use_compilation_cache(min_compile_s: float = 0.0, max_bytes: int = 2 * 2**30) -> Path | None:
     """Turn on JAX's persistent compilation cache in :func:`cache_dir` (call before the first
     compile; the command line's ``main`` and the notebooks' first cell do). Returns the
     folder in use, or None where it is off (``JAXRKPM_COMPILATION_CACHE=off``) or cannot be
-    made. A folder JAX was given already is kept."""
+    made. A folder JAX was given already is kept (and so are its settings).
+
+    ``min_compile_s``: the compile time a program must take to be kept. Default every
+    program: JAX's default threshold leaves out most of a tracking run's many small
+    programs, which a second run then compiles again (``experiments/bench_compile_cache.py``
+    compares); together they are small. ``max_bytes``: the cache's cap, past which the
+    least recently used entries go."""
     if os.environ.get("JAXRKPM_COMPILATION_CACHE", "on").strip().lower() in OFF:
         return None
     import jax
@@ -47,10 +48,10 @@ def use_compilation_cache() -> Path | None:
     except OSError:
         return None                   # a read-only home: run without the cache
     jax.config.update("jax_compilation_cache_dir", str(folder))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_S)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_s)
     try:                              # JAX bounds the cache's size only with filelock (a dependency)
         import filelock  # noqa: F401
-        jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+        jax.config.update("jax_compilation_cache_max_size", max_bytes)
     except ImportError:
         pass
     return folder

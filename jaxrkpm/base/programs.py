@@ -2,8 +2,8 @@
 
 Linux caps a process at ``vm.max_map_count`` memory mappings (65,530 by default), and an
 XLA:CPU executable holds a few per compiled kernel for as long as JAX's caches keep it, which
-is as long as the process lives for a jitted function defined at module level: one 9x9 tracking
-loop takes about 2,700, one module of this project's test suite up to 29,000. A session that
+is as long as the process lives for a jitted function defined at module level: a tracking
+loop takes thousands, a module of this project's test suite tens of thousands. A session that
 compiles many different models (a notebook left open, a sweep over mesh sizes, ``jaxrkpm
 reproduce``) can cross the cap, and XLA:CPU's next JIT allocation then fails inside a
 compile: the process dies with SIGABRT, or SIGSEGV in libgcc's unwinder, with no Python
@@ -16,7 +16,6 @@ from __future__ import annotations
 import gc
 
 MAP_LIMIT_DEFAULT = 65_530
-HEADROOM = 0.6   # release at 60% of the cap: one large compile adds several thousand
 
 
 def memory_mappings() -> int:
@@ -45,9 +44,10 @@ def release_compiled_programs() -> None:
     gc.collect()
 
 
-def release_if_crowded(fraction: float = HEADROOM) -> bool:
+def release_if_crowded(fraction: float = 0.6) -> bool:
     """``release_compiled_programs`` if the process holds more than ``fraction`` of its
-    mapping cap; returns whether it did."""
+    mapping cap; returns whether it did. The default leaves headroom: one large compile adds
+    several thousand mappings."""
     if memory_mappings() > fraction * mapping_limit():
         release_compiled_programs()
         return True

@@ -3,14 +3,13 @@
 Why. jaxlib's CPU LAPACK kernels (Cholesky, LU, ...) call SciPy's OpenBLAS, and XLA runs
 independent operations of one program on its own thread pool at the same time. With
 OpenBLAS's default threads, several XLA threads call the threaded OpenBLAS at once: its
-worker threads spin-wait for each other, and a vmapped batch of Newton solves livelocks
-(tests/test_threads.py keeps the reduced pattern; ``experiments/vmap_deadlock.py`` runs it
-with threaded and single-threaded BLAS). Beside another CPU-bound process the same
-oversubscription makes a dense Cholesky many times slower than single-threaded (issue 20;
-``experiments/bench_contention.py --workloads cholesky``, with ``JAXRKPM_BLAS_THREADS=keep``
-for the libraries' own threads). The small and medium dense systems of
-this library do not gain from BLAS threads anyway; parallelism comes from XLA's own pool and
-from batching configurations (vmap).
+worker threads spin-wait for each other, so a vmapped batch of Newton solves livelocks
+(tests/base/test_threads.py keeps the reduced pattern; ``experiments/vmap_deadlock.py`` runs
+it with threaded and single-threaded BLAS) and a dense Cholesky beside another CPU-bound
+process slows down (``experiments/bench_contention.py --workloads cholesky``, with
+``JAXRKPM_BLAS_THREADS=keep`` for the libraries' own threads). The small and medium dense
+systems of this library do not gain from BLAS threads anyway; parallelism comes from XLA's
+own pool and from batching configurations (vmap).
 
 What. ``configure()`` (run by ``import jaxrkpm``, before JAX is loaded) sets
 OPENBLAS_NUM_THREADS, MKL_NUM_THREADS and OMP_NUM_THREADS to ``JAXRKPM_BLAS_THREADS``
@@ -22,17 +21,15 @@ OPENBLAS_/MKL_/OMP_NUM_THREADS variables then decide).
 The host-side sparse linear algebra of large (3D) models is the exception: PARDISO's
 factorisations and triangular solves, and the conjugate-gradient products with the sparse
 tangent, run on ``JAXRKPM_SPARSE_THREADS`` threads (default: every core this process may
-use). They are large, run one at a time (never from several XLA threads at once) and do pay:
-the factorisation, the triangular solves and the sparse products of a 3D cube's tangent all
-take less time on every core than on one (``experiments/bench_cube3d_large.py``, against
-``JAXRKPM_SPARSE_THREADS=1``). What made threads collapse is spin-waiting for a core that
-another process holds. PARDISO's threads are OpenMP's (Intel's runtime, libiomp5), so
-``configure`` sets KMP_BLOCKTIME=0 where unset: a thread that waits sleeps at once instead of
-spinning for the runtime's default block time. Beside one busy process, with the default
-block time, a triangular solve on two threads was slower than on one (the collapse); with
-KMP_BLOCKTIME=0 it is not (``experiments/bench_contention.py --workloads cube20``).
-The products run on a Python thread pool (SciPy's sparse kernels release the GIL), whose
-waits are blocking. ``JAXRKPM_SPARSE_THREADS=1`` keeps all of it on one thread.
+use). They are large, run one at a time (never from several XLA threads at once) and gain
+from every core (``experiments/bench_cube3d_large.py``, against
+``JAXRKPM_SPARSE_THREADS=1``). Threads collapse where they spin-wait for a core that another
+process holds. PARDISO's threads are OpenMP's (Intel's runtime, libiomp5), so ``configure``
+sets KMP_BLOCKTIME=0 where unset: a thread that waits sleeps at once instead of spinning for
+the runtime's default block time (``experiments/bench_contention.py --workloads cube20``
+compares, beside a busy process). The products run on a Python thread pool (SciPy's sparse
+kernels release the GIL), whose waits are blocking. ``JAXRKPM_SPARSE_THREADS=1`` keeps all
+of it on one thread.
 """
 from __future__ import annotations
 

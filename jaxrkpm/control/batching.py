@@ -25,8 +25,7 @@ def stack_models(models: Sequence[Model], like: Sequence[Model] = ()) -> tuple[P
     are zero, so they contribute nothing). The leaves every model shares (integration
     table, pair structure, tensors) are kept once: vmapped, they stay unbatched operands
     (``batch_axes``), so gathers and scatters over the table are not repeated per member
-    on a stacked copy (a vmapped assembly over a stacked table cost several times the
-    unbatched one per member: ``experiments/bench_sweep.py``).
+    on a stacked copy (``experiments/bench_sweep.py`` compares the two).
 
     ``like``: models that count as members for the padded shapes and for which leaves are
     batched, but are not stacked: the chunks of a sweep (``jaxrkpm.sweep``) given

@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..base.checks import count, flag
 from ..base.outcome import Outcome
 from ..discretise.polygons import distance_to_segment
 from ..mechanics.contact import ContactTerm
@@ -42,7 +43,7 @@ from ..solvers.implicit import parameter_response, point_jacobian, response
 from ..solvers.iterate import IterativeSolver, run as run_solver, when
 from ..solvers.linalg.base import LinearStats
 from ..solvers.linalg.quasi_newton import secant
-from ..solvers.newton import Chord, Newton, _count, _flag
+from ..solvers.newton import Chord, Newton
 from ..solvers.path import LoadPath
 from ..solvers.results import Limits, Solution, Status, reached_equilibrium
 
@@ -453,10 +454,10 @@ class Tracker(IterativeSolver):
     max_corr: int = 6
 
     def __post_init__(self):
-        _flag("same", self.same)
+        flag("same", self.same)
         for name in ("max_iter", "max_steps", "window"):
-            _count(name, getattr(self, name), 1)
-        _count("max_corr", self.max_corr)
+            count(name, getattr(self, name), 1)
+        count("max_corr", self.max_corr)
 
     @partial(jax.jit, static_argnums=0)
     def run(self, ctrl: ControlledModel, plant: ControlledModel, lim: Limits, c0: Solution, p0: Solution,

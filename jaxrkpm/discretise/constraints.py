@@ -52,14 +52,22 @@ class Roller:
             raise ValueError(f"Roller {name!r}: give either components=... (held axes) or normal=... "
                              "(held direction), not both or neither")
         if self.components is not None:
-            comps = np.atleast_1d(np.asarray(self.components))
-            if comps.size == 0 or comps.ndim != 1 or not np.issubdtype(comps.dtype, np.integer):
-                raise ValueError(f"Roller {name!r}: components must be axis indices in 0..{dim - 1}, "
-                                 f"got {self.components!r}")
-            if comps.min() < 0 or comps.max() >= dim or len(np.unique(comps)) != len(comps):
-                raise ValueError(f"Roller {name!r}: components must be distinct axis indices in "
-                                 f"0..{dim - 1} (a {dim}D body), got {self.components!r}")
-            return np.eye(dim)[np.sort(comps)]
+            return self._axes(dim, name)
+        return self._normals(dim, name)
+
+    def _axes(self, dim: int, name: str) -> np.ndarray:
+        """The unit vectors of the held ``components``."""
+        comps = np.atleast_1d(np.asarray(self.components))
+        if comps.size == 0 or comps.ndim != 1 or not np.issubdtype(comps.dtype, np.integer):
+            raise ValueError(f"Roller {name!r}: components must be axis indices in 0..{dim - 1}, "
+                             f"got {self.components!r}")
+        if comps.min() < 0 or comps.max() >= dim or len(np.unique(comps)) != len(comps):
+            raise ValueError(f"Roller {name!r}: components must be distinct axis indices in "
+                             f"0..{dim - 1} (a {dim}D body), got {self.components!r}")
+        return np.eye(dim)[np.sort(comps)]
+
+    def _normals(self, dim: int, name: str) -> np.ndarray:
+        """Orthonormal rows spanning the held ``normal`` directions, each turned along its own."""
         try:
             n = np.atleast_2d(np.asarray(self.normal, float))
         except (TypeError, ValueError):
@@ -106,7 +114,7 @@ class EssentialSets:
     def build(body: Body, essential: dict) -> "EssentialSets":
         if not isinstance(essential, dict):
             raise ValueError("essential must be a dict: name -> particle indices")
-        seen = {}
+        seen = {}   # particle -> the last set that holds it
         held = np.zeros(body.n, np.int64)   # held components per particle
         directions = {}
         parts, slices, start = [], {}, 0
@@ -117,46 +125,63 @@ class EssentialSets:
             if isinstance(idx, Roller):
                 directions[name] = idx.directions(body.dim, name)
                 idx = idx.particles
-            try:
-                idx = np.asarray(idx)
-            except (TypeError, ValueError):
-                raise ValueError(f"essential set {name!r} must be particle indices or a boolean mask") from None
-            if idx.dtype == bool:
-                if idx.shape != (body.n,):
-                    raise ValueError(f"essential set {name!r}: boolean mask must have shape ({body.n},)")
-                idx = np.flatnonzero(idx)
-            if idx.size == 0:
-                raise ValueError(f"essential set {name!r} is empty (check the selection predicate)")
-            if not np.issubdtype(idx.dtype, np.integer):
-                # astype(int) would truncate 1.7 to 1 and hold the wrong particle
-                raise TypeError(f"essential set {name!r} must hold integer particle indices (or a "
-                                f"boolean mask), got {idx.dtype} values such as {idx.ravel()[0]!r}; "
-                                "use body.select(...) or an int array")
-            idx = idx.astype(np.int64).ravel()
-            if idx.min() < 0 or idx.max() >= body.n:
-                raise ValueError(f"essential set {name!r} has indices outside 0..{body.n - 1}")
-            if len(np.unique(idx)) != len(idx):
-                raise ValueError(f"essential set {name!r} lists a particle twice")
-            for i in idx:
-                other = seen.get(int(i))
-                if other is not None and (directions[other] is None or directions[name] is None):
-                    raise ValueError(f"essential sets {other!r} and {name!r} overlap "
-                                     f"(particle {int(i)} at {body.X[i].tolist()}); only Roller sets "
-                                     "may share particles")
-                seen[int(i)] = name
+            idx = _set_indices(body, name, idx)
+            _claim(body, seen, directions, name, idx)
             held[idx] += body.dim if directions[name] is None else len(directions[name])
             parts.append(idx)
             slices[name] = slice(start, start + len(idx))
             start += len(idx)
         bnd = np.concatenate(parts) if parts else np.zeros(0, np.int64)
-        if np.any(held > body.dim):
-            i = int(np.argmax(held))
-            raise ValueError(f"particle {i} at {body.X[i].tolist()} is held in {held[i]} directions by "
-                             f"rollers, more than its {body.dim} components")
-        free = np.flatnonzero(held < body.dim)
-        if len(free) == 0:
-            raise ValueError("every particle is in an essential set: nothing left to solve for")
-        return EssentialSets(tuple(essential), slices, bnd, free, directions)
+        return EssentialSets(tuple(essential), slices, bnd, _free(body, held), directions)
+
+
+def _set_indices(body: Body, name: str, idx) -> np.ndarray:
+    """The particle indices (int64, distinct, in range) of the set ``name``: indices or a
+    boolean mask over the particles."""
+    try:
+        idx = np.asarray(idx)
+    except (TypeError, ValueError):
+        raise ValueError(f"essential set {name!r} must be particle indices or a boolean mask") from None
+    if idx.dtype == bool:
+        if idx.shape != (body.n,):
+            raise ValueError(f"essential set {name!r}: boolean mask must have shape ({body.n},)")
+        idx = np.flatnonzero(idx)
+    if idx.size == 0:
+        raise ValueError(f"essential set {name!r} is empty (check the selection predicate)")
+    if not np.issubdtype(idx.dtype, np.integer):
+        # astype(int) would truncate 1.7 to 1 and hold the wrong particle
+        raise TypeError(f"essential set {name!r} must hold integer particle indices (or a "
+                        f"boolean mask), got {idx.dtype} values such as {idx.ravel()[0]!r}; "
+                        "use body.select(...) or an int array")
+    idx = idx.astype(np.int64).ravel()
+    if idx.min() < 0 or idx.max() >= body.n:
+        raise ValueError(f"essential set {name!r} has indices outside 0..{body.n - 1}")
+    if len(np.unique(idx)) != len(idx):
+        raise ValueError(f"essential set {name!r} lists a particle twice")
+    return idx
+
+
+def _claim(body: Body, seen: dict, directions: dict, name: str, idx: np.ndarray) -> None:
+    """Record ``name`` as a holder of its particles in ``seen``; only Roller sets may share."""
+    for i in idx:
+        other = seen.get(int(i))
+        if other is not None and (directions[other] is None or directions[name] is None):
+            raise ValueError(f"essential sets {other!r} and {name!r} overlap "
+                             f"(particle {int(i)} at {body.X[i].tolist()}); only Roller sets "
+                             "may share particles")
+        seen[int(i)] = name
+
+
+def _free(body: Body, held: np.ndarray) -> np.ndarray:
+    """The particles with a component that no set holds, given the held count per particle."""
+    if np.any(held > body.dim):
+        i = int(np.argmax(held))
+        raise ValueError(f"particle {i} at {body.X[i].tolist()} is held in {held[i]} directions by "
+                         f"rollers, more than its {body.dim} components")
+    free = np.flatnonzero(held < body.dim)
+    if len(free) == 0:
+        raise ValueError("every particle is in an essential set: nothing left to solve for")
+    return free
 
 
 @dataclass(frozen=True)
@@ -218,8 +243,8 @@ def elimination_layout(A, pair_i, pair_j, free, bnd) -> EliminationLayout:
     particles linked by a tangent pair or by a free particle that A couples to both. Why:
     A couples each essential particle only to the free ones near its own piece of boundary
     (a cube's two clamped faces are two blocks of A, half of it zero), so the products and
-    scatters of one component involve only its free rows and coupled columns (at the 10^3
-    cube a fraction of the flops of the dense Kfb A). No essential particles: C = 0."""
+    scatters of one component involve only its free rows and coupled columns, not the dense
+    Kfb A (``experiments/bench_cube3d.py``). No essential particles: C = 0."""
     A = np.asarray(A, float)
     Nb, Nf = A.shape
     pair_i, pair_j = np.asarray(pair_i, np.int64), np.asarray(pair_j, np.int64)

@@ -43,10 +43,9 @@ if TYPE_CHECKING:
 SIMPLEX = {2: "triangle", 3: "tetra"}          # body dimension -> meshio cell type
 # second-order simplices are used through their corner nodes (straight-sided cells)
 CORNERS = {"triangle": 3, "triangle6": 3, "triangle7": 3, "tetra": 4, "tetra10": 4}
-# the most tetrahedra a refinement may make or a spacing may ask gmsh for (``surface``): a
-# million make a body of ~170,000 particles, past what a 3D solve on one machine does, and a
-# finer spacing only meshes for minutes before that shows (0.2% of a body's size asked for
-# ~1e9): refused before meshing, estimate in the message
+# the default bound (``max_cells``) on the tetrahedra a refinement may make or a spacing may
+# ask gmsh for (``surface``): a million make a body past what a 3D solve on one machine does,
+# and a finer spacing only meshes for minutes before that shows: refused before meshing
 MAX_TETRAHEDRA = 1_000_000
 _GMSH_LOCK = threading.RLock()
 log = logging.getLogger(__name__)
@@ -140,10 +139,7 @@ class VolumeMesh:
         return self.points.shape[1]
 
 
-FLAT = 1e-10     # a cell whose measure is below this fraction of the mean is degenerate (zero volume)
-
-
-def volume_mesh(source, dim: int | None = None, drop_degenerate: bool = False) -> VolumeMesh:
+def volume_mesh(source, dim: int | None = None, drop_degenerate: bool = False, flat: float = 1e-10) -> VolumeMesh:
     """The simplices of a mesh (tetrahedra for ``dim`` 3, triangles for 2; default: 3 if
     the mesh has tetrahedra), validated, each positively oriented, unused vertices dropped,
     with its tags. Raises a ValueError naming the defect: non-finite coordinates, no cells,
@@ -152,11 +148,30 @@ def volume_mesh(source, dim: int | None = None, drop_degenerate: bool = False) -
     ``drop_degenerate``: zero-volume cells (the slivers of scipy's ``Delaunay`` on points of
     a lattice) are dropped instead of refused, and counted (``report["degenerate"]`` and the
     log line); they add nothing to the body's volume, and the faces they leave unmatched
-    inside the body are not boundary (:func:`boundary_faces`)."""
+    inside the body are not boundary (:func:`boundary_faces`). ``flat``: a cell whose
+    measure is below this fraction of the mean is degenerate (zero volume)."""
     if not isinstance(drop_degenerate, (bool, np.bool_)):
         raise ValueError(f"drop_degenerate must be True or False, got {drop_degenerate!r}")
     mesh = read_mesh(source)
     name = source_name(source)
+    dim, points, cells = _simplices(mesh, name, dim)
+    degenerate = 0
+    if drop_degenerate:
+        cells, degenerate = _without_flat(points, cells, name, dim, flat)
+    used, cells = np.unique(cells, return_inverse=True)
+    cells = cells.reshape(-1, dim + 1)
+    dropped = np.setdiff1d(np.arange(len(mesh.points)), used)
+    points = points[used]
+    cells, reoriented = _checked_cells(points, cells, flat)
+    tags = _kept_tags(mesh, used)
+    report = {"reoriented": reoriented, "dropped": dropped, "degenerate": degenerate}
+    _say(name, SIMPLEX[dim], len(cells), reoriented, dropped, mesh, degenerate)
+    return VolumeMesh(points, cells, tags, report)
+
+
+def _simplices(mesh: meshio.Mesh, name: str, dim: int | None):
+    """(dim, points (V, dim), cells (C, dim+1)) of the mesh's simplex blocks (the corners of
+    second-order ones), checked as numbers; ``dim`` None: 3 if the mesh has tetrahedra."""
     kinds = {b.type for b in mesh.cells}
     if dim is None:
         dim = 3 if kinds & {"tetra", "tetra10"} else 2
@@ -165,26 +180,32 @@ def volume_mesh(source, dim: int | None = None, drop_degenerate: bool = False) -
     wanted = [t for t in CORNERS if CORNERS[t] == dim + 1]
     blocks = [i for i, b in enumerate(mesh.cells) if b.type in wanted]
     if not blocks:
-        what = ("is a 2D or surface mesh (triangles, no tetrahedra)" if dim == 3 and "triangle" in kinds
-                else f"has {', '.join(sorted(kinds)) or 'no'} cells")
-        raise ValueError(f"a {dim}D body needs {SIMPLEX[dim]} cells, but the mesh {what}")
+        raise ValueError(_no_simplices(dim, kinds))
     points = finite_points(mesh.points, name)
     cells = np.concatenate([connectivity(mesh.cells[i], len(points), name)[:, :dim + 1] for i in blocks])
     if not len(cells):
         raise ValueError(f"the mesh {name} has no {SIMPLEX[dim]} cells: its {SIMPLEX[dim]} blocks are empty")
-    points = _coordinates(points, dim)
-    degenerate = 0
-    if drop_degenerate:
-        vol = np.abs(simplex_volumes(points, cells))
-        flat = vol <= FLAT * vol.mean()
-        if flat.all():
-            raise ValueError(f"every {SIMPLEX[dim]} cell of the mesh {name} has zero volume: it has no body")
-        cells, degenerate = cells[~flat], int(flat.sum())
-    used, cells = np.unique(cells, return_inverse=True)
-    cells = cells.reshape(-1, dim + 1)
-    dropped = np.setdiff1d(np.arange(len(mesh.points)), used)
-    points = points[used]
-    cells, reoriented = _checked_cells(points, cells)
+    return dim, _coordinates(points, dim), cells
+
+
+def _no_simplices(dim: int, kinds: set) -> str:
+    what = ("is a 2D or surface mesh (triangles, no tetrahedra)" if dim == 3 and "triangle" in kinds
+            else f"has {', '.join(sorted(kinds)) or 'no'} cells")
+    return f"a {dim}D body needs {SIMPLEX[dim]} cells, but the mesh {what}"
+
+
+def _without_flat(points, cells, name: str, dim: int, tolerance: float):
+    """(the cells of nonzero volume, how many were dropped)."""
+    vol = np.abs(simplex_volumes(points, cells))
+    flat = vol <= tolerance * vol.mean()
+    if flat.all():
+        raise ValueError(f"every {SIMPLEX[dim]} cell of the mesh {name} has zero volume: it has no body")
+    return cells[~flat], int(flat.sum())
+
+
+def _kept_tags(mesh: meshio.Mesh, used: np.ndarray) -> dict:
+    """The mesh's tags renumbered to the ``used`` points (sorted source indices); a tag left
+    without a point is dropped."""
     renumber = -np.ones(len(mesh.points), np.int64)
     renumber[used] = np.arange(len(used))
     tags = {}
@@ -193,9 +214,7 @@ def volume_mesh(source, dim: int | None = None, drop_degenerate: bool = False) -
         kept = np.unique(kept[kept >= 0])
         if kept.size:
             tags[tag] = kept
-    report = {"reoriented": reoriented, "dropped": dropped, "degenerate": degenerate}
-    _say(name, SIMPLEX[dim], len(cells), reoriented, dropped, mesh, degenerate)
-    return VolumeMesh(points, cells, tags, report)
+    return tags
 
 
 def _say(name, kind, n_cells, reoriented, dropped, mesh, degenerate=0):
@@ -286,7 +305,7 @@ def simplex_volumes(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
     return np.linalg.det(E) / math.factorial(points.shape[1])
 
 
-def _checked_cells(points, cells):
+def _checked_cells(points, cells, tolerance: float):
     """(cells with positive volumes, how many were reordered). Each negatively oriented cell
     has two vertices swapped: in a reference mesh the vertex order is a convention (qhull
     and scikit-fem mix both), not a deformation. Errors: coincident vertices, zero-volume
@@ -302,7 +321,7 @@ def _checked_cells(points, cells):
                          "merge duplicate nodes first")
     vol = simplex_volumes(points, cells)
     name = SIMPLEX[d]
-    flat = np.abs(vol) <= FLAT * np.abs(vol).mean()
+    flat = np.abs(vol) <= tolerance * np.abs(vol).mean()
     if flat.any():
         c = int(np.flatnonzero(flat)[0])
         raise ValueError(f"{int(flat.sum())} of {len(cells)} {name} cells are zero-volume, e.g. cell {c} with "
@@ -347,40 +366,67 @@ def _cell_groups(mesh: meshio.Mesh) -> dict:
     0, 1, 2); if the mesh has no names at all, integer cell labels (Medit refs, unnamed
     physical ids) as "<label><value>", e.g. "ref3"."""
     groups = {}
+    _add_cell_sets(groups, mesh)
+    _add_physical_groups(groups, mesh)
+    labels = _integer_labels(mesh)
+    _add_named_labels(groups, labels)
+    if not groups and not mesh.point_sets:
+        _add_unnamed_labels(groups, labels)
+    return groups
 
-    def add(name, block, ids):
-        ids = np.asarray(ids, np.int64).ravel()
-        if ids.size:
-            per_block = groups.setdefault(name, {})
-            per_block[block] = np.union1d(per_block.get(block, ids[:0]), ids)
 
+def _add_group(groups: dict, name: str, block: int, ids) -> None:
+    """Merge the cells ``ids`` of ``block`` into the group ``name`` (nothing for no ids)."""
+    ids = np.asarray(ids, np.int64).ravel()
+    if ids.size:
+        per_block = groups.setdefault(name, {})
+        per_block[block] = np.union1d(per_block.get(block, ids[:0]), ids)
+
+
+def _add_cell_sets(groups: dict, mesh: meshio.Mesh) -> None:
+    """The mesh's cell sets but gmsh's bookkeeping ones."""
     for name, per_block in mesh.cell_sets.items():
         if not name.startswith("gmsh:"):
             for b, ids in enumerate(per_block):
                 if ids is not None:
-                    add(name, b, ids)
+                    _add_group(groups, name, b, ids)
+
+
+def _add_physical_groups(groups: dict, mesh: meshio.Mesh) -> None:
+    """Gmsh physical groups named in ``field_data`` (name -> (tag, dimension))."""
     physical = mesh.cell_data.get("gmsh:physical")
-    if physical is not None and mesh.field_data:
-        for name, (tag, dim) in ((k, np.asarray(v).ravel()[:2]) for k, v in mesh.field_data.items()):
-            for b, data in enumerate(physical):
-                if mesh.cells[b].dim == dim:
-                    add(name, b, np.flatnonzero(np.asarray(data) == tag))
-    labels = {k: [np.asarray(x).ravel() for x in v] for k, v in mesh.cell_data.items()
-              if k != "gmsh:geometrical" and all(np.asarray(x).dtype.kind in "iu" for x in v)}
+    if physical is None or not mesh.field_data:
+        return
+    for name, (tag, dim) in ((k, np.asarray(v).ravel()[:2]) for k, v in mesh.field_data.items()):
+        for b, data in enumerate(physical):
+            if mesh.cells[b].dim == dim:
+                _add_group(groups, name, b, np.flatnonzero(np.asarray(data) == tag))
+
+
+def _integer_labels(mesh: meshio.Mesh) -> dict:
+    """key -> per block (C,) integer labels: the cell data that may name groups."""
+    return {k: [np.asarray(x).ravel() for x in v] for k, v in mesh.cell_data.items()
+            if k != "gmsh:geometrical" and all(np.asarray(x).dtype.kind in "iu" for x in v)}
+
+
+def _add_named_labels(groups: dict, labels: dict) -> None:
+    """meshio's ``cell_sets_to_data``: key "a-b-c", values 0, 1, 2 for the sets a, b, c."""
     for key, data in labels.items():
         names = list(dict.fromkeys(key.split("-")))
         values = np.unique(np.concatenate(data))
         values = values[values >= 0]
-        if ":" not in key and len(names) == len(values):           # meshio's cell_sets_to_data
+        if ":" not in key and len(names) == len(values):
             for name, value in zip(names, values):
                 for b, x in enumerate(data):
-                    add(name, b, np.flatnonzero(x == value))
-    if not groups and not mesh.point_sets:
-        for key, data in labels.items():
-            for b, x in enumerate(data):
-                for value in np.unique(x[x >= 0]):
-                    add(f"{key.split(':')[-1]}{value}", b, np.flatnonzero(x == value))
-    return groups
+                    _add_group(groups, name, b, np.flatnonzero(x == value))
+
+
+def _add_unnamed_labels(groups: dict, labels: dict) -> None:
+    """Each value of each label as the group "<label><value>" (e.g. "ref3")."""
+    for key, data in labels.items():
+        for b, x in enumerate(data):
+            for value in np.unique(x[x >= 0]):
+                _add_group(groups, f"{key.split(':')[-1]}{value}", b, np.flatnonzero(x == value))
 
 
 def _vertex_tags(mesh: meshio.Mesh) -> dict:
@@ -393,11 +439,15 @@ def _vertex_tags(mesh: meshio.Mesh) -> dict:
     return {k: v.astype(np.int64) for k, v in tags.items()}
 
 
-def refine_mesh(source, times: int = 1) -> meshio.Mesh:
+GMSH_TYPE = {1: 1, 2: 2, 3: 4}   # simplex dimension -> gmsh element type: line, triangle, tetrahedron
+
+
+def refine_mesh(source, times: int = 1, max_cells: int = MAX_TETRAHEDRA) -> meshio.Mesh:
     """The mesh with every simplex split uniformly ``times`` times by Gmsh (tetrahedra into
     8, triangles into 4; new vertices at the edge midpoints, so a curved surface keeps its
     chords), its named cell groups carried along as physical groups. Point sets cannot be
-    carried (a new vertex belongs to no listed point): such a mesh is refused."""
+    carried (a new vertex belongs to no listed point): such a mesh is refused. A refinement
+    that would make more than ``max_cells`` simplices is refused before meshing."""
     if not (isinstance(times, (int, np.integer)) and times >= 0):
         raise ValueError(f"refine must be a whole number of refinements >= 0, got {times!r}")
     mesh = read_mesh(source)
@@ -409,44 +459,68 @@ def refine_mesh(source, times: int = 1) -> meshio.Mesh:
     dim = 3 if {b.type for b in mesh.cells} & {"tetra", "tetra10"} else 2
     blocks = [b for b, blk in enumerate(mesh.cells) if CORNERS.get(blk.type) == dim + 1]
     sizes = [len(mesh.cells[b].data) for b in blocks]
-    made = sum(sizes) * float(2 ** dim) ** times
-    if made > MAX_TETRAHEDRA:
-        raise ValueError(f"refine={times} would split the {sum(sizes):,} cells into {made:.3g} (x{2 ** dim} each "
-                         f"time), more than the bound of {MAX_TETRAHEDRA:,}: refine fewer times")
+    _check_refined_size(sum(sizes), dim, times, max_cells)
     first = dict(zip(blocks, np.cumsum([0] + sizes[:-1])))
     simplices = np.concatenate([np.asarray(mesh.cells[b].data)[:, :dim + 1] for b in blocks])
     groups = _cell_groups(mesh)
-    owner = np.full(len(simplices), -1)              # gmsh: one entity per simplex
+    owner = _owners(groups, first, len(simplices))
+    with gmsh_session("refine") as gmsh:
+        _add_simplices(gmsh, mesh, dim, simplices, owner)
+        _add_physical(gmsh, mesh, dim, simplices, groups, owner, first)
+        gmsh.option.setNumber("Mesh.SaveAll", 1)     # also the simplices in no group
+        for _ in range(times):
+            gmsh.model.mesh.refine()
+        return gmsh_to_meshio(gmsh)
+
+
+def _check_refined_size(cells: int, dim: int, times: int, max_cells: int) -> None:
+    made = cells * float(2 ** dim) ** times
+    if made > max_cells:
+        raise ValueError(f"refine={times} would split the {cells:,} cells into {made:.3g} (x{2 ** dim} each "
+                         f"time), more than the bound of {max_cells:,}: refine fewer times")
+
+
+def _owners(groups: dict, first: dict, n: int) -> np.ndarray:
+    """(n,) the group (its position in ``groups``) of each simplex, the first that lists it;
+    -1: none. Gmsh holds each simplex in one entity."""
+    owner = np.full(n, -1)
     for g, per_block in enumerate(groups.values()):
         for b, ids in per_block.items():
             if b in first:
                 mine = first[b] + ids
                 owner[mine[owner[mine] < 0]] = g
-    gmsh_type = {1: 1, 2: 2, 3: 4}                   # line, triangle, tetrahedron
-    with gmsh_session("refine") as gmsh:
-        def entity(d, cells):
-            tag = gmsh.model.addDiscreteEntity(d)
-            gmsh.model.mesh.addElementsByType(tag, gmsh_type[d], [], (cells[:, :d + 1] + 1).ravel())
-            return tag
+    return owner
 
-        holder = gmsh.model.addDiscreteEntity(dim)  # every node; the simplices of no group
-        xyz = np.zeros((len(mesh.points), 3))
-        xyz[:, :mesh.points.shape[1]] = mesh.points
-        gmsh.model.mesh.addNodes(dim, holder, np.arange(1, len(xyz) + 1), xyz.ravel())
-        if np.any(owner < 0):
-            gmsh.model.mesh.addElementsByType(holder, gmsh_type[dim], [], (simplices[owner < 0] + 1).ravel())
-        for g, (name, per_block) in enumerate(groups.items()):
-            entities = {dim: [entity(dim, simplices[owner == g])]} if np.any(owner == g) else {}
-            for b, ids in per_block.items():
-                d = mesh.cells[b].dim
-                if b not in first and d in gmsh_type and d < dim:
-                    entities.setdefault(d, []).append(entity(d, np.asarray(mesh.cells[b].data)[ids]))
-            for d, tags in entities.items():
-                gmsh.model.addPhysicalGroup(d, tags, name=name)
-        gmsh.option.setNumber("Mesh.SaveAll", 1)     # also the simplices in no group
-        for _ in range(times):
-            gmsh.model.mesh.refine()
-        return gmsh_to_meshio(gmsh)
+
+def _discrete_entity(gmsh, d: int, cells: np.ndarray) -> int:
+    """A new discrete entity of dimension ``d`` holding the simplices ``cells``; its tag."""
+    tag = gmsh.model.addDiscreteEntity(d)
+    gmsh.model.mesh.addElementsByType(tag, GMSH_TYPE[d], [], (cells[:, :d + 1] + 1).ravel())
+    return tag
+
+
+def _add_simplices(gmsh, mesh: meshio.Mesh, dim: int, simplices: np.ndarray, owner: np.ndarray) -> None:
+    """Every node, and the simplices of no group, into one entity."""
+    holder = gmsh.model.addDiscreteEntity(dim)
+    xyz = np.zeros((len(mesh.points), 3))
+    xyz[:, :mesh.points.shape[1]] = mesh.points
+    gmsh.model.mesh.addNodes(dim, holder, np.arange(1, len(xyz) + 1), xyz.ravel())
+    if np.any(owner < 0):
+        gmsh.model.mesh.addElementsByType(holder, GMSH_TYPE[dim], [], (simplices[owner < 0] + 1).ravel())
+
+
+def _add_physical(gmsh, mesh: meshio.Mesh, dim: int, simplices: np.ndarray, groups: dict, owner: np.ndarray,
+                  first: dict) -> None:
+    """Each group as a physical group: its simplices, and its lower-dimensional cells (a
+    tagged face or edge) as entities of their own."""
+    for g, (name, per_block) in enumerate(groups.items()):
+        entities = {dim: [_discrete_entity(gmsh, dim, simplices[owner == g])]} if np.any(owner == g) else {}
+        for b, ids in per_block.items():
+            d = mesh.cells[b].dim
+            if b not in first and d in GMSH_TYPE and d < dim:
+                entities.setdefault(d, []).append(_discrete_entity(gmsh, d, np.asarray(mesh.cells[b].data)[ids]))
+        for d, tags in entities.items():
+            gmsh.model.addPhysicalGroup(d, tags, name=name)
 
 
 # ======================================================================== topology

@@ -10,7 +10,7 @@ import scipy.sparse as sp
 def pair_keys(lists, N):
     """Sorted unique keys i * N + j of the particle pairs (i, j) that share a row of
     ``lists`` (R, K): the pattern of S^T S for the row-particle incidence S (a sparse
-    product; sorting all R K^2 pairs took most of the set-up of large 3D models). Float
+    product: sorting all R K^2 pairs would dominate the set-up of large 3D models). Float
     ones: the counts must never wrap to 0, which the sparse product would drop."""
     R, K = lists.shape
     S = sp.csr_matrix((np.ones(R * K), (np.repeat(np.arange(R), K), lists.ravel())),
@@ -19,19 +19,16 @@ def pair_keys(lists, N):
     return np.unique(P.row.astype(np.int64) * N + P.col)
 
 
-KEY_CHUNK = 2**22   # pair keys looked up at once (one int64 temporary of this many keys)
-
-
-def pair_ids(uniq, lists, N):
+def pair_ids(uniq, lists, N, chunk: int = 2**22):
     """Positions in ``uniq`` of the keys lists[r, k] * N + lists[r, m]: (R, K, K) int32.
 
     Looked up a few rows at a time straight into the int32 table: the int64 keys of all
-    rows at once are R K^2 x 8 bytes (over a gigabyte per temporary for a 2,000-particle
-    tetrahedral body with K ~ 133), and they set the peak memory of a 3D model build
-    (``experiments/bench_needle3d_memory.py`` reports it per stage)."""
+    rows at once are R K^2 x 8 bytes, which would set the peak memory of a 3D model build
+    (``experiments/bench_needle3d_memory.py`` reports it per stage). ``chunk``: the keys
+    looked up at once (one int64 temporary of this many)."""
     R, K = lists.shape
     out = np.empty((R, K, K), np.int32)
-    rows = max(1, KEY_CHUNK // max(K * K, 1))
+    rows = max(1, chunk // max(K * K, 1))
     for a in range(0, R, rows):
         blk = lists[a:a + rows].astype(np.int64)
         out[a:a + rows] = np.searchsorted(uniq, blk[:, :, None] * N + blk[:, None, :])

@@ -11,7 +11,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-_CHUNK = 8192  # evaluation points per block; bounds the (P, K, d, d+1) temporaries
 
 
 def kernel(x: np.ndarray, xp=np) -> np.ndarray:
@@ -91,17 +90,18 @@ class ShapeFunctions:
 def shape_functions(X: np.ndarray, volumes: np.ndarray, tree: cKDTree, points: np.ndarray,
                     a: float, capacity: int | None = None, gradients: bool = True,
                     support_factor: float | None = None,
-                    groups: np.ndarray | None = None) -> ShapeFunctions:
+                    groups: np.ndarray | None = None, chunk: int = 8192) -> ShapeFunctions:
     """RK shape functions of the particles (X, volumes) with dilation ``a`` at ``points``
-    (``groups``: points sharing one neighbour list, see ``neighbours``)."""
+    (``groups``: points sharing one neighbour list, see ``neighbours``), ``chunk`` points at
+    a time (it bounds the (chunk, K, d, d+1) temporaries)."""
     points = np.atleast_2d(np.asarray(points, float))
     nb = neighbours(tree, points, a, capacity, groups)
     P, K = nb.idx.shape
     d = X.shape[1]
     psi = np.zeros((P, K))
     dpsi = np.zeros((P, K, d))
-    for s in range(0, P, _CHUNK):
-        sl = slice(s, s + _CHUNK)
+    for s in range(0, P, chunk):
+        sl = slice(s, s + chunk)
         out = _evaluate(X, volumes, points[sl], nb.idx[sl], nb.mask[sl], a, gradients,
                         support_factor, s)
         psi[sl] = out[0]

@@ -31,12 +31,12 @@ patch test to O(h)). Both are exact for linear fields (sum_I b_I X_I^T = I).
 Stabilisation (``stab`` = beta > 0; Model(integration="mscni") uses beta = 0.5). Nodal
 integration under-integrates fields whose gradient oscillates inside a cell but whose cell
 average is small (Puso, Chen, Zywicz & Elmer 2008). With the default support (2.01 h) plain
-SCNI has no spurious zero-energy mode (only the rigid ones), but such modes carry up to ~7x
-too little energy (~25x at support 1.5 h; experiments/scni_modes.py), and they soften the
-response to strong compression. Each cell is split into sub-cells (the triangles / pyramids
-from the cell centroid to each facet); their smoothed gradients b^s come from the same
-shared-facet machinery and satisfy the integration constraint on their own. The energy is
-the blend
+SCNI has no spurious zero-energy mode (only the rigid ones), but such modes carry too little
+energy (the more so at a smaller support; experiments/scni_modes.py measures how much), and
+they soften the response to strong compression. Each cell is split into sub-cells (the
+triangles / pyramids from the cell centroid to each facet); their smoothed gradients b^s come
+from the same shared-facet machinery and satisfy the integration constraint on their own. The
+energy is the blend
 
     Pi = sum_L [(1 - beta) A_L W(F_L) + beta sum_{s in L} A_s W(F_s)],
 
@@ -71,8 +71,6 @@ SCHEMES = {
     "scni": (0.0, "nodal"),     # Chen et al. 2001 SCNI: one smoothed point per particle
     "mscni": (0.5, "nodal"),    # + sub-cell stabilisation (modified SCNI, see above)
 }
-DEFAULT_STAB = 0.5
-NODAL_DEGREE = 1   # Lagrange degree of the boundary interpolant of the 'nodal' rule
 
 
 def _rot(t):
@@ -160,9 +158,20 @@ def _build_2d(body: Body, order, stabilised):
     B = _Builder(2)
     for i in range(N):
         B.row(body.X[i], 0, i)
-    # sub-cells: fan triangles (centroid, v_k, v_k+1); a cell whose fan is not positive
-    # (non-convex cell) keeps a single sub-cell equal to itself
-    sub = []   # sub[i][k] -> row of the sub-cell holding edge k of cell i
+    sub, cent = _fan_rows(B, cells, stabilised, h)
+    for i, (P, L) in enumerate(cells):
+        _cell_edges(B, cells, sub, i, order)
+        if sub[i] is not None and sub[i][0] != sub[i][-1]:
+            _spokes(B, P, cent[i], sub[i], order)
+    return B
+
+
+def _fan_rows(B: _Builder, cells, stabilised, h):
+    """The sub-cell rows of every 2D cell: fan triangles (centroid, v_k, v_k+1); a cell whose
+    fan is not positive (non-convex cell) keeps a single sub-cell equal to itself. Returns
+    sub[i][k] (the row of the sub-cell holding edge k of cell i; None: not stabilised) and
+    each cell's centroid."""
+    sub = []
     cent = []
     for i, (P, L) in enumerate(cells):
         if not stabilised or len(P) < 3:
@@ -177,35 +186,42 @@ def _build_2d(body: Body, order, stabilised):
             r = B.row(polygons.centroid(P), 1, i)
             sub.append([r] * len(P))
         cent.append(c)
+    return sub, cent
 
-    def sub_row_near(j, p):
-        """Sub-cell of cell j whose outer edge is nearest to the point p."""
-        P = cells[j][0]
-        return sub[j][int(np.argmin(polygons.distance_to_segment(p, P, np.roll(P, -1, axis=0))))]
 
-    for i, (P, L) in enumerate(cells):
-        m = len(P)
-        for k in range(m):
-            a, b, j = P[k], P[(k + 1) % m], int(L[k])
-            if j >= 0 and j < i:
-                continue                        # evaluated by cell j
-            pts, w = segment_rule(a, b, order)
-            n = _rot(b - a) / np.linalg.norm(b - a)
-            uses = [(i, 1)]
-            if sub[i] is not None:
-                uses.append((sub[i][k], 1))
-            if j >= 0:
-                uses.append((j, -1))
-                if sub[j] is not None:
-                    uses.append((sub_row_near(j, 0.5 * (a + b)), -1))
-            B.facet(pts, w, n, uses, boundary=j < 0)
-        if sub[i] is not None and sub[i][0] != sub[i][-1]:
-            c = cent[i]
-            for k in range(m):                  # spokes c -> v_k between triangles k-1 and k
-                pts, w = segment_rule(c, P[k], order)
-                n = _rot(P[k] - c) / np.linalg.norm(P[k] - c)
-                B.facet(pts, w, n, [(sub[i][k], 1), (sub[i][k - 1], -1)])
-    return B
+def _sub_row_near(cells, sub, j, p):
+    """Sub-cell of cell j whose outer edge is nearest to the point p."""
+    P = cells[j][0]
+    return sub[j][int(np.argmin(polygons.distance_to_segment(p, P, np.roll(P, -1, axis=0))))]
+
+
+def _cell_edges(B: _Builder, cells, sub, i, order):
+    """The edges of 2D cell i that no earlier cell evaluated, each used by both cells (and
+    their sub-cells)."""
+    P, L = cells[i]
+    m = len(P)
+    for k in range(m):
+        a, b, j = P[k], P[(k + 1) % m], int(L[k])
+        if j >= 0 and j < i:
+            continue                        # evaluated by cell j
+        pts, w = segment_rule(a, b, order)
+        n = _rot(b - a) / np.linalg.norm(b - a)
+        uses = [(i, 1)]
+        if sub[i] is not None:
+            uses.append((sub[i][k], 1))
+        if j >= 0:
+            uses.append((j, -1))
+            if sub[j] is not None:
+                uses.append((_sub_row_near(cells, sub, j, 0.5 * (a + b)), -1))
+        B.facet(pts, w, n, uses, boundary=j < 0)
+
+
+def _spokes(B: _Builder, P, c, rows, order):
+    """The spokes c -> v_k of a fanned cell, between its fan triangles k-1 and k."""
+    for k in range(len(P)):
+        pts, w = segment_rule(c, P[k], order)
+        n = _rot(P[k] - c) / np.linalg.norm(P[k] - c)
+        B.facet(pts, w, n, [(rows[k], 1), (rows[k - 1], -1)])
 
 
 def _lattice(body: Body):
@@ -220,6 +236,9 @@ def _lattice(body: Body):
     return ijk, shape, lookup
 
 
+_BOX_FACES = [(ax, s) for ax in range(3) for s in (-1, 1)]   # a 3D cell's faces: (axis, side)
+
+
 def _build_3d(body: Body, order, stabilised):
     h = body.spacing
     ijk, shape, lookup = _lattice(body)
@@ -229,57 +248,71 @@ def _build_3d(body: Body, order, stabilised):
     B = _Builder(3)
     for i in range(N):
         B.row(body.X[i], 0, i)
-    faces = [(ax, s) for ax in range(3) for s in (-1, 1)]
-    sub = None
-    if stabilised:
-        sub = np.zeros((N, 6), np.int64)
-        for i in range(N):
-            c = 0.5 * (lo[i] + hi[i])
-            for f, (ax, s) in enumerate(faces):
-                fc = c.copy()
-                fc[ax] = hi[i, ax] if s > 0 else lo[i, ax]
-                sub[i, f] = B.row(c + 0.75 * (fc - c), 1, i)   # pyramid centroid
+    sub = _pyramid_rows(B, lo, hi) if stabilised else None
     for i in range(N):
-        for f, (ax, s) in enumerate(faces):
-            val = hi[i, ax] if s > 0 else lo[i, ax]
+        for f, (ax, s) in enumerate(_BOX_FACES):
             nb = ijk[i].copy()
             nb[ax] += s
             inside = 0 <= nb[ax] < shape[ax]
             j = int(lookup[tuple(nb)]) if inside else -1
             if j >= 0 and j < i:
                 continue
-            pts, w = _rect_rule(lo[i], hi[i], ax, val, order)
-            n = np.zeros(3)
-            n[ax] = s
-            uses = [(i, 1)]
-            if sub is not None:
-                uses.append((sub[i, f], 1))
-            if j >= 0:
-                uses.append((j, -1))
-                if sub is not None:
-                    uses.append((sub[j, faces.index((ax, -s))], -1))
-            B.facet(pts, w, n, uses, boundary=j < 0)
-        if sub is not None:                      # 12 triangles (centre, box edge) per cell
-            c = 0.5 * (lo[i] + hi[i])
-            for f1, (ax1, s1) in enumerate(faces):
-                for f2, (ax2, s2) in enumerate(faces):
-                    if ax2 <= ax1:
-                        continue
-                    ax3 = 3 - ax1 - ax2
-                    e0 = c.copy()
-                    e0[ax1] = hi[i, ax1] if s1 > 0 else lo[i, ax1]
-                    e0[ax2] = hi[i, ax2] if s2 > 0 else lo[i, ax2]
-                    e1 = e0.copy()
-                    e0[ax3], e1[ax3] = lo[i, ax3], hi[i, ax3]
-                    pts, w = triangle_rule(c, e0, e1, order)
-                    n = np.cross(e0 - c, e1 - c)
-                    n /= np.linalg.norm(n)
-                    fc2 = c.copy()
-                    fc2[ax2] = e0[ax2]
-                    if n @ (fc2 - c) < 0:        # orient out of pyramid f1, into pyramid f2
-                        n = -n
-                    B.facet(pts, w, n, [(sub[i, f1], 1), (sub[i, f2], -1)])
+            _box_face(B, lo[i], hi[i], i, j, f, sub, order)
+        if sub is not None:
+            _pyramid_facets(B, lo[i], hi[i], sub[i], order)
     return B
+
+
+def _pyramid_rows(B: _Builder, lo, hi):
+    """(N, 6) the rows of each box cell's six pyramids (centre to a face), at their centroids."""
+    sub = np.zeros((len(lo), 6), np.int64)
+    for i in range(len(lo)):
+        c = 0.5 * (lo[i] + hi[i])
+        for f, (ax, s) in enumerate(_BOX_FACES):
+            fc = c.copy()
+            fc[ax] = hi[i, ax] if s > 0 else lo[i, ax]
+            sub[i, f] = B.row(c + 0.75 * (fc - c), 1, i)   # pyramid centroid
+    return sub
+
+
+def _box_face(B: _Builder, lo, hi, i, j, f, sub, order):
+    """Face f of box cell i (lo, hi), shared with cell j (-1: on the boundary)."""
+    ax, s = _BOX_FACES[f]
+    val = hi[ax] if s > 0 else lo[ax]
+    pts, w = _rect_rule(lo, hi, ax, val, order)
+    n = np.zeros(3)
+    n[ax] = s
+    uses = [(i, 1)]
+    if sub is not None:
+        uses.append((sub[i, f], 1))
+    if j >= 0:
+        uses.append((j, -1))
+        if sub is not None:
+            uses.append((sub[j, _BOX_FACES.index((ax, -s))], -1))
+    B.facet(pts, w, n, uses, boundary=j < 0)
+
+
+def _pyramid_facets(B: _Builder, lo, hi, rows, order):
+    """The 12 triangles (centre, box edge) between the pyramids ``rows`` (6,) of one box cell."""
+    c = 0.5 * (lo + hi)
+    for f1, (ax1, s1) in enumerate(_BOX_FACES):
+        for f2, (ax2, s2) in enumerate(_BOX_FACES):
+            if ax2 <= ax1:
+                continue
+            ax3 = 3 - ax1 - ax2
+            e0 = c.copy()
+            e0[ax1] = hi[ax1] if s1 > 0 else lo[ax1]
+            e0[ax2] = hi[ax2] if s2 > 0 else lo[ax2]
+            e1 = e0.copy()
+            e0[ax3], e1[ax3] = lo[ax3], hi[ax3]
+            pts, w = triangle_rule(c, e0, e1, order)
+            n = np.cross(e0 - c, e1 - c)
+            n /= np.linalg.norm(n)
+            fc2 = c.copy()
+            fc2[ax2] = e0[ax2]
+            if n @ (fc2 - c) < 0:        # orient out of pyramid f1, into pyramid f2
+                n = -n
+            B.facet(pts, w, n, [(rows[f1], 1), (rows[f2], -1)])
 
 
 # ============================================================ mesh bodies: median dual
@@ -485,26 +518,16 @@ class Smoothing:
     boundary: Table
 
 
-def build(body: Body, a: float, stab: float = DEFAULT_STAB, boundary: str = "nodal",
-          order: int = 2, support_factor=None) -> Smoothing:
+def build(body: Body, a: float, stab: float = 0.5, boundary: str = "nodal",
+          order: int = 2, support_factor=None, nodal_degree: int = 1) -> Smoothing:
     """Smoothing cells, shared-facet quadrature and the SCNI Table of ``body`` for the RK
     dilation ``a``. ``stab`` = beta in [0, 1] (0: plain SCNI), ``order`` Gauss points per
-    facet direction, ``boundary`` 'nodal' | 'gauss' (see the module docstring)."""
-    if not 0.0 <= stab <= 1.0:
-        raise ValueError(f"SCNI stabilisation beta must lie in [0, 1], got {stab}")
-    if boundary not in ("nodal", "gauss"):
-        raise ValueError(f"SCNI boundary rule must be 'nodal' or 'gauss', got {boundary!r}")
-    if order < 1:
-        raise ValueError(f"facet Gauss order must be >= 1, got {order}")
+    facet direction, ``boundary`` 'nodal' | 'gauss' (see the module docstring);
+    ``nodal_degree``: the Lagrange degree of the 'nodal' rule's boundary interpolant on grid
+    and polygon bodies (a mesh body's is P1 on its surface faces)."""
+    _check_options(stab, boundary, order)
     d, N = body.dim, body.n
-    if body.cells is not None:
-        Bd = _build_mesh(body, order, stab > 0)
-    elif d == 2:
-        if body.vertices is None:
-            raise ValueError("SCNI in 2D needs the domain polygon (Body.grid or Body.polygon)")
-        Bd = _build_2d(body, order, stab > 0)
-    else:
-        Bd = _build_3d(body, order, stab > 0)
+    Bd = _facets(body, order, stab > 0)
 
     pts = np.concatenate(Bd.pts)
     wts = np.concatenate(Bd.wts)
@@ -521,38 +544,8 @@ def build(body: Body, a: float, stab: float = DEFAULT_STAB, boundary: str = "nod
     def sf(P):
         return body.shape_functions(P, a, gradients=False, support_factor=support_factor)
 
-    # Psi at every facet point as sparse rows (point, particle, value)
-    inner = np.flatnonzero(~isb) if boundary == "nodal" else np.arange(len(pts))
-    s_in = sf(pts[inner])
-    ent_pt = [np.repeat(inner, s_in.idx.shape[1])]
-    ent_I = [s_in.idx.ravel()]
-    ent_v = [s_in.psi.ravel()]
-    if boundary == "nodal" and isb.any():
-        bpts = np.flatnonzero(isb)
-        if body.cells is not None:
-            st_idx, st_w = _boundary_stencils_mesh(body.X, Bd.mesh_faces, np.concatenate(Bd.face)[bpts],
-                                                   pts[bpts])
-        else:
-            st_idx, st_w = (_boundary_stencils_2d if d == 2 else _boundary_stencils_3d)(
-                body, pts[bpts], NODAL_DEGREE)
-        nodes = np.unique(st_idx)
-        s_nodes = sf(body.X[nodes])
-        where = np.searchsorted(nodes, st_idx)            # (Gb, S) rows of s_nodes
-        Kn = s_nodes.idx.shape[1]
-        ent_pt.append(np.repeat(bpts, st_idx.shape[1] * Kn))
-        ent_I.append(s_nodes.idx[where].ravel())
-        ent_v.append((st_w[..., None] * s_nodes.psi[where]).ravel())
-    ent_pt, ent_I, ent_v = map(np.concatenate, (ent_pt, ent_I, ent_v))
-
-    # row measures from the same facets (divergence theorem, exact for linear integrands)
-    areas = np.zeros(R)
-    np.add.at(areas, inc_row, inc_sign * wts[inc_pt] * np.sum(pts[inc_pt] * nrm[inc_pt], 1) / d)
-    if np.any(areas <= 0):
-        r = int(np.argmin(areas))
-        raise ValueError(f"SCNI: smoothing cell {r} (particle {owner[r]}) has measure {areas[r]:.3g}")
-    total = areas[level == 0].sum()
-    if abs(total - body.measure) > 1e-9 * body.measure:
-        raise ValueError(f"SCNI cells cover {total} of the domain measure {body.measure}")
+    ent_pt, ent_I, ent_v = _facet_psi(body, Bd, pts, isb, boundary, sf, nodal_degree)
+    areas = _row_areas(body, R, level, owner, inc_row, inc_pt, inc_sign, pts, wts, nrm)
 
     # (row, particle) -> oint Psi n as sparse products: incidences (R, points) x Psi at the
     # facet points (points, N), one product per normal component
@@ -564,8 +557,84 @@ def build(body: Body, a: float, stab: float = DEFAULT_STAB, boundary: str = "nod
     bint = np.stack([Psi.T @ np.where(isb, wts * nrm[:, k], 0.0) for k in range(d)], 1)
     bnd = _padded_rows(Psi[isb], pts[isb], wts[isb], nrm[isb])
 
-    # shape values at the row points; the table's pattern is the union of both
-    s_row = sf(row_pts)
+    idx, psi, dpsi = _row_pattern(G, sf(row_pts), areas, N)
+    weights = np.where(level == 0, (1.0 - stab) * areas, stab * areas)
+    keep = weights > 0            # beta = 1: the cell rows carry no weight
+    tab = Table(row_pts[keep], weights[keep], idx[keep], psi[keep], dpsi[keep])
+    return Smoothing(tab, areas, level, owner, float(stab), bint, bnd)
+
+
+def _check_options(stab, boundary, order) -> None:
+    if not 0.0 <= stab <= 1.0:
+        raise ValueError(f"SCNI stabilisation beta must lie in [0, 1], got {stab}")
+    if boundary not in ("nodal", "gauss"):
+        raise ValueError(f"SCNI boundary rule must be 'nodal' or 'gauss', got {boundary!r}")
+    if order < 1:
+        raise ValueError(f"facet Gauss order must be >= 1, got {order}")
+
+
+def _facets(body: Body, order, stabilised) -> _Builder:
+    """The rows and facets of the body's smoothing cells: a mesh body's median dual, a 2D
+    body's clipped Voronoi cells, a 3D grid's boxes."""
+    if body.cells is not None:
+        return _build_mesh(body, order, stabilised)
+    if body.dim == 2:
+        if body.vertices is None:
+            raise ValueError("SCNI in 2D needs the domain polygon (Body.grid or Body.polygon)")
+        return _build_2d(body, order, stabilised)
+    return _build_3d(body, order, stabilised)
+
+
+def _facet_psi(body: Body, Bd: _Builder, pts, isb, boundary, sf, degree):
+    """Psi at every facet point as sparse entries (point, particle, value): the shape
+    functions themselves, but on the boundary under the 'nodal' rule their interpolant
+    between the boundary particles."""
+    inner = np.flatnonzero(~isb) if boundary == "nodal" else np.arange(len(pts))
+    s_in = sf(pts[inner])
+    ent_pt = [np.repeat(inner, s_in.idx.shape[1])]
+    ent_I = [s_in.idx.ravel()]
+    ent_v = [s_in.psi.ravel()]
+    if boundary == "nodal" and isb.any():
+        bpts = np.flatnonzero(isb)
+        st_idx, st_w = _boundary_stencils(body, Bd, pts, bpts, degree)
+        nodes = np.unique(st_idx)
+        s_nodes = sf(body.X[nodes])
+        where = np.searchsorted(nodes, st_idx)            # (Gb, S) rows of s_nodes
+        Kn = s_nodes.idx.shape[1]
+        ent_pt.append(np.repeat(bpts, st_idx.shape[1] * Kn))
+        ent_I.append(s_nodes.idx[where].ravel())
+        ent_v.append((st_w[..., None] * s_nodes.psi[where]).ravel())
+    return map(np.concatenate, (ent_pt, ent_I, ent_v))
+
+
+def _boundary_stencils(body: Body, Bd: _Builder, pts, bpts, degree):
+    """The boundary particles interpolating each boundary facet point pts[bpts], and their
+    weights (the 'nodal' rule)."""
+    if body.cells is not None:
+        return _boundary_stencils_mesh(body.X, Bd.mesh_faces, np.concatenate(Bd.face)[bpts], pts[bpts])
+    return (_boundary_stencils_2d if body.dim == 2 else _boundary_stencils_3d)(body, pts[bpts], degree)
+
+
+def _row_areas(body: Body, R, level, owner, inc_row, inc_pt, inc_sign, pts, wts, nrm) -> np.ndarray:
+    """(R,) each row's measure from its facets (divergence theorem, exact for linear
+    integrands), checked positive and the cells' sum against the body's measure."""
+    d = body.dim
+    areas = np.zeros(R)
+    np.add.at(areas, inc_row, inc_sign * wts[inc_pt] * np.sum(pts[inc_pt] * nrm[inc_pt], 1) / d)
+    if np.any(areas <= 0):
+        r = int(np.argmin(areas))
+        raise ValueError(f"SCNI: smoothing cell {r} (particle {owner[r]}) has measure {areas[r]:.3g}")
+    total = areas[level == 0].sum()
+    if abs(total - body.measure) > 1e-9 * body.measure:
+        raise ValueError(f"SCNI cells cover {total} of the domain measure {body.measure}")
+    return areas
+
+
+def _row_pattern(G, s_row, areas, N):
+    """The table's (idx, psi, dpsi), (R, K[, d]): per row the union of the particles of its
+    smoothed gradient (the sparse G, one per component, over its area) and of the shape
+    functions at its point ``s_row``, padded (index 0, values 0)."""
+    R, d = len(areas), len(G)
     key_g = np.concatenate([g.row.astype(np.int64) * N + g.col for g in G])
     key_p = (np.arange(R)[:, None] * N + s_row.idx).ravel()
     uniq, inv = np.unique(np.concatenate([key_g, key_p]), return_inverse=True)
@@ -587,11 +656,7 @@ def build(body: Body, a: float, stab: float = DEFAULT_STAB, boundary: str = "nod
     idx[rows, slot] = parts
     psi[rows, slot] = val
     dpsi[rows, slot] = grad
-
-    weights = np.where(level == 0, (1.0 - stab) * areas, stab * areas)
-    keep = weights > 0            # beta = 1: the cell rows carry no weight
-    tab = Table(row_pts[keep], weights[keep], idx[keep], psi[keep], dpsi[keep])
-    return Smoothing(tab, areas, level, owner, float(stab), bint, bnd)
+    return idx, psi, dpsi
 
 
 def _padded_rows(Psi, points, weights, normals) -> Table:

@@ -15,8 +15,8 @@ NumPy, outside jit, run once per body. The pieces:
   it) and be made mirror-symmetric (``symmetric``: half meshed, then ``mirrored``).
 
 A spacing is refused before any meshing when it is too coarse for the shape or would make
-more than ``max_cells`` tetrahedra; a mesh that misses more than ``VOLUME_TOLERANCE`` of its
-shape's volume is refused after. Gmsh runs through ``mesh.gmsh_session()``; the meshes are
+more than ``max_cells`` tetrahedra; a mesh that misses more than 5% of its shape's volume is
+refused after. Gmsh runs through ``mesh.gmsh_session()``; the meshes are
 read, checked and measured by ``mesh``.
 """
 from __future__ import annotations
@@ -33,7 +33,6 @@ from .mesh import (MAX_TETRAHEDRA, connectivity, finite_points, gmsh_session, gm
 if TYPE_CHECKING:
     import meshio   # imported where used: it costs a second of every ``import jaxrkpm``
 
-VOLUME_TOLERANCE = 0.05   # a mesh that misses more of its shape's volume: spacing too coarse
 # tetrahedra per spacing^3 of volume at a uniform gmsh size (unit cube at spacings 0.2, 0.1,
 # 0.05: 6.4, 5.0, 4.7; cylinder: 6.1, 5.1); the estimate takes the upper end
 TETRAHEDRA_PER_CUBE = 6.5
@@ -161,10 +160,12 @@ def _check_spacing(spacing, extent: np.ndarray, name: str, volume: float | None 
     return spacing
 
 
-def _check_volume(mesh: meshio.Mesh, expected: float, spacing: float, name: str):
+def _check_volume(mesh: meshio.Mesh, expected: float, spacing: float, name: str, tolerance: float = 0.05):
+    """Refuse a mesh whose tetrahedra miss more than ``tolerance`` of the shape's volume: its
+    spacing was too coarse for the shape's curvature."""
     vm = volume_mesh(mesh, 3)
     got = float(simplex_volumes(vm.points, vm.cells).sum())
-    if abs(got - expected) > VOLUME_TOLERANCE * expected:
+    if abs(got - expected) > tolerance * expected:
         raise ValueError(f"spacing {spacing:g} is too coarse for {name}: its tetrahedra hold "
                          f"{got:.4g} of the volume {expected:.4g} ({100 * abs(got / expected - 1):.0f}% "
                          f"off); use a smaller spacing")

@@ -260,16 +260,22 @@ def write_vtu(path, points, cells, point_data: dict | None = None, field_data: d
                          f"{list(CELL_TYPES.values())} and k its vertex count, got {kind!r}, {conn.shape}")
     if conn.size and (conn.min() < 0 or conn.max() >= n):
         raise ValueError(f"cells index points outside 0..{n - 1}")
-    data = {}
-    for name, a in (point_data or {}).items():
-        a = np.asarray(a)
-        if a.ndim == 0 or a.shape[0] != n:
-            raise ValueError(f"point data {name!r} has shape {a.shape}; it needs one row per point ({n})")
-        data[name] = a.reshape(n, -1) if a.ndim > 2 else a
+    data = _point_data(point_data or {}, n)
     meshio.write(path, meshio.Mesh(_pad(P, (3,)), [(kind, conn)], point_data=data), file_format="vtu")
     if field_data:
         _add_field_data(path, field_data)
     return path
+
+
+def _point_data(point_data: dict, n: int) -> dict:
+    """The arrays with one row per point, a tensor's rows flattened row-major."""
+    data = {}
+    for name, a in point_data.items():
+        a = np.asarray(a)
+        if a.ndim == 0 or a.shape[0] != n:
+            raise ValueError(f"point data {name!r} has shape {a.shape}; it needs one row per point ({n})")
+        data[name] = a.reshape(n, -1) if a.ndim > 2 else a
+    return data
 
 
 VTK_TYPES = {"i": "Int32", "u": "UInt8", "f": "Float64"}
@@ -323,19 +329,8 @@ def write_series(path, model, solutions, times, *, deformed: bool = False, param
     index mixing old and new frames. Returns the index path."""
     path = _check_suffix(path, ".pvd", "a ParaView collection of .vtu frames")
     solutions = list(solutions)
-    t = np.asarray(times, float)
-    if t.shape != (len(solutions),):
-        raise ValueError(f"times must have one value per solution ({len(solutions)}), got shape {t.shape}")
-    if not solutions:
-        raise ValueError("solutions is empty: a series needs at least one frame")
-    if not (np.all(np.isfinite(t)) and np.all(np.diff(t) > 0)):
-        raise ValueError(f"times must be finite and strictly increasing, got {t.tolist()}")
-    if isinstance(params, (list, tuple)):
-        if len(params) != len(solutions):
-            raise ValueError(f"params must be one dict or a list of one per solution ({len(solutions)}), "
-                             f"got a list of {len(params)}")
-    else:
-        params = [params] * len(solutions)
+    t = _series_times(times, len(solutions))
+    params = _per_frame(params, len(solutions))
     frames = [_checked(model, sol, f"solutions[{k}]", p) for k, (sol, p) in enumerate(zip(solutions, params))]
     folder = path.with_suffix("")
     if path.is_dir() or (folder.exists() and not folder.is_dir()):
@@ -344,15 +339,7 @@ def write_series(path, model, solutions, times, *, deformed: bool = False, param
     path.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{path.stem}.", dir=path.parent))
     try:
-        root = ET.Element("VTKFile", type="Collection", version="0.1", byte_order="LittleEndian")
-        collection = ET.SubElement(root, "Collection")
-        (staging / "frames").mkdir()
-        for k, ((fields, record), tk) in enumerate(zip(frames, t)):
-            _write_checked(staging / "frames" / f"frame_{k:04d}.vtu", model, fields, record, deformed)
-            ET.SubElement(collection, "DataSet", timestep=repr(float(tk)), group="", part="0",
-                          file=f"{folder.name}/frame_{k:04d}.vtu")
-        ET.indent(root)
-        ET.ElementTree(root).write(staging / "index.pvd", xml_declaration=True, encoding="utf-8")
+        _stage_series(staging, folder.name, model, frames, t, deformed)
         old = staging / "old"
         if folder.exists():
             folder.rename(old)                       # the earlier frames, out of the way
@@ -365,6 +352,42 @@ def write_series(path, model, solutions, times, *, deformed: bool = False, param
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return path
+
+
+def _series_times(times, n: int) -> np.ndarray:
+    """The frames' times as floats, one per solution (at least one), finite and increasing."""
+    t = np.asarray(times, float)
+    if t.shape != (n,):
+        raise ValueError(f"times must have one value per solution ({n}), got shape {t.shape}")
+    if not n:
+        raise ValueError("solutions is empty: a series needs at least one frame")
+    if not (np.all(np.isfinite(t)) and np.all(np.diff(t) > 0)):
+        raise ValueError(f"times must be finite and strictly increasing, got {t.tolist()}")
+    return t
+
+
+def _per_frame(params, n: int) -> list:
+    """``params`` as one entry per frame: a list of n as it is, anything else repeated."""
+    if not isinstance(params, (list, tuple)):
+        return [params] * n
+    if len(params) != n:
+        raise ValueError(f"params must be one dict or a list of one per solution ({n}), "
+                         f"got a list of {len(params)}")
+    return params
+
+
+def _stage_series(staging: Path, name: str, model, frames, t, deformed) -> None:
+    """The frames into ``staging``/frames and their index, naming them under the folder
+    ``name``, into ``staging``/index.pvd."""
+    root = ET.Element("VTKFile", type="Collection", version="0.1", byte_order="LittleEndian")
+    collection = ET.SubElement(root, "Collection")
+    (staging / "frames").mkdir()
+    for k, ((fields, record), tk) in enumerate(zip(frames, t)):
+        _write_checked(staging / "frames" / f"frame_{k:04d}.vtu", model, fields, record, deformed)
+        ET.SubElement(collection, "DataSet", timestep=repr(float(tk)), group="", part="0",
+                      file=f"{name}/frame_{k:04d}.vtu")
+    ET.indent(root)
+    ET.ElementTree(root).write(staging / "index.pvd", xml_declaration=True, encoding="utf-8")
 
 
 def read_series(path) -> list[tuple[float, Path]]:

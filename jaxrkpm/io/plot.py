@@ -109,35 +109,55 @@ def contact_pressures(ax, model, sol, params=None, *, cmap="magma", vmax=None, c
     vmax = vmax or max(float(np.max(np.asarray(r.pressure))) for _, r in res) or 1.0
     sc = None
     for t, r in res:
-        on = np.asarray(r.active)
-        pts, p = np.asarray(r.points)[on], np.asarray(r.pressure)[on]
-        if model.dim == 2:
-            g = np.linspace(lo - 0.25 * span, hi + 0.25 * span, 160)
-            G = np.stack(np.meshgrid(g[:, 0], g[:, 1], indexing="ij"), -1)
-            sdf = np.asarray(t.gaps(G.reshape(-1, 2), load)).reshape(G.shape[:2])
-            ax.contourf(G[..., 0], G[..., 1], sdf, levels=[sdf.min() - 1.0, 0.0], colors=["0.8"], zorder=0)
-            ax.contour(G[..., 0], G[..., 1], sdf, levels=[0.0], colors="0.3", linewidths=1.0, zorder=1)
-            if len(pts):
-                f = np.asarray(r.point_force)[on]
-                ax.quiver(pts[:, 0], pts[:, 1], f[:, 0], f[:, 1], color="0.2", width=0.003, zorder=3)
-                sc = ax.scatter(pts[:, 0], pts[:, 1], c=p, s=12, cmap=cmap, vmin=0, vmax=vmax, zorder=4)
-        elif len(pts):
-            sc = ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c=p, s=30, cmap=cmap, vmin=0, vmax=vmax,
-                            edgecolors="k", linewidths=0.3, depthshade=False)
+        draw = _tool_2d if model.dim == 2 else _tool_3d
+        drawn = draw(ax, t, r, load, lo - 0.25 * span, hi + 0.25 * span, cmap, vmax)
+        sc = sc if drawn is None else drawn
     if model.dim == 2:
         ax.set_xlim(lo[0] - 0.25 * span, hi[0] + 0.25 * span)
         ax.set_ylim(lo[1] - 0.25 * span, hi[1] + 0.25 * span)
         ax.set_aspect("equal")
     else:
-        # the body for context, and the axes fitted to it (mplot3d does not autoscale to a
-        # scatter added alone, which left the points outside the view)
-        ax.scatter(x[:, 0], x[:, 1], x[:, 2], s=4, color="0.6", alpha=0.4, depthshade=False)
-        pad = 0.05 * span
-        ax.set(xlim=(lo[0] - pad, hi[0] + pad), ylim=(lo[1] - pad, hi[1] + pad), zlim=(lo[2] - pad, hi[2] + pad))
-        ax.set_box_aspect(hi - lo + 2 * pad)
+        _fit_3d(ax, x, lo, hi, span)
     if colorbar and sc is not None:
         _colorbar(ax, sc, "contact pressure")
     return sc
+
+
+def _tool_3d(ax, t, r, load, lo, hi, cmap, vmax):
+    """A 3D tool's active points coloured by pressure (its surface is not drawn); their
+    scatter, or None."""
+    on = np.asarray(r.active)
+    pts, p = np.asarray(r.points)[on], np.asarray(r.pressure)[on]
+    if not len(pts):
+        return None
+    return ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c=p, s=30, cmap=cmap, vmin=0, vmax=vmax,
+                      edgecolors="k", linewidths=0.3, depthshade=False)
+
+
+def _tool_2d(ax, t, r, load, lo, hi, cmap, vmax):
+    """A 2D tool's outline, filled grey where it is solid (its gap sampled over the box lo,
+    hi), and its active points with their forces; the points' scatter, or None."""
+    on = np.asarray(r.active)
+    g = np.linspace(lo, hi, 160)
+    G = np.stack(np.meshgrid(g[:, 0], g[:, 1], indexing="ij"), -1)
+    sdf = np.asarray(t.gaps(G.reshape(-1, 2), load)).reshape(G.shape[:2])
+    ax.contourf(G[..., 0], G[..., 1], sdf, levels=[sdf.min() - 1.0, 0.0], colors=["0.8"], zorder=0)
+    ax.contour(G[..., 0], G[..., 1], sdf, levels=[0.0], colors="0.3", linewidths=1.0, zorder=1)
+    pts, p = np.asarray(r.points)[on], np.asarray(r.pressure)[on]
+    if not len(pts):
+        return None
+    f = np.asarray(r.point_force)[on]
+    ax.quiver(pts[:, 0], pts[:, 1], f[:, 0], f[:, 1], color="0.2", width=0.003, zorder=3)
+    return ax.scatter(pts[:, 0], pts[:, 1], c=p, s=12, cmap=cmap, vmin=0, vmax=vmax, zorder=4)
+
+
+def _fit_3d(ax, x, lo, hi, span):
+    """The deformed body faint for context, and the axes fitted to it (mplot3d does not
+    autoscale to a scatter added alone, which left the points outside the view)."""
+    ax.scatter(x[:, 0], x[:, 1], x[:, 2], s=4, color="0.6", alpha=0.4, depthshade=False)
+    pad = 0.05 * span
+    ax.set(xlim=(lo[0] - pad, hi[0] + pad), ylim=(lo[1] - pad, hi[1] + pad), zlim=(lo[2] - pad, hi[2] + pad))
+    ax.set_box_aspect(hi - lo + 2 * pad)
 
 
 def tidy_3d_axes(ax, units: str = UNITS, ticks: int = 4):

@@ -83,6 +83,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..base.checks import positive
 from ..discretise.quadrature import Table
 from .term import Context, Pairs, Term, TermSpec, boolean_mask, static, term
 
@@ -547,9 +548,7 @@ class Contact(TermSpec):
             raise ValueError("Contact.shape must be a HalfSpace, Sphere, Capsule, Box or Arc, got "
                              f"{type(self.shape).__name__}")
         for k in ("gap", "pressure", "slip"):
-            v = getattr(self, k)
-            if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not (np.isfinite(v) and v > 0):
-                raise ValueError(f"Contact.{k} must be a positive number, got {v!r}")
+            positive(f"Contact.{k}", getattr(self, k))
         if not (isinstance(self.floor, (int, float)) and 0 < self.floor < 1):
             raise ValueError(f"Contact.floor must be in (0, 1), got {self.floor!r}")
         if not (isinstance(self.mu, (int, float, np.number)) and np.isfinite(self.mu) and self.mu >= 0):

@@ -56,7 +56,6 @@ def isochoric_invariants(C):
 # tr f(C) and the matrix function f(C) are: d tr f(C) = f'(C) : dC, and df(C) has the
 # Daleckii-Krein form Q (Γ ∘ Qᵀ dC Q) Qᵀ with Γ_ij the divided differences of f, f' at equal
 # eigenvalues. Written as custom JVPs, stress and tangent are exact at repeated stretches.
-_CLOSE = 1e-6        # relative eigenvalue gap below which Γ takes f' at the midpoint
 
 
 def _power_derivative(lam, a, n: int):
@@ -74,13 +73,15 @@ def _power_matrix(C, a, n: int):
     return (Q * _power_derivative(lam, a, n)) @ Q.T
 
 
-def _power_matrix_jvp(n, primals, tangents):
+def _power_matrix_jvp(n, primals, tangents, rel_gap: float = 1e-6):
+    """The Daleckii-Krein derivative; eigenvalues closer than ``rel_gap`` (relative) count as
+    equal (Γ takes f' at their midpoint)."""
     C, a = primals
     dC, da = tangents
     lam, Q = jnp.linalg.eigh(C)
     li, lj = lam[:, None], lam[None, :]
     gap = li - lj
-    close = jnp.abs(gap) <= _CLOSE * jnp.maximum(li, lj)
+    close = jnp.abs(gap) <= rel_gap * jnp.maximum(li, lj)
     fi, fj = _power_derivative(li, a, n), _power_derivative(lj, a, n)
     gamma = jnp.where(close, _power_derivative(0.5 * (li + lj), a, n + 1),
                       (fi - fj) / jnp.where(close, 1.0, gap))
@@ -312,29 +313,40 @@ def HolzapfelGasserOgden(mu, k1, k2, fibres: Sequence, kappa=None, *, nu=None,
     ``fibres``: one or two directions a_f, each a (3,) vector or a field X (n, d) -> (n, 3);
     they are normalised (in a 2D body, in plane strain, a fibre's out-of-plane part keeps its
     length). ``dispersion`` κ_d in [0, 1/3] (1/3: isotropic)."""
-    one = callable(fibres) or (not isinstance(fibres, str) and len(fibres) > 0
-                               and all(np.isscalar(x) for x in fibres))
-    fibres = [fibres] if one else list(fibres)
-    if not 1 <= len(fibres) <= 2:
-        raise ValueError(f"HolzapfelGasserOgden: fibres must be one or two directions, got {len(fibres)}")
+    fibres = _fibre_list(fibres)
     if isinstance(dispersion, (str, bytes, bool, np.bool_)) or not isinstance(dispersion, (int, float, np.number)) \
             or not 0.0 <= float(dispersion) <= 1.0 / 3.0:
         raise ValueError(f"HolzapfelGasserOgden: dispersion must lie in [0, 1/3], got {dispersion}")
     params = {"mu": mu, "k1": k1, "k2": k2, "dispersion": float(dispersion),
               "kappa": _kappa("HolzapfelGasserOgden", mu, kappa, nu)}
     for k, a in enumerate(fibres):
-        if callable(a):
-            field = _evaluated_once(a)
-            for i, axis in enumerate("xyz"):
-                params[f"fibre{k}_{axis}"] = (lambda X, field=field, i=i, k=k: _fibre_field(field, X, k)[:, i])
-            continue
-        a = np.asarray(a, float)
-        if a.shape != (3,) or not np.all(np.isfinite(a)) or not np.linalg.norm(a) > 0:
-            raise ValueError(f"HolzapfelGasserOgden: fibre {k} must be a nonzero finite 3-vector or a field "
-                             f"X -> (n, 3), got {a.tolist() if a.size < 10 else a.shape}")
-        params.update({f"fibre{k}_{axis}": float(a[i]) for i, axis in enumerate("xyz")})
+        params.update(_fibre_params(k, a))
     return Material(_hgo(len(fibres)), params, "HolzapfelGasserOgden",
                     positive=("mu", "k1", "k2", "kappa"), split=True)
+
+
+def _fibre_list(fibres) -> list:
+    """One or two fibre directions: a single vector or field as a list of one."""
+    one = callable(fibres) or (not isinstance(fibres, str) and len(fibres) > 0
+                               and all(np.isscalar(x) for x in fibres))
+    fibres = [fibres] if one else list(fibres)
+    if not 1 <= len(fibres) <= 2:
+        raise ValueError(f"HolzapfelGasserOgden: fibres must be one or two directions, got {len(fibres)}")
+    return fibres
+
+
+def _fibre_params(k: int, a) -> dict:
+    """The parameters fibre{k}_x, _y, _z of fibre ``k``: numbers for a constant direction, a
+    field per component for a field (evaluated once per set of points)."""
+    if callable(a):
+        field = _evaluated_once(a)
+        return {f"fibre{k}_{axis}": (lambda X, field=field, i=i, k=k: _fibre_field(field, X, k)[:, i])
+                for i, axis in enumerate("xyz")}
+    a = np.asarray(a, float)
+    if a.shape != (3,) or not np.all(np.isfinite(a)) or not np.linalg.norm(a) > 0:
+        raise ValueError(f"HolzapfelGasserOgden: fibre {k} must be a nonzero finite 3-vector or a field "
+                         f"X -> (n, 3), got {a.tolist() if a.size < 10 else a.shape}")
+    return {f"fibre{k}_{axis}": float(a[i]) for i, axis in enumerate("xyz")}
 
 
 def with_barrier(material: Material, kappa=None, *, nu=None, mu=None) -> Material:

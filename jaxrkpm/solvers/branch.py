@@ -9,9 +9,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ..base.checks import count, positive
 from .iterate import IterativeSolver, run
 from .linalg.dense import lowest_modes
-from .newton import Tolerance, _count, _positive
+from .newton import Tolerance
 from .results import Critical, Status
 
 
@@ -73,9 +74,9 @@ class StableDescent(IterativeSolver):
     collapse_det: float = 1e-3   # an iterate with det F below this is running into det F = 0
 
     def __post_init__(self):
-        _count("line_search", self.line_search)
+        count("line_search", self.line_search)
         for name in ("armijo", "shift_floor", "collapse_det"):
-            _positive(name, getattr(self, name))
+            positive(name, getattr(self, name))
 
     def _evaluate(self, problem, fixed: Fixed, v):
         (Pi, detmin), r = jax.value_and_grad(lambda x: problem.energy(x, fixed.g, fixed.load), has_aux=True)(v)
@@ -183,8 +184,8 @@ class BranchSwitch:
     def __post_init__(self):
         if not isinstance(self.descent, StableDescent):
             raise ValueError(f"descent must be a StableDescent, got {self.descent!r}")
-        _positive("amplitude", self.amplitude)
-        _count("kick_doublings", self.kick_doublings)
+        positive("amplitude", self.amplitude)
+        count("kick_doublings", self.kick_doublings)
 
     def along_mode(self, problem, u, kick, g, load):
         """u + 2**k kick for the k (0 <= k <= kick_doublings) of least energy, found by

@@ -21,26 +21,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..base.checks import count, flag, positive
 from .iterate import IterativeSolver, run, when
 from .linalg.base import LinearSolver, LinearStats, Stability
 from .linalg.dense import DenseSolver
 from .results import Status
-
-
-def _positive(name, v):
-    if isinstance(v, (bool, np.bool_)) or not (isinstance(v, (int, float, np.integer, np.floating))
-                                               and np.isfinite(v) and v > 0):
-        raise ValueError(f"{name} must be a positive number, got {v!r}")
-
-
-def _count(name, v, low=0):
-    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < low:
-        raise ValueError(f"{name} must be an int >= {low}, got {v!r}")
-
-
-def _flag(name, v):
-    if not isinstance(v, (bool, np.bool_)):
-        raise ValueError(f"{name} must be True or False, got {v!r}")
 
 
 @dataclass(frozen=True)
@@ -56,8 +41,8 @@ class Tolerance:
     roundoff: float = 100.0
 
     def __post_init__(self):
-        _positive("rtol", self.rtol)
-        _positive("roundoff", self.roundoff)
+        positive("rtol", self.rtol)
+        positive("roundoff", self.roundoff)
 
     def floor(self, stiffness):
         """The round-off floor from the problem's stiffness scale (``Problem.force_scales``)."""
@@ -161,12 +146,12 @@ class Newton(IterativeSolver):
             raise ValueError(f"linear must be a jaxrkpm linear solver, got {type(self.linear).__name__}")
         if not isinstance(self.tolerance, Tolerance):
             raise ValueError(f"tolerance must be a Tolerance, got {self.tolerance!r}")
-        _count("line_search", self.line_search)
-        _positive("armijo", self.armijo)
-        _positive("predictor_rtol", self.predictor_rtol)
+        count("line_search", self.line_search)
+        positive("armijo", self.armijo)
+        positive("predictor_rtol", self.predictor_rtol)
         if isinstance(self.reuse, (bool, np.bool_)) or not (isinstance(self.reuse, (int, float)) and 0 <= self.reuse < 1):
             raise ValueError(f"reuse must be a number in [0, 1) (0: full Newton), got {self.reuse!r}")
-        _flag("check_stability", self.check_stability)
+        flag("check_stability", self.check_stability)
 
     @property
     def rtol(self) -> float:

@@ -10,10 +10,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..base.checks import count, flag, positive
 from .branch import BranchSwitch
 from .iterate import IterativeSolver, run, when
 from .linalg.base import LinearStats
-from .newton import Newton, _count, _flag, _positive
+from .newton import Newton
 from .results import Critical, Limits, Solution, Status, Stop
 
 
@@ -119,11 +120,11 @@ class LoadPath(IterativeSolver):
     def __post_init__(self):
         if not isinstance(self.newton, Newton) or self.newton.chord:
             raise ValueError(f"newton must be a Newton solver (not a chord), got {self.newton!r}")
-        _count("easy", self.easy)
-        _positive("growth", self.growth)
-        _count("locate", self.locate)
-        _count("failed_work", self.failed_work)
-        _flag("keep_linear", self.keep_linear)
+        count("easy", self.easy)
+        positive("growth", self.growth)
+        count("locate", self.locate)
+        count("failed_work", self.failed_work)
+        flag("keep_linear", self.keep_linear)
         if self.branch is not None and not isinstance(self.branch, BranchSwitch):
             raise ValueError(f"branch must be a BranchSwitch or None, got {self.branch!r}")
 

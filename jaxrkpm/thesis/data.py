@@ -102,9 +102,8 @@ PHANTOM_3D = {
     "insertion": 0.12,                # needle advance (absolute; 6.5% of the chord)
     # patch centres over the target's half of the dome top (the target lies under the skin
     # point theta ~0.17, phi = pi), clear of the needle entry (theta ~1.05, phi = pi): the
-    # tissue above the target is what a paddle must restrain. Best patch 116x at spacing
-    # 0.15, 20.8x at 0.2, 5.75x at 0.3 (experiments/phantom3d_patch_grid.py; the old grid over
-    # the whole dome, theta 0.15..0.9 x phi +-0.8 pi: 33x, 7.2x, 6.2x)
+    # tissue above the target is what a paddle must restrain (experiments/phantom3d_patch_grid.py
+    # compares the best patch's reduction of the deviation on this grid and others)
     "theta": (0.1, 0.45, 4),          # polar angles (lo, hi, count)
     "phi": (0.4 * np.pi, 1.6 * np.pi, 5),   # azimuths (lo, hi, count; pi included): 4 x 5 = 20 patches
     "patch_radius": 0.5,              # a paddle patch: the skin within ~0.5 of its centre

@@ -100,7 +100,7 @@ class Phantom3D(NeedleTrack):
                    (``paddle_points``): start the optimiser there (``with_footprint``)
     material_law   "neo-hookean" (default: nearly incompressible neo-Hookean tissue, shear
                    modulus ``mu``, Poisson's ratio ``nu`` = 0.45), "neohookean" (compressible,
-                   ``lam`` and ``mu``: ν = 0.4, the default before), "fung" (chapter 6's law
+                   ``lam`` and ``mu``: ν = 0.4), "fung" (chapter 6's law
                    with the 3D Table 5.2 pattern) or "fung-barrier" (the same with the
                    volumetric barrier); see ``material``
     mu, lam, nu    neo-Hookean constants; alpha, beta the Fung ones
@@ -135,6 +135,15 @@ class Phantom3D(NeedleTrack):
     _cache: dict = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self):
+        self._check_line()
+        self._check_lengths()
+        if self.material_law not in MATERIALS_3D:
+            raise ValueError(f"unknown material_law {self.material_law!r}: choose {list(MATERIALS_3D)}")
+        self._check_needle_radius()
+        self._check_patches()
+
+    def _check_line(self):
+        """The phantom's semi-axes, and a needle line that crosses it above the base."""
         a = np.asarray(self.semi_axes, float)
         if a.shape != (3,) or not np.all(np.isfinite(a) & (a > 0)):
             raise ValueError(f"semi_axes must be three positive lengths, got {self.semi_axes}")
@@ -144,6 +153,10 @@ class Phantom3D(NeedleTrack):
         if self._crossing() is None:
             raise ValueError(f"the needle line through {self.needle_point} along {self.needle_axis} "
                              "must cross the phantom above the base (z > 0)")
+
+    def _check_lengths(self):
+        """Positive needle length, stiffness ratio and insertion, a target depth inside the
+        chord, and a needle that stops short of the target."""
         if not (_is_number(self.needle_length) and self.needle_length > 0):
             raise ValueError(f"needle_length must be a positive length (the needle's part inside the "
                              f"phantom, whose particles it moves), got {self.needle_length!r}")
@@ -157,8 +170,9 @@ class Phantom3D(NeedleTrack):
         if self.needle_length + self.insertion >= self.target_depth * self.chord:
             raise ValueError(f"the needle (length {self.needle_length} + insertion {self.insertion}) "
                              f"would reach the target at {self.target_depth * self.chord:.3f} along the track")
-        if self.material_law not in MATERIALS_3D:
-            raise ValueError(f"unknown material_law {self.material_law!r}: choose {list(MATERIALS_3D)}")
+
+    def _check_needle_radius(self):
+        """A positive needle radius whose surface lines all cross the phantom."""
         if not (_is_number(self.needle_radius) and self.needle_radius > 0):
             raise ValueError(f"needle_radius must be a positive length, got {self.needle_radius!r}")
         for e in self.lateral:
@@ -168,6 +182,9 @@ class Phantom3D(NeedleTrack):
                                      f"needle's surface {(sign * e).round(3).tolist()} off its axis misses the "
                                      f"body (semi-axes {tuple(self.semi_axes)}, entry height "
                                      f"{self.entry[2]:.3g} above the base)")
+
+    def _check_patches(self):
+        """A positive patch radius and a paddle footprint among the patches."""
         if not (np.isfinite(self.patch_radius) and self.patch_radius > 0):
             raise ValueError(f"patch_radius must be a positive length, got {self.patch_radius}")
         n = len(self.patch_coordinates)
@@ -350,7 +367,7 @@ class Phantom3D(NeedleTrack):
 
         Nearly incompressible neo-Hookean tissue by default (mu = 1, Poisson's ratio ``nu`` =
         0.45, W = mu/2 (I1bar - 3) + kappa/2 (ln J)^2); ``material_law="neohookean"`` the
-        compressible neo-Hookean solid (lam = 4, mu = 1: nu = 0.4) that was the default before;
+        compressible neo-Hookean solid (lam = 4, mu = 1: nu = 0.4);
         ``"fung"`` chapter 6's law with the Table 5.2 pattern extended to 3D (its tensors are
         the 2D thesis' numbers), ``"fung-barrier"`` the same with the volumetric barrier
         (:func:`jaxrkpm.thesis.needle.tissue_material`).

@@ -71,7 +71,7 @@ class _InsertionSweep:
 
     def for_chunk_size(self, size: int):
         """This evaluator with every batch padded to ``size`` members, unless it was given a
-        ``batch`` of its own (what :func:`jaxrkpm.control.sweep.sweep` asks once it knows the
+        ``batch`` of its own (what :func:`jaxrkpm.sweep` asks once it knows the
         chunk size)."""
         if self.batch is not None:
             return self
@@ -129,20 +129,11 @@ class _InsertionSweep:
         B, n, dim = len(chunk["paddle"]), self.increments, len(ph.needle_direction)
         paddle = np.asarray(chunk["paddle"], int)
         inclusion = [str(s) for s in chunk["inclusion"]]
-        columns = {"stiffness_ratio": np.asarray(chunk["stiffness_ratio"], float)}
-        for name in self.values:
-            columns[name] = np.asarray(chunk.get(name, np.full(B, getattr(ph, name))), float)
-        rows = [{k: float(v[i]) for k, v in columns.items()} for i in range(B)]
+        rows = self._rows(chunk, B)
         unused = self._unused(chunk)
         reasons = [self._invalid(paddle[i], inclusion[i], rows[i], unused) for i in range(B)]
         valid = [i for i, r in enumerate(reasons) if not r]
-        out = {"deviation": np.full((B, n), np.nan), "final_deviation": np.full(B, np.nan),
-               "target_u": np.full((B, dim), np.nan), "increment_status": np.full((B, n), -1, np.int8),
-               "iterations": np.full(B, -1, np.int64)}
-        if self.jacobian:
-            out["controllability"] = np.full(B, np.nan)
-        if self.keep_jacobians:
-            out["jacobian"] = np.full((B, n, dim, dim), np.nan)
+        out = self._empty(B, n, dim)
         status = np.array([INVALID if r else "" for r in reasons], object)
         reason = np.array(reasons, object)
         depths = ph.depths(n)
@@ -154,39 +145,68 @@ class _InsertionSweep:
             run = insert(models, depths, ph.target, jacobian_set="paddle" if self.jacobian else None,
                          direction=ph.needle_direction, batching=self.batching, n_devices=self.n_devices,
                          like=self.like)
-            k = len(part)
-            tu = np.asarray(run.target_u)[:k]                   # (k, n, d)
-            st = np.asarray(run.status)[:k]
-            dev = np.asarray(ph.deviation_of(tu))
-            out["deviation"][part] = dev
-            out["target_u"][part] = tu[:, -1]
-            out["increment_status"][part] = st
-            out["iterations"][part] = np.asarray(run.iterations)[:k].sum(axis=1)
-            ok = np.all(st == Status.CONVERGED, axis=1)
-            out["final_deviation"][part] = np.where(ok, dev[:, -1], np.nan)
-            J = np.asarray(run.jacobian)[:k]
-            for j, i in enumerate(part):
-                bad = np.flatnonzero(st[j] != Status.CONVERGED)
-                if len(bad):
-                    s = Status.of(st[j, bad[0]])
-                    status[i] = s.name
-                    reason[i] = f"increment {bad[0] + 1} of {n} (depth {depths[bad[0]]:.4g}): {s.message}"
-                else:
-                    status[i] = Status.CONVERGED.name
-                if self.jacobian and st[j, 0] == Status.CONVERGED:
-                    try:
-                        out["controllability"][i] = float(controllability(J[j, 0], ph.lateral))
-                    except np.linalg.LinAlgError:
-                        pass
-            if self.keep_jacobians:
-                out["jacobian"][part] = J
+            self._record(out, status, reason, part, run, depths)
         out["status"], out["reason"] = status, reason
         return out
+
+    def _rows(self, chunk: dict, B: int) -> list:
+        """Per configuration its stiffness ratio and material constants (the phantom's where
+        the chunk has no such column)."""
+        ph = self.phantom
+        columns = {"stiffness_ratio": np.asarray(chunk["stiffness_ratio"], float)}
+        for name in self.values:
+            columns[name] = np.asarray(chunk.get(name, np.full(B, getattr(ph, name))), float)
+        return [{k: float(v[i]) for k, v in columns.items()} for i in range(B)]
+
+    def _empty(self, B: int, n: int, dim: int) -> dict:
+        """The result columns of B configurations, n increments, before any is run."""
+        out = {"deviation": np.full((B, n), np.nan), "final_deviation": np.full(B, np.nan),
+               "target_u": np.full((B, dim), np.nan), "increment_status": np.full((B, n), -1, np.int8),
+               "iterations": np.full(B, -1, np.int64)}
+        if self.jacobian:
+            out["controllability"] = np.full(B, np.nan)
+        if self.keep_jacobians:
+            out["jacobian"] = np.full((B, n, dim, dim), np.nan)
+        return out
+
+    def _record(self, out: dict, status, reason, part: list, run, depths) -> None:
+        """The batched insertion ``run`` of the configurations ``part`` into the columns."""
+        ph = self.phantom
+        k = len(part)
+        tu = np.asarray(run.target_u)[:k]                   # (k, n, d)
+        st = np.asarray(run.status)[:k]
+        dev = np.asarray(ph.deviation_of(tu))
+        out["deviation"][part] = dev
+        out["target_u"][part] = tu[:, -1]
+        out["increment_status"][part] = st
+        out["iterations"][part] = np.asarray(run.iterations)[:k].sum(axis=1)
+        ok = np.all(st == Status.CONVERGED, axis=1)
+        out["final_deviation"][part] = np.where(ok, dev[:, -1], np.nan)
+        J = np.asarray(run.jacobian)[:k]
+        for j, i in enumerate(part):
+            status[i], reason[i] = _outcome(st[j], depths)
+            if self.jacobian and st[j, 0] == Status.CONVERGED:
+                try:
+                    out["controllability"][i] = float(controllability(J[j, 0], ph.lateral))
+                except np.linalg.LinAlgError:
+                    pass
+        if self.keep_jacobians:
+            out["jacobian"][part] = J
+
+
+def _outcome(st: np.ndarray, depths) -> tuple[str, str]:
+    """(status, reason) of one configuration from its increments' solve status: the first
+    failed increment's, else CONVERGED with no reason."""
+    bad = np.flatnonzero(st != Status.CONVERGED)
+    if not len(bad):
+        return Status.CONVERGED.name, ""
+    s = Status.of(st[bad[0]])
+    return s.name, f"increment {bad[0] + 1} of {len(st)} (depth {depths[bad[0]]:.4g}): {s.message}"
 
 
 class NeedleSweep(_InsertionSweep):
     """The evaluator of a 2D needle sweep: ``evaluate(chunk) -> columns`` for
-    :func:`jaxrkpm.control.sweep.sweep`. A configuration is a row with ``paddle`` (1-based
+    :func:`jaxrkpm.sweep`. A configuration is a row with ``paddle`` (1-based
     Table 6.2 position), ``inclusion`` (a name of ``INCLUSIONS``), ``stiffness_ratio`` and,
     optionally, ``alpha`` and ``beta`` (Fung; the phantom's where absent). A chunk's valid
     configurations are inserted in one batched call (``needle.insert``), padded to ``batch``

@@ -114,21 +114,6 @@ def region_index(points, regions) -> np.ndarray:
     return np.ravel_multi_index(tuple(cell.T), tuple(r))
 
 
-def _checked(rec: Recording, initial: dict, fit: tuple, steps: int) -> tuple:
-    """``fit``, once the calibration's input is checked (a ValueError naming what is wrong)."""
-    if len(rec) < 1:
-        raise ValueError("the recording is empty")
-    for k in fit:
-        if k not in initial:
-            raise ValueError(f"parameter {k!r} to fit has no initial value in {sorted(initial)}")
-    for k, v in initial.items():
-        if not (np.isfinite(v) and v > 0):
-            raise ValueError(f"initial {k} must be positive (log-parameters), got {v}")
-    if steps < 1:
-        raise ValueError(f"steps must be >= 1, got {steps}")
-    return fit
-
-
 def calibrate(model: Model, rec: Recording, initial: dict, *, fit=("alpha", "beta"),
               regions=None, region_reg: float = 1.0, steps: int = 40, gtol: float = 1e-6,
               max_halvings: int = 30, cp_sigma: float = 5e-4, force_rel_sigma: float = 0.01,
@@ -148,15 +133,12 @@ def calibrate(model: Model, rec: Recording, initial: dict, *, fit=("alpha", "bet
     can absorb an unmodelled inclusion; ``region_reg`` * mean(m_r^2) keeps the map
     near uniform where the data say nothing. ``progress``: a bar of the iterations on a
     terminal."""
-    fit = _checked(rec, initial, tuple(fit), steps)
+    fit = _checked_fit(rec, initial, fit, steps)
     fixed = {k: jnp.asarray(float(v)) for k, v in initial.items() if k not in fit}
     predict_all = _predictor(model, rec, solve_steps)
     cp_data, f_data = jnp.asarray(rec.cp), jnp.asarray(rec.force)
     f_sigma = force_rel_sigma * float(np.sqrt(np.mean(rec.force ** 2)) or 1.0)
-
-    if regions is not None:
-        cell = jnp.asarray(region_index(model.volume.points, regions))
-        n_regions = int(np.prod(regions))
+    cell = None if regions is None else jnp.asarray(region_index(model.volume.points, regions))
 
     def params_of(theta):
         p = {**fixed, **{k: jnp.exp(v) for k, v in theta.items() if k != "_map"}}
@@ -172,53 +154,86 @@ def calibrate(model: Model, rec: Recording, initial: dict, *, fit=("alpha", "bet
             value = value + region_reg * jnp.mean(theta["_map"] ** 2)
         return value, (cp, f, status)
 
-    # L-BFGS directions (optax) with a monotone backtracking step: the force misfit is a
-    # long curved valley in (log alpha, log beta) (both stiffen the same small-strain
-    # response), where plain gradient steps crawl. The line search is done here, with the
-    # one compiled value-and-grad, rather than inside optax's jitted zoom line search,
-    # which would trace (and compile) the N equilibrium solves several times over.
-    opt = optax.chain(optax.scale_by_lbfgs(), optax.scale(-1.0))
     value_and_grad = jax.jit(jax.value_and_grad(loss_fn, has_aux=True))
     theta = {k: jnp.log(jnp.asarray(float(initial[k]))) for k in fit}
     if regions is not None:
-        theta["_map"] = jnp.zeros(n_regions)
+        theta["_map"] = jnp.zeros(int(np.prod(regions)))
+    bar = progress_bar(int(steps), desc="calibrate", unit="iteration", progress=progress)
+    theta, first, aux, losses = _descend(value_and_grad, theta, steps, gtol, max_halvings, bar)
+    bar.close()
+    final = {k: (float(v) if jnp.ndim(v) == 0 else np.asarray(v)) for k, v in params_of(theta).items()}
+    stiffness_map = None if regions is None else np.exp(np.asarray(theta["_map"])).reshape(tuple(regions))
+    misfit = [_misfit(rec, first), _misfit(rec, aux)]
+    ok = int(first[2]) == Status.CONVERGED and int(aux[2]) == Status.CONVERGED
+    return CalibrationResult(final, {k: float(v) for k, v in initial.items()}, np.asarray(losses),
+                             (misfit[0][0], misfit[1][0]), (misfit[0][1], misfit[1][1]), bool(ok),
+                             stiffness_map)
+
+
+def _checked_fit(rec: Recording, initial: dict, fit, steps) -> tuple:
+    """The names to fit, each with a positive initial value (so are the fixed ones)."""
+    if len(rec) < 1:
+        raise ValueError("the recording is empty")
+    fit = tuple(fit)
+    for k in fit:
+        if k not in initial:
+            raise ValueError(f"parameter {k!r} to fit has no initial value in {sorted(initial)}")
+    for k, v in initial.items():
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"initial {k} must be positive (log-parameters), got {v}")
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    return fit
+
+
+def _descend(value_and_grad, theta: dict, steps: int, gtol: float, max_halvings: int, bar):
+    """Minimise by L-BFGS directions (optax) with a monotone backtracking step; returns the
+    last parameters, the first and last (cp, force, status) and the loss per step (``bar``:
+    advanced once per iteration).
+
+    Why: the force misfit is a long curved valley in (log alpha, log beta) (both stiffen the
+    same small-strain response), where plain gradient steps crawl. The line search is done
+    here, with the one compiled value-and-grad, rather than inside optax's jitted zoom line
+    search, which would trace (and compile) the N equilibrium solves several times over."""
+    opt = optax.chain(optax.scale_by_lbfgs(), optax.scale(-1.0))
     state = opt.init(theta)
     update = jax.jit(opt.update)   # run eagerly, optax's L-BFGS is hundreds of tiny dispatches
     (value, aux), grad = value_and_grad(theta)
     first = aux
     losses = [float(value)]
-    bar = progress_bar(int(steps), desc="calibrate", unit="iteration", progress=progress)
     for _ in range(int(steps)):
-        bar.update()
-        bar.set_postfix(loss=f"{float(value):.3g}")
         if float(optax.tree_utils.tree_norm(grad)) < gtol:
             break
         direction, new_state = update(grad, state, theta)
-        t = 1.0
-        for _ in range(max_halvings):
-            trial = optax.apply_updates(theta, jax.tree.map(lambda d: t * d, direction))
-            (v, a), g = value_and_grad(trial)
-            if int(a[2]) == Status.CONVERGED and np.isfinite(float(v)) and float(v) <= float(value):
-                break
-            t *= 0.5
-        else:
+        step = _backtrack(value_and_grad, theta, direction, value, max_halvings)
+        if step is None:
             break   # no descent along the L-BFGS direction: at the minimum to rounding
-        theta, state, value, grad, aux = trial, new_state, v, g, a
+        theta, value, aux, grad = step
+        state = new_state
         losses.append(float(value))
-    bar.close()
-    final = {k: (float(v) if jnp.ndim(v) == 0 else np.asarray(v)) for k, v in params_of(theta).items()}
-    stiffness_map = None if regions is None else np.exp(np.asarray(theta["_map"])).reshape(tuple(regions))
+        bar.update()
+        bar.set_postfix(loss=f"{float(value):.3g}")
+    return theta, first, aux, losses
 
-    def _misfit(a):
-        cp, f = np.asarray(a[0]), np.asarray(a[1])
-        return (float(np.sqrt(np.mean((cp - rec.cp) ** 2))),
-                float(np.sqrt(np.mean((f - rec.force) ** 2)) / np.sqrt(np.mean(rec.force ** 2))))
 
-    misfit = [_misfit(first), _misfit(aux)]
-    ok = int(first[2]) == Status.CONVERGED and int(aux[2]) == Status.CONVERGED
-    return CalibrationResult(final, {k: float(v) for k, v in initial.items()}, np.asarray(losses),
-                             (misfit[0][0], misfit[1][0]), (misfit[0][1], misfit[1][1]), bool(ok),
-                             stiffness_map)
+def _backtrack(value_and_grad, theta: dict, direction: dict, value, max_halvings: int):
+    """The first of theta + t direction, t = 1, 1/2, 1/4, ..., whose solves converge and
+    whose loss is no higher than ``value``: (theta, loss, aux, gradient); None if none is."""
+    t = 1.0
+    for _ in range(max_halvings):
+        trial = optax.apply_updates(theta, jax.tree.map(lambda d: t * d, direction))
+        (v, a), g = value_and_grad(trial)
+        if int(a[2]) == Status.CONVERGED and np.isfinite(float(v)) and float(v) <= float(value):
+            return trial, v, a, g
+        t *= 0.5
+    return None
+
+
+def _misfit(rec: Recording, aux) -> tuple[float, float]:
+    """(RMS control point error, RMS force error relative to the force's RMS) of a prediction."""
+    cp, f = np.asarray(aux[0]), np.asarray(aux[1])
+    return (float(np.sqrt(np.mean((cp - rec.cp) ** 2))),
+            float(np.sqrt(np.mean((f - rec.force) ** 2)) / np.sqrt(np.mean(rec.force ** 2))))
 
 
 def broyden_update(J: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
