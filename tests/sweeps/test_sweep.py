@@ -20,6 +20,7 @@ from jaxrkpm.sweeps.fingerprint import evaluator_key
 from jaxrkpm.sweeps.limits import MAX_CHUNK
 from jaxrkpm.sweeps.runner import sweep
 from jaxrkpm.sweeps.storage import LEGACY_SWEEP_FILE, SWEEP_FILE, SweepFolderError, chunk_path, read_sweep
+from tests.terminal import Terminal
 
 N, CHUNK = 23, 5          # five chunks, the last one short
 RAISES = 13               # the configuration whose evaluation raises
@@ -381,26 +382,12 @@ def test_a_truncated_chunk_is_named_and_redone_once_deleted(reference, tmp_path)
 
 
 # ------------------------------------------------------------------ progress
-class _Terminal:
-    """A stderr that says it is a terminal and keeps what is written."""
-
-    def __init__(self, tty=True):
-        self.text, self.tty = "", tty
-
-    def write(self, s):
-        self.text += s
-
-    def flush(self):
-        pass
-
-    def isatty(self):
-        return self.tty
 
 
 def test_the_bar_is_drawn_on_a_terminal_only_and_can_be_silenced(tmp_path, monkeypatch, capsys):
     import sys
     for tty, progress, shown in ((True, True, True), (False, True, False), (True, False, False)):
-        err = _Terminal(tty)
+        err = Terminal(tty)
         monkeypatch.setattr(sys, "stderr", err)
         out = tmp_path / f"p{tty}{progress}"
         sweep(configurations(), Square(), out, chunk_size=CHUNK, progress=progress)

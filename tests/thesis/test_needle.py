@@ -11,6 +11,7 @@ import pytest
 
 from jaxrkpm.thesis import needle as nd
 from jaxrkpm.solvers.results import Status
+from tests.terminal import Terminal
 
 INCREMENTS = 5   # the thesis' 15 run in the needle study and notebook 03 (whose test size is this one's, so
                  # the two share their compiled sweeps in the suite's cache); the findings hold at 5
@@ -179,22 +180,6 @@ def test_continuous_paddle_and_optimised_placement(phantom, sweeps):
     assert 1.0 <= opt.q <= len(phantom.paddles)
 
 
-class _Terminal:
-    """A stderr that says it is a terminal (or not: ``tty``) and keeps what is written."""
-
-    def __init__(self, tty=True):
-        self.text, self.tty = "", tty
-
-    def write(self, s):
-        self.text += s
-
-    def flush(self):
-        pass
-
-    def isatty(self):
-        return self.tty
-
-
 class _Solved:
     """A stand-in solve: converged, nothing moved."""
     status, g = 0, np.zeros(1)
@@ -267,7 +252,7 @@ def test_long_calls_show_progress_on_a_terminal(phantom, monkeypatch):
                                                                                    iterations=4, **k), "/4 [")}
     for desc, (call, count) in calls.items():
         for progress, tty in ((True, True), (False, True), (True, False)):
-            err = _Terminal(tty)
+            err = Terminal(tty)
             monkeypatch.setattr(sys, "stderr", err)
             call(progress=progress)
             monkeypatch.setattr(sys, "stderr", sys.__stderr__)
@@ -280,7 +265,7 @@ def test_an_insertion_shows_its_increments(phantom, monkeypatch):
     stand_in = type("StandIn", (), {"model": lambda self, *a: _Model(), "depths": staticmethod(phantom.depths),
                                     "needle_at": staticmethod(phantom.needle_at)})()
     for progress in (True, False):
-        err = _Terminal(True)
+        err = Terminal(True)
         monkeypatch.setattr(sys, "stderr", err)
         nd.static_state(stand_in, "none", 2, 4, progress=progress)
         monkeypatch.setattr(sys, "stderr", sys.__stderr__)

@@ -11,6 +11,7 @@ from jaxrkpm.base.outcome import Outcome
 from jaxrkpm.thesis.rigsim.calibrate import Recording, broyden_update, calibrate, region_index
 from jaxrkpm.thesis.rigsim.sim import CONTROL_POINT, ClosedLoop, Inclusion, PhysicalObject, RigSettings, RigStatus, Vision, planar_object
 from jaxrkpm.rig.stereo import MarkerCountError
+from tests.terminal import Terminal
 
 BETA = 0.02
 
@@ -168,22 +169,6 @@ def test_rig_sim_cli_writes_summary_and_figures(tmp_path, loop):
         assert (tmp_path / name).stat().st_size > 0
 
 
-class _Terminal:
-    """A stderr that says it is a terminal and keeps what is written."""
-
-    def __init__(self):
-        self.text = ""
-
-    def write(self, s):
-        self.text += s
-
-    def flush(self):
-        pass
-
-    def isatty(self):
-        return True
-
-
 def test_the_loop_and_the_calibration_show_progress(loop, monkeypatch):
     """A rig run counts its waypoints and the calibration its iterations on a terminal, and
     both are silent with progress=False (the path is held at rest and the calibration's
@@ -201,7 +186,7 @@ def test_the_loop_and_the_calibration_show_progress(loop, monkeypatch):
                                                      steps=3, **k), "/3 [")}
     for desc, (call, count) in calls.items():
         for progress in (True, False):
-            err = _Terminal()
+            err = Terminal()
             monkeypatch.setattr(sys, "stderr", err)
             call(progress=progress)
             monkeypatch.setattr(sys, "stderr", sys.__stderr__)
