@@ -19,7 +19,8 @@ Cases (``--cases``), each through the public API that both trees share:
 Per case and tree: the model's build, the first solve (compile included: the cold time), the
 warm solve (median of ``--repeats``; not for ``phantom3d``, whose call is the figure), the
 Newton iterations and a result (a displacement or force) to check that both trees solve the
-same problem. The ratio this / base of each figure is the same-run speed-up. Run from the
+same problem (``cube``, ``plate``: the first reaction's time, compile included, is
+``first_reaction_s``). The ratio this / base of each figure is the same-run speed-up. Run from the
 repository root: ``python -m experiments.bench_previous --base REV [--cases ...]``; writes a
 record (experiments/records.py) after every case (``"partial": true`` until the run ends). Figures only from a quiet machine."""
 from __future__ import annotations
@@ -86,7 +87,9 @@ def case_cube(n, repeats, **_):
 
     model, sol, out = _timed_solves(build, lambda m: m.solve({"right": jnp.array([-0.2, 0.0, 0.0])}, steps=5),
                                     repeats)
+    t0 = time.perf_counter()
     out["reaction_x"] = float(model.reaction(sol, "right")[0])
+    out["first_reaction_s"] = time.perf_counter() - t0
     return out
 
 
@@ -105,7 +108,9 @@ def case_plate(n, repeats, **_):
 
     model, sol, out = _timed_solves(build, lambda m: m.solve(params=params, steps=5), repeats)
     out["load_steps"] = int(sol.steps)
+    t0 = time.perf_counter()
     out["force_z"] = float(model.reaction(sol, "bottom", params=params)[2])
+    out["first_reaction_s"] = time.perf_counter() - t0
     return out
 
 
@@ -204,7 +209,7 @@ def main(argv=None):
                         rounds[name].append(run_child(tree, spec, a.timeout))
                         print(label, name, json.dumps(rounds[name][-1]), file=sys.stderr)
                 row = {"case": label, "spec": spec, **rounds}
-                for key in ("first_solve_s", "warm_solve_s", "build_s"):
+                for key in ("first_solve_s", "warm_solve_s", "build_s", "first_reaction_s"):
                     vals = {k: [r[key] for r in v if r.get(key) is not None] for k, v in rounds.items()}
                     if vals["base"] and vals["this"]:
                         ratios[f"{label}: {key} this/base"] = statistics.median(vals["this"]) / statistics.median(vals["base"])
