@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxrkpm.internal import BranchOnDemand, DenseSolver, Direct, LinearSolver, iterate
+from jaxrkpm.internal import BranchOnDemand, DenseSolver, Direct, IterativeSolver, LinearSolver, run
 from jaxrkpm.model.model import SolveError
 from jaxrkpm.solvers.results import Critical, Limits, Solution, Status
 from tests.problems import block
@@ -31,39 +31,42 @@ class State(NamedTuple):
     residual: jax.Array
     reference: jax.Array
     status: jax.Array
+    max_iter: jax.Array
 
 
 @dataclass(frozen=True)
-class PlainNewton:
+class PlainNewton(IterativeSolver):
     """Full Newton straight at the end values (no load steps, no line search, no predictor):
-    converged when |r| falls by ``rtol`` from its first value."""
+    converged when |r| falls by ``rtol`` from its first value; the package's solver contract
+    (``init``, ``step``, ``terminate`` -> (done, status), ``postprocess``)."""
 
     linear: LinearSolver = DenseSolver()
     rtol: float = 1e-12
 
     def init(self, problem, goal: Goal, u) -> State:
         r = problem.residual(u, goal.g, goal.load)
-        return State(jnp.array(0), u, r, jnp.linalg.norm(r), jnp.array(-1))
+        return State(jnp.array(0), u, r, jnp.linalg.norm(r), jnp.array(Status.MAX_ITERATIONS), goal.max_iter)
 
     def step(self, problem, goal: Goal, s: State) -> State:
         state = self.linear.state_at(problem, s.u, goal.g, goal.load)
         u = s.u - self.linear.solve(state, s.residual)
         r = problem.residual(u, goal.g, goal.load)
         done = jnp.linalg.norm(r) <= self.rtol * s.reference
-        status = jnp.where(done, Status.CONVERGED, jnp.where(s.iteration + 1 >= goal.max_iter, Status.MAX_ITERATIONS, -1))
-        return State(s.iteration + 1, u, r, s.reference, status)
+        status = jnp.where(done, Status.CONVERGED, Status.MAX_ITERATIONS)
+        return State(s.iteration + 1, u, r, s.reference, status, s.max_iter)
 
     def terminate(self, s: State):
-        return s.status >= 0
+        # the status it would have if stopped here: converged, or out of iterations
+        done = (s.status == Status.CONVERGED) | (s.iteration >= s.max_iter)
+        return done, s.status
 
-    def postprocess(self, problem, goal: Goal, s: State) -> Solution:
-        ok = s.status == Status.CONVERGED
-        return Solution(s.u, goal.g, goal.load, s.status, jnp.where(ok, 1.0, 0.0), s.iteration, jnp.array(1),
+    def postprocess(self, problem, goal: Goal, s: State, status) -> Solution:
+        ok = status == Status.CONVERGED
+        return Solution(s.u, goal.g, goal.load, status, jnp.where(ok, 1.0, 0.0), s.iteration, jnp.array(1),
                         jnp.array(0), jnp.linalg.norm(s.residual), jnp.array(0), Critical.empty(s.u))
 
     def solve(self, problem, lim: Limits, u0, g0, g1, l0, l1, state0=None, params0=None) -> Solution:
-        goal = Goal(g1, jnp.asarray(l1, jnp.float64), lim.max_iter)
-        return self.postprocess(problem, goal, iterate(self, problem, goal, self.init(problem, goal, u0)))
+        return run(self, problem, Goal(g1, jnp.asarray(l1, jnp.float64), lim.max_iter), u0)
 
 
 @pytest.fixture(scope="module")
