@@ -351,18 +351,15 @@ class StrainEnergy(Term):
         return replace(self, pair_id=jnp.asarray(ids, jnp.int32))
 
 
-# lam / mu from which an energy written with Lame constants locks: Poisson's ratio 0.45
-LOCKING_LAME_RATIO = 9.0
-
-
-def needs_anti_locking(material: Material, point: dict) -> bool:
+def needs_anti_locking(material: Material, point: dict, lame_ratio: float = 9.0) -> bool:
     """Whether ``material`` (its parameters at the points) is nearly incompressible: an energy
     with a volumetric-deviatoric split (``Material.split``), or one written with Lame constants
-    whose lam / mu reaches ``LOCKING_LAME_RATIO`` (Poisson's ratio 0.45) somewhere."""
+    whose lam / mu reaches ``lame_ratio`` somewhere (9: Poisson's ratio 0.45, from which such an
+    energy locks)."""
     if material.split:
         return True
     if "lam" in point and "mu" in point:
-        return bool(np.any(np.asarray(point["lam"]) >= LOCKING_LAME_RATIO * np.asarray(point["mu"])))
+        return bool(np.any(np.asarray(point["lam"]) >= lame_ratio * np.asarray(point["mu"])))
     return False
 
 
