@@ -139,15 +139,11 @@ def one_at_a_time(factorise):
     with a batching rule that runs the members of a vmapped batch one after another
     (``lax.map``), each an unbatched LAPACK call.
 
-    Why: jaxlib 0.10's batched CPU LAPACK kernels split the batch over XLA's intra-op thread
-    pool and block the calling pool thread until the pieces are done (``ParallelBatchMap``).
-    XLA runs independent operations side by side on that pool, so two batched LAPACK calls
-    at once (the Cholesky and the LU of a vmapped DenseSolver, or the triangular solves of
-    its two branches: ``lapack_dtrsm_ffi``, seen in gdb in a hung vmapped needle sweep) can
-    occupy every pool thread (two on a 2-core machine) with waiting, and nothing is left to
-    run the pieces: a deadlock
-    (tests/base/test_threads.py keeps the reduced pattern; experiments/vmap_deadlock.py
-    reproduces it). Unbatched calls never wait on the pool.
+    Why: jaxlib's batched CPU LAPACK kernels split the batch over XLA's intra-op thread pool
+    and block the calling pool thread until the pieces are done, so two batched LAPACK calls
+    at once can occupy every pool thread with waiting: a deadlock (reproduced by
+    ``experiments/vmap_deadlock.py``; ``tests/base/test_threads.py`` keeps the pattern).
+    Unbatched calls never wait on the pool.
 
     Only on CPU: elsewhere (GPU) the batch goes to the native batched factorisation in one
     call (``lax.platform_dependent``), where a member-by-member loop would serialise the
