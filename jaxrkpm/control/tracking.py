@@ -733,7 +733,7 @@ def _check_track_options(gain, clamp, tol, damping, max_iter, max_steps, window,
     if not (np.isfinite(damping) and damping >= 0):
         raise ValueError(f"damping must be a finite number >= 0, got {damping}")
     for name, v in (("max_iter", max_iter), ("max_steps", max_steps), ("window", window)):
-        _count(name, v, 1)
+        count(name, v, 1)
     if not (reuse is None or (isinstance(reuse, (int, float)) and 0 <= reuse < 1)):
         raise ValueError(f"reuse must be None or a number in [0, 1) (0: factorise at every iteration), "
                          f"got {reuse!r}")
