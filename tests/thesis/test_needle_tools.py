@@ -74,6 +74,9 @@ def test_frictionless_gradient_matches_finite_differences(phantom, frictionless)
     assert run.final > 0 and J[0, 1] < 0
 
 
+@pytest.mark.slow(reason="five frictional insertions for the derivative with the lag replayed; the "
+                         "frictionless one checks the same path derivative against differences in the "
+                         "default run, and the suite keeps its time")
 def test_frictional_gradient_matches_finite_differences(phantom):
     """With friction (mu 0.3), the path derivative with the lag's fixed point replayed (30
     sweeps per increment) against central differences of whole insertions."""
